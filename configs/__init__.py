@@ -1,0 +1,1 @@
+"""omegaconf YAML defaults, installed as ``physcene.configs``; see :mod:`physcene.config`."""

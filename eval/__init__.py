@@ -1,0 +1,1 @@
+"""Evaluation harness (installed as ``physcene.eval``): metrics, judges, renders, reports."""

@@ -1,0 +1,1 @@
+"""Warp kernels and their host launchers: the only place in physcene that imports ``warp``."""

@@ -1,0 +1,1 @@
+"""Subcommands of ``physcene``: one module each (see :mod:`physcene.cli`)."""

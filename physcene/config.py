@@ -1,0 +1,55 @@
+"""One config system: omegaconf YAML files under ``configs/`` overridden by ``key=value`` pairs.
+
+``load_config("tto", ["steps=50", "lambda_sdf=20"])`` reads ``configs/tto.yaml`` (installed as the
+package ``physcene.configs``) and merges the dotlist over it. A name that ends in ``.yaml`` or
+contains a path separator is read as a file path instead.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from importlib import resources
+from pathlib import Path
+
+from omegaconf import DictConfig, OmegaConf
+
+__all__ = ["ConfigError", "config_path", "load_config", "split_overrides"]
+
+
+class ConfigError(ValueError):
+    """A config name, file or override was wrong."""
+
+
+def config_path(name: str) -> Path:
+    """Where the config ``name`` lives (a file path is returned as given)."""
+    if name.endswith((".yaml", ".yml")) or "/" in name:
+        path = Path(name)
+        if not path.is_file():
+            raise ConfigError(f"config file {name!r} does not exist")
+        return path
+    base = resources.files("physcene.configs")
+    for candidate in (f"{name}.yaml", f"{name}.yml"):
+        entry = base / candidate
+        if entry.is_file():
+            return Path(str(entry))
+    known = sorted(p.name.rsplit(".", 1)[0] for p in base.iterdir() if p.name.endswith(".yaml"))
+    raise ConfigError(f"unknown config {name!r}; known: {', '.join(known)}")
+
+
+def load_config(name: str, overrides: Sequence[str] = ()) -> DictConfig:
+    """The config ``name`` with ``key=value`` overrides merged over it."""
+    cfg = OmegaConf.load(config_path(name))
+    bad = [o for o in overrides if "=" not in o]
+    if bad:
+        raise ConfigError(f"overrides must be key=value, got {bad}")
+    try:
+        return OmegaConf.merge(cfg, OmegaConf.from_dotlist(list(overrides)))
+    except Exception as exc:  # omegaconf raises several types for malformed overrides
+        raise ConfigError(f"bad override in {list(overrides)}: {exc}") from exc
+
+
+def split_overrides(args: Sequence[str]) -> tuple[list[str], list[str]]:
+    """Split CLI leftovers into (``key=value`` overrides, other arguments)."""
+    overrides = [a for a in args if "=" in a and not a.startswith("-")]
+    rest = [a for a in args if a not in overrides]
+    return overrides, rest
