@@ -1,0 +1,1 @@
+"""Benchmark data: synthetic MesaTask-style scenes, noise, instructions, MesaTask-CTRC construction."""
