@@ -15,7 +15,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-__all__ = ["RELATIONS", "Scene", "SceneError", "SceneObject", "Zone", "TABLE"]
+__all__ = ["RELATIONS", "Scene", "SceneError", "SceneObject", "Zone", "TABLE", "wrap_angle"]
 
 # Parent id used for objects that rest on (or near) the table itself.
 TABLE = "root_zone"
@@ -26,14 +26,28 @@ RELATIONS = ("in", "on", "near")
 class SceneError(ValueError):
     """A scene (or one of its objects) is invalid.
 
-    ``obj`` is the offending instance id (or None for scene-level fields); ``field`` the field.
+    ``obj`` is the offending instance id (or None for scene-level fields); ``field`` the field;
+    ``source`` the file (or other input) it came from, when known. ``detail`` is the bare message.
     """
 
-    def __init__(self, message: str, *, obj: str | None = None, field: str | None = None):
+    def __init__(self, message: str, *, obj: str | None = None, field: str | None = None,
+                 source: str | None = None):
         self.obj = obj
         self.field = field
-        where = ", ".join(p for p in (f"object {obj!r}" if obj else "", f"field {field!r}" if field else "") if p)
+        self.source = source
+        self.detail = message
+        where = ", ".join(p for p in (source or "", f"object {obj!r}" if obj else "",
+                                      f"field {field!r}" if field else "") if p)
         super().__init__(f"{where}: {message}" if where else message)
+
+    def with_source(self, source: str) -> SceneError:
+        """The same error, now also naming the input it came from."""
+        return SceneError(self.detail, obj=self.obj, field=self.field, source=source)
+
+
+def wrap_angle(angle: float) -> float:
+    """``angle`` (rad) wrapped to [-pi, pi)."""
+    return float((angle + math.pi) % (2.0 * math.pi) - math.pi)
 
 
 def _finite_vector(value, n: int, *, obj: str | None, name: str) -> tuple[float, ...]:
@@ -151,7 +165,8 @@ class SceneObject:
     def aabb(self) -> np.ndarray:
         """World axis-aligned box of the yawed object: [xmin, xmax, ymin, ymax, zmin, zmax] cm."""
         fp = self.footprint()
-        return np.array([fp[:, 0].min(), fp[:, 0].max(), fp[:, 1].min(), fp[:, 1].max(), self.zmin, self.zmax])
+        return np.array([fp[:, 0].min(), fp[:, 0].max(), fp[:, 1].min(), fp[:, 1].max(),
+                         self.zmin, self.zmax])
 
     def volume(self) -> float:
         return self.size[0] * self.size[1] * self.size[2]

@@ -1,0 +1,315 @@
+"""MesaTask ``layout.json`` reader and writer (centimetres).
+
+A MesaTask layout is a JSON object::
+
+    {"item_placement_zone": [xmin, xmax, ymin, ymax],
+     "restricted_zone": [xmin, xmax, ymin, ymax] | [[...], ...] | [],
+     "sink_zone": same shape as restricted_zone (optional),
+     "scene_type": "...", "instruction": "..." (optional),
+     "objects": [{"instance": "1_teapot_0", "position": [x, y, z], "size": [w, d, h],
+                  "rotation": [qx, qy, qz, qw], "z_rotation": yaw_rad,
+                  "retrieved_uid": "...", "description": "..."}, ...]
+                | {"1_teapot_0": {...}, ...}}
+
+``position`` is the box centre, ``size`` the extents in the object's own frame. When both are
+given, the quaternion ``rotation`` decides the yaw (``z_rotation`` is a derived convenience field
+that MesaTask files do not always keep in sync). Roll and pitch, if any, are dropped: the scene
+model is yaw-only. ``restricted_zone`` and ``sink_zone`` both become ``Scene.restricted_zones``.
+Optional ``parent``/``relation`` keys (written by :func:`layout_to_dict` for scenes that carry a
+hierarchy) are read back.
+
+Every error is a :class:`~physcene.scene.SceneError` naming the file, the object and the field.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import re
+import tempfile
+from collections.abc import Iterator
+from pathlib import Path
+
+from physcene.scene import Scene, SceneError, SceneObject, Zone
+
+__all__ = [
+    "PRIMITIVE_CATEGORIES",
+    "category_from_instance",
+    "iter_layout_tree",
+    "layout_to_dict",
+    "load_layout",
+    "quaternion_to_yaw",
+    "read_layout",
+    "write_layout",
+    "yaw_to_quaternion",
+]
+
+# Instances named ``box_*``, ``cylinder_*``, ``sphere_*`` are exact primitives, whatever follows.
+PRIMITIVE_CATEGORIES = ("box", "cylinder", "sphere")
+# Keys of a layout object that the reader understands; anything else is kept in Scene.meta.
+_OBJECT_KEYS = {"instance", "position", "size", "rotation", "z_rotation", "retrieved_uid",
+                "description", "category", "parent", "relation"}
+_SCENE_KEYS = {"item_placement_zone", "restricted_zone", "sink_zone", "scene_type", "instruction",
+               "objects"}
+_LEADING_INDEX = re.compile(r"^\d+_")
+_TRAILING_INDEX = re.compile(r"_\d+$")
+
+
+def category_from_instance(name: str) -> str:
+    """The category of a MesaTask instance name: ``"1_teapot_0"`` and ``"teapot_0"`` -> ``"teapot"``.
+
+    A leading ``<n>_`` (MesaTask's object index) and a trailing ``_<n>`` (the copy number) are
+    dropped. Names starting with ``box_``, ``cylinder_`` or ``sphere_`` (after the index) give
+    exactly that primitive category.
+    """
+    stem = _LEADING_INDEX.sub("", name.strip()) or name.strip()
+    for kind in PRIMITIVE_CATEGORIES:
+        if stem == kind or stem.startswith(kind + "_"):
+            return kind
+    return _TRAILING_INDEX.sub("", stem) or stem
+
+
+def quaternion_to_yaw(q) -> float:
+    """Yaw (rad, about +z) of a quaternion [x, y, z, w]; raises ValueError if it has no length."""
+    x, y, z, w = (float(v) for v in q)
+    norm = math.sqrt(x * x + y * y + z * z + w * w)
+    if not math.isfinite(norm) or norm < 1e-12:
+        raise ValueError(f"quaternion {list(q)} has no usable length")
+    x, y, z, w = x / norm, y / norm, z / norm, w / norm
+    return math.atan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))
+
+
+def yaw_to_quaternion(yaw: float) -> list[float]:
+    """The quaternion [x, y, z, w] of a pure rotation by ``yaw`` rad about +z."""
+    return [0.0, 0.0, math.sin(0.5 * yaw), math.cos(0.5 * yaw)]
+
+
+def _number_list(value, n: int, *, obj: str | None, field: str, source: str) -> list[float]:
+    if not isinstance(value, (list, tuple)) or len(value) != n:
+        raise SceneError(f"expected a list of {n} numbers, got {value!r:.80}", obj=obj, field=field,
+                         source=source)
+    out = []
+    for v in value:
+        if isinstance(v, bool) or not isinstance(v, (int, float)):
+            raise SceneError(f"expected numbers, got {v!r:.40}", obj=obj, field=field, source=source)
+        if not math.isfinite(float(v)):
+            raise SceneError(f"non-finite value {v!r}", obj=obj, field=field, source=source)
+        out.append(float(v))
+    return out
+
+
+def _rects(value, *, field: str, source: str) -> list[Zone]:
+    """One rect [xmin, xmax, ymin, ymax], a list of rects, or nothing (None / [] / {})."""
+    if value is None or value == [] or value == {}:
+        return []
+    if isinstance(value, (list, tuple)) and value and all(isinstance(v, (int, float)) for v in value):
+        value = [value]
+    if not isinstance(value, (list, tuple)):
+        raise SceneError(f"expected [xmin, xmax, ymin, ymax] or a list of them, got {value!r:.80}",
+                         field=field, source=source)
+    zones = []
+    for i, rect in enumerate(value):
+        vals = _number_list(rect, 4, obj=None, field=f"{field}[{i}]", source=source)
+        try:
+            zones.append(Zone.from_list(vals, field=f"{field}[{i}]"))
+        except SceneError as exc:
+            raise exc.with_source(source) from None
+    return zones
+
+
+def _object_items(objects, source: str) -> list[tuple[str, dict]]:
+    if isinstance(objects, dict):
+        items = []
+        for key, entry in objects.items():
+            if not isinstance(entry, dict):
+                raise SceneError(f"expected an object, got {type(entry).__name__}", obj=str(key),
+                                 field="objects", source=source)
+            items.append((str(entry.get("instance", key)), entry))
+        return items
+    if isinstance(objects, list):
+        items = []
+        for i, entry in enumerate(objects):
+            if not isinstance(entry, dict):
+                raise SceneError(f"expected an object, got {type(entry).__name__}", field=f"objects[{i}]",
+                                 source=source)
+            name = entry.get("instance")
+            if not isinstance(name, str) or not name.strip():
+                raise SceneError(f"missing or empty instance name {name!r:.40}",
+                                 field=f"objects[{i}].instance", source=source)
+            items.append((name, entry))
+        return items
+    raise SceneError(f"expected a list or a dict of objects, got {type(objects).__name__}", field="objects",
+                     source=source)
+
+
+def _optional_str(entry: dict, key: str, *, obj: str, source: str) -> str | None:
+    value = entry.get(key)
+    if value is None:
+        return None
+    if not isinstance(value, (str, int)) or isinstance(value, bool):
+        raise SceneError(f"expected a string, got {value!r:.40}", obj=obj, field=key, source=source)
+    return str(value)
+
+
+def _load_object(name: str, entry: dict, source: str) -> SceneObject:
+    position = _number_list(entry.get("position"), 3, obj=name, field="position", source=source)
+    size = _number_list(entry.get("size"), 3, obj=name, field="size", source=source)
+    yaw = None
+    if entry.get("rotation") is not None:
+        quat = _number_list(entry["rotation"], 4, obj=name, field="rotation", source=source)
+        try:
+            yaw = quaternion_to_yaw(quat)
+        except ValueError:
+            yaw = None  # a zero quaternion says nothing: fall back to z_rotation
+    if yaw is None and entry.get("z_rotation") is not None:
+        yaw = _number_list([entry["z_rotation"]], 1, obj=name, field="z_rotation", source=source)[0]
+    if yaw is None and entry.get("rotation") is not None:
+        raise SceneError("zero-length quaternion and no z_rotation", obj=name, field="rotation",
+                         source=source)
+    category = _optional_str(entry, "category", obj=name, source=source) or category_from_instance(name)
+    try:
+        return SceneObject(
+            instance_id=name,
+            category=category,
+            center=tuple(position),
+            size=tuple(size),
+            yaw=float(yaw or 0.0),
+            description=_optional_str(entry, "description", obj=name, source=source) or "",
+            asset_id=_optional_str(entry, "retrieved_uid", obj=name, source=source),
+            parent=_optional_str(entry, "parent", obj=name, source=source),
+            relation=_optional_str(entry, "relation", obj=name, source=source),
+        )
+    except SceneError as exc:
+        raise exc.with_source(source) from None
+
+
+def load_layout(data: dict, *, source: str = "<dict>", scene_type: str | None = None) -> Scene:
+    """A :class:`Scene` from a parsed MesaTask layout dict (cm). ``scene_type`` fills a missing one."""
+    if not isinstance(data, dict):
+        raise SceneError(f"expected a JSON object at the top level, got {type(data).__name__}", source=source)
+    if "item_placement_zone" not in data:
+        raise SceneError("missing", field="item_placement_zone", source=source)
+    zone_vals = _number_list(data["item_placement_zone"], 4, obj=None, field="item_placement_zone",
+                             source=source)
+    try:
+        zone = Zone.from_list(zone_vals, field="item_placement_zone")
+    except SceneError as exc:
+        raise exc.with_source(source) from None
+    restricted = _rects(data.get("restricted_zone"), field="restricted_zone", source=source)
+    restricted += _rects(data.get("sink_zone"), field="sink_zone", source=source)
+    items = _object_items(data.get("objects", []), source)
+    objects = [_load_object(name, entry, source) for name, entry in items]
+    for key in ("scene_type", "instruction"):
+        if data.get(key) is not None and not isinstance(data[key], str):
+            raise SceneError(f"expected a string, got {data[key]!r:.40}", field=key, source=source)
+    meta = {k: v for k, v in data.items() if k not in _SCENE_KEYS}
+    meta["source"] = source
+    try:
+        return Scene(zone=zone, objects=tuple(objects), scene_type=data.get("scene_type") or scene_type or "",
+                     instruction=data.get("instruction") or "", restricted_zones=tuple(restricted), meta=meta)
+    except SceneError as exc:
+        raise exc.with_source(source) from None
+
+
+def read_layout(path, *, scene_type: str | None = None) -> Scene:
+    """Read a MesaTask ``layout.json``; errors name the file, the object and the field."""
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except UnicodeDecodeError as exc:
+        raise SceneError(f"not UTF-8 text ({exc.reason})", source=str(path)) from None
+    try:
+        data = json.loads(text, parse_constant=_reject_constant)
+    except json.JSONDecodeError as exc:
+        raise SceneError(f"invalid JSON at line {exc.lineno} column {exc.colno}: {exc.msg}",
+                         source=str(path)) from None
+    except (ValueError, RecursionError) as exc:
+        raise SceneError(f"invalid JSON: {exc}", source=str(path)) from None
+    return load_layout(data, source=str(path), scene_type=scene_type)
+
+
+def _reject_constant(name: str):
+    raise ValueError(f"non-finite number {name} is not allowed")
+
+
+def _round(v: float) -> float:
+    # Full float precision (JSON's repr round-trips exactly); only -0.0 is normalised.
+    v = float(v)
+    return 0.0 if v == 0 else v
+
+
+def layout_to_dict(scene: Scene) -> dict:
+    """The MesaTask layout dict of ``scene`` (cm): ``instance``, ``position``, ``size``,
+    ``rotation`` [x, y, z, w], ``z_rotation``, ``retrieved_uid``, ``description`` per object.
+
+    ``category`` is written only where it differs from what the instance name implies;
+    ``parent``/``relation`` only where the scene carries them.
+    """
+    objects = []
+    for o in scene.objects:
+        entry = {
+            "instance": o.instance_id,
+            "position": [_round(v) for v in o.center],
+            "size": [_round(v) for v in o.size],
+            "rotation": [_round(v) for v in yaw_to_quaternion(o.yaw)],
+            "z_rotation": _round(o.yaw),
+            "retrieved_uid": o.asset_id,
+            "description": o.description,
+        }
+        if o.category != category_from_instance(o.instance_id):
+            entry["category"] = o.category
+        if o.parent is not None:
+            entry["parent"] = o.parent
+        if o.relation is not None:
+            entry["relation"] = o.relation
+        objects.append(entry)
+    out: dict = {}
+    if scene.scene_type:
+        out["scene_type"] = scene.scene_type
+    if scene.instruction:
+        out["instruction"] = scene.instruction
+    out["item_placement_zone"] = [_round(v) for v in scene.zone.to_list()]
+    out["restricted_zone"] = [[_round(v) for v in z.to_list()] for z in scene.restricted_zones]
+    out["objects"] = objects
+    return out
+
+
+def write_layout(scene: Scene, path) -> Path:
+    """Write ``scene`` as a MesaTask ``layout.json`` atomically (temp file, then rename)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    text = json.dumps(layout_to_dict(scene), indent=2, allow_nan=False) + "\n"
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "w", encoding="utf-8") as fh:
+            fh.write(text)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    return path
+
+
+def iter_layout_tree(root, *, skip_errors: bool = False) -> Iterator[tuple[Path, Scene]]:
+    """Every ``<table_type>/<scene>/layout.json`` under ``root`` (MesaTask's ``Layout_info``).
+
+    ``root`` may be the ``Layout_info`` folder itself or a folder containing it. A layout without
+    ``scene_type`` gets its table-type folder name (underscores read as spaces). Files come in
+    sorted order; with ``skip_errors`` broken files are skipped instead of raising.
+    """
+    root = Path(root)
+    if not root.is_dir():
+        raise FileNotFoundError(f"layout tree {str(root)!r} is not a directory")
+    if (root / "Layout_info").is_dir():
+        root = root / "Layout_info"
+    for path in sorted(root.rglob("layout.json")):
+        rel = path.relative_to(root).parts
+        table_type = rel[-3].replace("_", " ") if len(rel) >= 3 else None
+        try:
+            scene = read_layout(path, scene_type=table_type)
+        except (SceneError, OSError):
+            if skip_errors:
+                continue
+            raise
+        yield path, scene

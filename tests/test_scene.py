@@ -1,0 +1,75 @@
+"""Scene model validation: every error names the object and the field."""
+
+import math
+
+import numpy as np
+import pytest
+
+from physcene.scene import TABLE, Scene, SceneError, SceneObject, Zone, wrap_angle
+
+ZONE = Zone(0.0, 100.0, 0.0, 60.0)
+
+
+def _obj(iid="cup_0", **kw):
+    args = dict(instance_id=iid, category="cup", center=(10.0, 10.0, 5.0), size=(8.0, 8.0, 10.0))
+    args.update(kw)
+    return SceneObject(**args)
+
+
+@pytest.mark.parametrize("kw, field", [
+    (dict(center=(1.0, float("nan"), 2.0)), "center"),
+    (dict(center=(1.0, float("inf"), 2.0)), "center"),
+    (dict(size=(1.0, 0.0, 2.0)), "size"),
+    (dict(size=(1.0, -3.0, 2.0)), "size"),
+    (dict(size=(1.0, 2.0)), "size"),
+    (dict(yaw=float("nan")), "yaw"),
+    (dict(category=""), "category"),
+    (dict(relation="under"), "relation"),
+    (dict(parent="cup_0"), "parent"),
+])
+def test_object_validation_names_object_and_field(kw, field):
+    with pytest.raises(SceneError) as info:
+        _obj(**kw)
+    assert info.value.obj == "cup_0" and info.value.field == field
+    assert "cup_0" in str(info.value) and field in str(info.value)
+
+
+def test_scene_validation():
+    with pytest.raises(SceneError, match="duplicate") as info:
+        Scene(ZONE, (_obj(), _obj()))
+    assert info.value.obj == "cup_0"
+    with pytest.raises(SceneError, match="unknown parent") as info:
+        Scene(ZONE, (_obj(parent="ghost"),))
+    assert info.value.field == "parent"
+    with pytest.raises(SceneError, match="cycle"):
+        Scene(ZONE, (_obj("a", parent="b", relation="on"), _obj("b", parent="c", relation="on"),
+                     _obj("c", parent="a", relation="on")))
+    with pytest.raises(SceneError, match="zone"):
+        Zone.from_list([5, 1, 0, 1])
+    ok = Scene(ZONE, (_obj("a", parent=TABLE, relation="near"), _obj("b", parent="a", relation="on")))
+    assert ok.has_hierarchy and [o.instance_id for o in ok.children("a")] == ["b"]
+
+
+def test_geometry_and_poses():
+    o = _obj(size=(4.0, 2.0, 10.0), yaw=math.pi / 2)
+    box = o.aabb()
+    np.testing.assert_allclose(box, [9, 11, 8, 12, 0, 10], atol=1e-12)
+    scene = Scene(ZONE, (o, _obj("b")))
+    poses = scene.poses()
+    assert poses.shape == (2, 4) and scene.sizes().shape == (2, 3)
+    moved = scene.with_poses(poses + np.array([1.0, 0, 0, 0]))
+    assert moved.get("b").center[0] == 11.0
+    with pytest.raises(SceneError, match="poses"):
+        scene.with_poses(poses[:1])
+
+
+def test_wrap_angle():
+    for a in (-7.0, -math.pi, 0.0, 3.0, math.pi, 10.0):
+        w = wrap_angle(a)
+        assert -math.pi <= w < math.pi and math.isclose(math.cos(w), math.cos(a), abs_tol=1e-12)
+        assert math.isclose(math.sin(w), math.sin(a), abs_tol=1e-12)
+
+
+def test_source_in_error():
+    err = SceneError("bad", obj="x", field="size").with_source("a.json")
+    assert str(err) == "a.json, object 'x', field 'size': bad"
