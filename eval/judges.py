@@ -1,0 +1,518 @@
+"""Judges scoring the paper's five criteria (CwT, OSR, PPI, LCR, OV) on a 1-10 scale.
+
+- :class:`RuleJudge` (offline default) scores from the layout, the request (instruction, object
+  list, stated relations) and the engine's physics facts. Formulas: docs/eval.md.
+- :class:`EndpointJudge` asks any OpenAI-compatible chat-completions endpoint with image input,
+  using the paper's Prompts 4-5 verbatim and the front + perspective renders; it parses the JSON
+  scores, retries with exponential backoff and caches answers on disk by content hash.
+
+Both return a dict ``{"CwT": .., "OSR": .., "PPI": .., "LCR": .., "OV": .., "avg": ..}``; a judge
+that cannot produce scores returns ``{"error": reason}`` (and ``avg`` NaN) instead of raising.
+"""
+
+from __future__ import annotations
+
+import base64
+import hashlib
+import json
+import math
+import os
+import re
+import time
+import urllib.error
+import urllib.request
+from collections import Counter
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+from physcene.eval.metrics import CRITERIA, ScenePhysics
+
+from physcene.assets import CATEGORY_ALIASES, CATEGORY_PRIORS
+from physcene.scene import TABLE, Scene
+
+__all__ = ["EndpointJudge", "EvalCase", "JudgeError", "LayoutStats", "RuleJudge", "SYSTEM_PROMPT",
+           "USER_PROMPT", "canonical_category", "layout_features", "parse_judge_reply"]
+
+
+class JudgeError(ValueError):
+    """A judge was configured wrongly (bad URL, bad cache directory ...)."""
+
+
+def canonical_category(category: str) -> str:
+    """Lower-snake, alias-resolved category name (``Coffee Mug`` -> ``mug``)."""
+    key = re.sub(r"[^a-z0-9]+", "_", category.strip().lower()).strip("_")
+    return CATEGORY_ALIASES.get(key, key)
+
+
+def _role(category: str) -> str:
+    prior = CATEGORY_PRIORS.get(canonical_category(category))
+    return prior.role if prior else "object"
+
+
+@dataclass(frozen=True)
+class EvalCase:
+    """What a generator was asked for: the judge's view of one benchmark request."""
+
+    instruction: str
+    scene_type: str
+    requested: tuple[str, ...]
+    """Requested object categories (canonical, one entry per instance)."""
+    relations: tuple[tuple[str, str, str], ...] = ()
+    """Stated relations (child category, "in"|"on", parent category)."""
+
+    @classmethod
+    def from_reference(cls, scene: Scene) -> EvalCase:
+        """The request behind a reference layout: its objects and its in/on relations."""
+        return cls(scene.instruction, scene.scene_type,
+                   tuple(canonical_category(o.category) for o in scene.objects), stated_relations(scene))
+
+
+def stated_relations(scene: Scene) -> tuple[tuple[str, str, str], ...]:
+    """(child category, relation, parent category) of every ``in``/``on`` edge of the hierarchy
+    (built with :func:`physcene.graph.build_hierarchy` when the scene carries none)."""
+    if not scene.has_hierarchy:
+        from physcene.graph import build_hierarchy  # the scene-language owner's thresholds
+
+        scene = build_hierarchy(scene)
+    by_id = scene.by_id()
+    rels = []
+    for o in scene.objects:
+        if o.relation in ("in", "on") and o.parent not in (None, TABLE) and o.parent in by_id:
+            parent = canonical_category(by_id[o.parent].category)
+            rels.append((canonical_category(o.category), o.relation, parent))
+    return tuple(sorted(rels))
+
+
+# --------------------------------------------------------------------------------------------
+# Layout statistics for LCR
+# --------------------------------------------------------------------------------------------
+LCR_FEATURES = ("coverage", "nn_spacing", "spread", "edge_fraction")
+# Lower bounds on each feature's spread so a tiny reference set does not make LCR brittle.
+_FEATURE_STD_FLOOR = {"coverage": 0.05, "nn_spacing": 0.03, "spread": 0.04, "edge_fraction": 0.12}
+_EDGE_BAND_CM = 3.0
+
+
+def layout_features(scene: Scene) -> dict[str, float]:
+    """Density, spacing and spread of the table-level objects (those whose bottom is within 1 cm
+    of the table): ``coverage`` = Σ footprint area / zone area; ``nn_spacing`` = mean
+    nearest-neighbour centre distance / zone diagonal; ``spread`` = RMS distance of centres from
+    their centroid / zone half-diagonal; ``edge_fraction`` = share of objects whose footprint lies
+    within 3 cm of the zone boundary."""
+    z = scene.zone
+    base = [o for o in scene.objects if o.zmin < 1.0] or list(scene.objects)
+    if not base:
+        return {k: 0.0 for k in LCR_FEATURES}
+    diag = math.hypot(z.width, z.depth)
+    xy = np.array([o.center[:2] for o in base])  # (n, 2)
+    coverage = sum(o.size[0] * o.size[1] for o in base) / (z.width * z.depth)
+    if len(base) > 1:
+        d = np.linalg.norm(xy[:, None] - xy[None], axis=-1) + np.eye(len(base)) * 1e9
+        nn = float(d.min(axis=1).mean()) / diag
+    else:
+        nn = 0.0
+    spread = float(np.sqrt(((xy - xy.mean(axis=0)) ** 2).sum(axis=1).mean())) / (0.5 * diag)
+    edge = 0
+    for o in base:
+        fp = o.footprint()
+        gap = min(fp[:, 0].min() - z.xmin, z.xmax - fp[:, 0].max(),
+                  fp[:, 1].min() - z.ymin, z.ymax - fp[:, 1].max())
+        edge += gap < _EDGE_BAND_CM
+    return {"coverage": float(coverage), "nn_spacing": nn, "spread": spread,
+            "edge_fraction": edge / len(base)}
+
+
+@dataclass
+class LayoutStats:
+    """Mean and standard deviation of :func:`layout_features` per scene type (and pooled)."""
+
+    mean: dict[str, dict[str, float]] = field(default_factory=dict)
+    std: dict[str, dict[str, float]] = field(default_factory=dict)
+
+    @classmethod
+    def fit(cls, scenes: Sequence[Scene]) -> LayoutStats:
+        """Fit on reference scenes; a type's std is at least half the pooled std and a floor."""
+        feats: dict[str, list[dict]] = {}
+        for s in scenes:
+            f = layout_features(s)
+            feats.setdefault(s.scene_type, []).append(f)
+            feats.setdefault("*", []).append(f)
+        stats = cls()
+        if not feats:
+            return stats
+        pooled_std = {k: float(np.std([f[k] for f in feats["*"]])) for k in LCR_FEATURES}
+        for t, fs in feats.items():
+            stats.mean[t] = {k: float(np.mean([f[k] for f in fs])) for k in LCR_FEATURES}
+            stats.std[t] = {k: max(float(np.std([f[k] for f in fs])), 0.5 * pooled_std[k],
+                                   _FEATURE_STD_FLOOR[k]) for k in LCR_FEATURES}
+        return stats
+
+    def z_scores(self, scene: Scene) -> dict[str, float]:
+        key = scene.scene_type if scene.scene_type in self.mean else "*"
+        if key not in self.mean:
+            raise JudgeError("LayoutStats has no reference scenes: fit it on reference layouts first")
+        f = layout_features(scene)
+        return {k: (f[k] - self.mean[key][k]) / self.std[key][k] for k in LCR_FEATURES}
+
+
+# --------------------------------------------------------------------------------------------
+# The rule judge
+# --------------------------------------------------------------------------------------------
+def _to_score(quality: float) -> float:
+    """Quality in [0, 1] -> score in [1, 10]."""
+    return round(1.0 + 9.0 * float(np.clip(quality, 0.0, 1.0)), 3)
+
+
+def _mean_min(values: Sequence[float]) -> float:
+    """Half the mean, half the worst: one glaring object matters, as it does to a human judge."""
+    return 0.5 * float(np.mean(values)) + 0.5 * float(np.min(values)) if len(values) else 1.0
+
+
+def _overlap_1d(a0, a1, b0, b1) -> float:
+    return max(0.0, min(a1, b1) - max(a0, b0))
+
+
+@dataclass
+class RuleJudge:
+    """Offline judge of the five criteria from the layout, the request and the physics facts.
+
+    ``stats`` holds the reference distribution of layout features per scene type (LCR); fit it
+    with :meth:`LayoutStats.fit` on the benchmark's reference layouts.
+    """
+
+    stats: LayoutStats
+    size_tolerance: float = 1.0
+    """OSR: a size within this many prior standard deviations (in log space) is not penalised."""
+    penalty_scale: float = 4.0
+    """PPI: score = 10 − 9·(1 − exp(−P / penalty_scale)) for penalty points P."""
+    name: str = "rule"
+
+    # -- criteria ---------------------------------------------------------------------------
+    def consistency_with_task(self, scene: Scene, case: EvalCase) -> float:
+        """CwT: share of requested objects present (multiset over categories), 70 %, and share of
+        stated in/on relations that hold in the generated layout, 30 %."""
+        if not case.requested:
+            return 10.0
+        want = Counter(case.requested)
+        have = Counter(canonical_category(o.category) for o in scene.objects)
+        present = sum(min(n, have[c]) for c, n in want.items()) / sum(want.values())
+        if not case.relations or not len(scene):
+            return _to_score(present)
+        got = Counter(stated_relations(scene))
+        need = Counter(case.relations)
+        held = sum(min(n, got[r]) for r, n in need.items()) / sum(need.values())
+        return _to_score(0.7 * present + 0.3 * held)
+
+    def object_size_reasonableness(self, scene: Scene) -> float:
+        """OSR: per object with a size prior, the log-ratio of each dimension to the prior mean in
+        units of the prior's relative std (floor 0.15); beyond ``size_tolerance`` it costs
+        exp(−½·excess²). Horizontal dimensions are compared sorted (yaw may swap w and d)."""
+        per_object = []
+        for o in scene.objects:
+            prior = CATEGORY_PRIORS.get(canonical_category(o.category))
+            if prior is None:
+                continue
+            size = np.array([*sorted(o.size[:2]), o.size[2]])
+            order = np.argsort(prior.mean_cm[:2])
+            mean = np.array([*np.asarray(prior.mean_cm[:2])[order], prior.mean_cm[2]])
+            std = np.array([*np.asarray(prior.std_cm[:2])[order], prior.std_cm[2]])
+            sigma = np.maximum(std / mean, 0.15)
+            excess = np.maximum(np.abs(np.log(size / mean)) / sigma - self.size_tolerance, 0.0)
+            per_object.append(float(np.exp(-0.5 * np.mean(excess**2))))
+        return _to_score(_mean_min(per_object))
+
+    def placement_plausibility(self, scene: Scene, physics: ScenePhysics) -> float:
+        """PPI: penalty points P = 1.5 per floating object + Σ_pairs min(depth / 1 cm, 1) + 1 per
+        object out of zone + min(table penetration / 1 cm, 1); score 10 − 9·(1 − e^(−P/4))."""
+        p = 1.5 * len(physics.floating)
+        p += sum(min(d / 1.0, 1.0) for _, _, d in physics.pair_depths)
+        p += 1.0 * len(physics.out_of_zone)
+        p += min(max(physics.table_penetration_cm, 0.0) / 1.0, 1.0)
+        return round(10.0 - 9.0 * (1.0 - math.exp(-p / self.penalty_scale)), 3)
+
+    def layout_coherence(self, scene: Scene) -> float:
+        """LCR: z-scores of coverage, spacing, spread and edge fraction against the reference
+        layouts of the scene type; a feature within 1 std costs nothing, beyond it
+        exp(−½·mean(excess²))."""
+        if not len(scene):
+            return 1.0
+        z = self.stats.z_scores(scene)
+        excess = np.array([max(abs(v) - 1.0, 0.0) for v in z.values()])
+        return _to_score(math.exp(-0.5 * float(np.mean(excess**2))))
+
+    def object_visibility(self, scene: Scene) -> float:
+        """OV: per object, visibility = 0 if it sits inside a non-container, else the larger of its
+        top-view and front-view visible fractions (boxes covered by other boxes above it /
+        in front of it; an open container does not hide its contents from the top)."""
+        objs = list(scene.objects)
+        if not objs:
+            return 1.0
+        boxes = [o.aabb() for o in objs]  # [xmin, xmax, ymin, ymax, zmin, zmax]
+        vis = []
+        for a, (o, ba) in enumerate(zip(objs, boxes)):
+            area_top = (ba[1] - ba[0]) * (ba[3] - ba[2])
+            area_front = (ba[1] - ba[0]) * (ba[5] - ba[4])
+            top_cover, front_cover, enclosed = 0.0, 0.0, False
+            for b, (p, bb) in enumerate(zip(objs, boxes)):
+                if a == b:
+                    continue
+                ox = _overlap_1d(ba[0], ba[1], bb[0], bb[1])
+                oy = _overlap_1d(ba[2], ba[3], bb[2], bb[3])
+                oz = _overlap_1d(ba[4], ba[5], bb[4], bb[5])
+                container = _role(p.category) == "container"
+                inside = (ox * oy >= 0.9 * area_top and oz >= 0.9 * (ba[5] - ba[4])
+                          and p.volume() > o.volume())
+                if inside and not container:
+                    enclosed = True
+                    break
+                if bb[5] > ba[5] + 0.5 and not (inside and container):
+                    top_cover += ox * oy
+                if bb[2] < ba[2] - 0.5:  # in front (toward the viewer at −y)
+                    front_cover += ox * oz
+            if enclosed:
+                vis.append(0.0)
+                continue
+            v_top = 1.0 - min(top_cover / area_top, 1.0) if area_top > 0 else 1.0
+            v_front = 1.0 - min(front_cover / area_front, 1.0) if area_front > 0 else 1.0
+            vis.append(max(v_top, v_front))
+        return _to_score(_mean_min(vis))
+
+    # -- entry point ------------------------------------------------------------------------
+    def score(self, scene: Scene, case: EvalCase, physics: ScenePhysics) -> dict:
+        """The five criteria and their mean for one scene."""
+        out = {"CwT": self.consistency_with_task(scene, case),
+               "OSR": self.object_size_reasonableness(scene),
+               "PPI": self.placement_plausibility(scene, physics),
+               "LCR": self.layout_coherence(scene),
+               "OV": self.object_visibility(scene)}
+        out["avg"] = round(float(np.mean([out[c] for c in CRITERIA])), 4)
+        return out
+
+
+# --------------------------------------------------------------------------------------------
+# The endpoint judge (paper Prompts 4 and 5, verbatim)
+# --------------------------------------------------------------------------------------------
+SYSTEM_PROMPT = """You are an expert evaluator for 3D desktop scene layouts. Your task is to analyze desktop scenes and provide a detailed assessment based on specific criteria. Please carefully examine the provided front and perspective views of the desktop scene, along with the task description. 
+Analyze how well the scene layout aligns with the intended task. Consider both the visible objects and their arrangement in relation to the task requirements. 
+You must provide numerical scores (1-10) for each criterion along with brief explanations to justify your ratings. 
+Be objective and consistent in your evaluation across different scenes."""  # noqa: E501, W291
+
+USER_PROMPT = """You are an expert at evaluating desktop scene layouts. Given both a front and a perspective view of a desktop scene, and a description of the tasks that can be performed on the desktop, please rate the scene`s quality on a scale from 1 (poor) to 10 (excellent) according to the following criteria. For each criterion, consider both views:  
+
+1. **Consistency with Task:** Does the scene layout (objects present, their arrangement and relevance) align well with the provided task description (environment, objects, goals)? 
+- High score (7-10): All key objects are present, their arrangement is entirely logical and directly contributes to the task. The scene perfectly reflects the task requirements. 
+- Mid score (4-6): Most key objects are present and generally align with the task, but there might be minor inconsistencies or some less relevant elements. 
+- Low score (1-3): Significant deviations from the task description. Important objects are missing, or the arrangement is largely unrelated or illogical for the task.  
+
+2. **Object Size Reasonableness:** Are the sizes of the objects in the scene highly realistic, both relative to each other and to the overall desktop environment? Are they consistent across all objects? 
+- High score (7-10): All objects have highly realistic and perfectly proportionate sizes. No inconsistencies are noticeable. 
+- Mid score (4-6): Most objects have reasonable sizes, but there might be slight or occasional inaccuracies in proportion for some items. 
+- Low score (1-3): Multiple or glaring inconsistencies in object sizes. Some objects are obviously and significantly too large or too small, severely impacting realism.  
+
+3. **Placement Plausibility & Intersections:** Are objects placed stably and naturally on surfaces (e.g., not floating)? Are there any signs of unnatural intersection or penetration between objects? Objects should appear physically grounded and interact realistically. 
+- High score (7-10): All objects rest naturally and stably on surfaces. No aphysical interactions or intersections are visible. Objects are well-supported. 
+- Mid score (4-6): Most objects are placed plausibly, but there might be minor, subtle issues like slight floating or minimal, non-critical intersections. 
+- Low score (1-3): Obvious or frequent issues with object placement. Objects float, unnaturally overlap, or clearly penetrate each other, indicating a lack of physical realism.  
+
+4. **Layout Coherence & Realism:** Does the overall arrangement look highly functional, convincingly realistic, and typical for the task context? Does it avoid being overly staged, unnaturally sparse, or chaotically cluttered? 
+- High score (7-10): Layout is highly functional, convincingly realistic, and well-suited for the described task. The scene feels authentic and natural. 
+- Mid score (4-6): The layout is generally coherent and functional, but might lack some fine-tuning for optimal realism or could appear somewhat staged. 
+- Low score (1-3): Layout is chaotic, illogical, too empty, overly cluttered, or looks clearly artificial and unrealistic for the task.
+
+5. **Object Visibility:** Are important objects mentioned in the task easily and unambiguously identifiable in at least one of the views? Are they sufficiently well-lit and resolved? 
+- High score (7-10): All key objects are clearly and unambiguously visible and identifiable. Their details are well-resolved. 
+- Mid score (4-6): Most important objects are visible, but some might require closer inspection to identify. 
+- Low score (1-3): Critical objects are very difficult to identify, or completely missing from view, hindering task understanding.  
+
+**Task Description:**  
+
+{task_description}
+
+**Please provide a single score (1-10) for each criterion.** 
+**Strictly output in the following JSON format with no additional text:**  
+
+{  
+    "Evaluation": [ 
+        {
+            "criterion": "Consistency with Task", 
+            "explanation": "Your detailed explanation here", 
+            "score": X
+        }, 
+        {  
+            "criterion": "Object Size Reasonableness", 
+            "explanation": "Your detailed explanation here", 
+            "score": X
+        }, 
+        {  
+            "criterion": "Placement Plausibility & Intersections", 
+            "explanation": "Your detailed explanation here", 
+            "score": X
+        }, 
+        {  
+            "criterion": "Layout Coherence & Realism", 
+            "explanation": "Your detailed explanation here", 
+            "score": X 
+        }, 
+        {  
+            "criterion": "Object Visibility", 
+            "explanation": "Your detailed explanation here", 
+            "score": X 
+        }
+    ] 
+}  
+
+**Where X is an integer score from 1 to 10. Do not output anything else.**"""  # noqa: E501, W291
+
+# Criterion names as Prompt 5 spells them -> the paper's table abbreviations.
+_CRITERION_KEYS = {"consistency with task": "CwT", "object size reasonableness": "OSR",
+                   "placement plausibility & intersections": "PPI", "layout coherence & realism": "LCR",
+                   "object visibility": "OV"}
+
+
+def parse_judge_reply(text: str) -> dict:
+    """Scores from a judge reply in Prompt 5's JSON format (code fences and chatter tolerated).
+    Returns the five criteria and ``avg``, or ``{"error": reason, "avg": nan}``; never raises."""
+    start, end = text.find("{"), text.rfind("}")
+    if start < 0 or end <= start:
+        return {"error": "no JSON object in the judge reply", "avg": float("nan")}
+    try:
+        data = json.loads(text[start:end + 1])
+    except json.JSONDecodeError as exc:
+        return {"error": f"judge reply is not valid JSON: {exc.msg} at char {exc.pos}", "avg": float("nan")}
+    items = data.get("Evaluation") if isinstance(data, dict) else None
+    if not isinstance(items, list):
+        return {"error": "judge reply has no 'Evaluation' list", "avg": float("nan")}
+    out = {}
+    for item in items:
+        if not isinstance(item, dict):
+            continue
+        key = _CRITERION_KEYS.get(str(item.get("criterion", "")).strip().lower())
+        try:
+            score = float(item.get("score"))
+        except (TypeError, ValueError):
+            continue
+        if key and math.isfinite(score):
+            out[key] = float(np.clip(score, 1.0, 10.0))
+    missing = [c for c in CRITERIA if c not in out]
+    if missing:
+        return {"error": f"judge reply lacks scores for {missing}", "avg": float("nan")}
+    out["avg"] = round(float(np.mean([out[c] for c in CRITERIA])), 4)
+    return out
+
+
+def _chat_url(base_url: str) -> str:
+    url = base_url.rstrip("/")
+    if not url.startswith(("http://", "https://")):
+        raise JudgeError(f"endpoint URL must start with http:// or https://, got {base_url!r}")
+    return url if url.endswith("/chat/completions") else url + "/chat/completions"
+
+
+def post_chat(url: str, payload: dict, *, api_key: str | None = None, timeout_s: float = 120.0,
+              retries: int = 4, backoff_s: float = 1.0) -> dict:
+    """POST a chat-completions request; retry on 429/5xx and network errors with exponential
+    backoff (``backoff_s``·2^k). Returns the decoded response JSON; raises ``OSError`` when every
+    try failed or the server refused the request (4xx other than 429)."""
+    body = json.dumps(payload).encode()
+    headers = {"Content-Type": "application/json"}
+    if api_key:
+        headers["Authorization"] = f"Bearer {api_key}"
+    last: Exception | None = None
+    for attempt in range(retries + 1):
+        if attempt:
+            time.sleep(backoff_s * 2 ** (attempt - 1))
+        req = urllib.request.Request(url, data=body, headers=headers, method="POST")
+        try:
+            with urllib.request.urlopen(req, timeout=timeout_s) as resp:
+                return json.loads(resp.read().decode())
+        except urllib.error.HTTPError as exc:
+            last = exc
+            if exc.code != 429 and exc.code < 500:
+                raise OSError(f"{url}: HTTP {exc.code}: {exc.read()[:200]!r}") from exc
+        except (urllib.error.URLError, TimeoutError, ConnectionError, json.JSONDecodeError) as exc:
+            last = exc
+    raise OSError(f"{url}: no answer after {retries + 1} tries: {last}")
+
+
+def reply_text(response: dict) -> str:
+    """The assistant message text of a chat-completions response ('' if absent)."""
+    try:
+        content = response["choices"][0]["message"]["content"]
+    except (KeyError, IndexError, TypeError):
+        return ""
+    if isinstance(content, list):  # some servers return content parts
+        return "".join(p.get("text", "") for p in content if isinstance(p, dict))
+    return content if isinstance(content, str) else ""
+
+
+@dataclass
+class EndpointJudge:
+    """VLM judge over an OpenAI-compatible ``/chat/completions`` endpoint (paper Prompts 4-5).
+
+    ``base_url`` like ``http://127.0.0.1:8000/v1`` (``/chat/completions`` is appended unless
+    present). The API key is read from the environment variable named ``api_key_env``.
+    Answers are cached in ``cache_dir`` under the SHA-256 of the request body.
+    """
+
+    base_url: str
+    model: str = "gpt-4o"
+    api_key_env: str = "PHYSCENE_JUDGE_API_KEY"
+    cache_dir: str | os.PathLike | None = None
+    retries: int = 4
+    backoff_s: float = 1.0
+    timeout_s: float = 120.0
+    temperature: float = 0.0
+    image_size: tuple[int, int] = (512, 384)
+    name: str = "endpoint"
+    stats: dict = field(default_factory=lambda: {"requests": 0, "cache_hits": 0})
+
+    def __post_init__(self):
+        self.url = _chat_url(self.base_url)
+
+    def request(self, task_description: str, images: Sequence[bytes]) -> dict:
+        """The chat-completions payload: Prompt 4 as system, Prompt 5 + the PNGs as user."""
+        parts = [{"type": "text", "text": USER_PROMPT.replace("{task_description}", task_description)}]
+        for png in images:
+            data = base64.b64encode(png).decode()
+            parts.append({"type": "image_url", "image_url": {"url": f"data:image/png;base64,{data}"}})
+        return {"model": self.model, "temperature": self.temperature,
+                "messages": [{"role": "system", "content": SYSTEM_PROMPT},
+                             {"role": "user", "content": parts}]}
+
+    def _cached(self, key: str) -> Path | None:
+        if self.cache_dir is None:
+            return None
+        d = Path(self.cache_dir)
+        d.mkdir(parents=True, exist_ok=True)
+        return d / f"{key}.json"
+
+    def ask(self, task_description: str, images: Sequence[bytes]) -> dict:
+        """Scores for one (description, images) pair, from the cache when the same request was
+        answered before."""
+        payload = self.request(task_description, images)
+        key = hashlib.sha256(json.dumps(payload, sort_keys=True).encode()).hexdigest()
+        path = self._cached(key)
+        if path is not None and path.is_file():
+            self.stats["cache_hits"] += 1
+            return parse_judge_reply(json.loads(path.read_text())["reply"])
+        self.stats["requests"] += 1
+        try:
+            response = post_chat(self.url, payload, api_key=os.environ.get(self.api_key_env),
+                                 timeout_s=self.timeout_s, retries=self.retries, backoff_s=self.backoff_s)
+        except OSError as exc:
+            return {"error": str(exc), "avg": float("nan")}
+        text = reply_text(response)
+        scores = parse_judge_reply(text)
+        if path is not None and "error" not in scores:  # only good answers are worth keeping
+            tmp = path.with_suffix(".tmp")
+            tmp.write_text(json.dumps({"model": self.model, "reply": text}))
+            os.replace(tmp, path)
+        return scores
+
+    def score(self, scene: Scene, case: EvalCase, physics: ScenePhysics | None = None) -> dict:
+        """Render the front and perspective views and ask the endpoint."""
+        from physcene.eval.render import png_bytes, render_image
+
+        images = [png_bytes(render_image(scene, view, size=self.image_size))
+                  for view in ("front", "perspective")]
+        return self.ask(case.instruction or scene.instruction, images)
