@@ -68,13 +68,23 @@ def _polygon(o: SceneObject) -> Polygon:
 
 def footprint_overlap(a: SceneObject, b: SceneObject) -> float:
     """|A∩B|xy / |A|xy of the yawed footprints (0..1)."""
-    return _overlap(a, b, _polygon(a), _polygon(b))
+    return _overlap(a, b)
 
 
-def _overlap(a: SceneObject, b: SceneObject, pa: Polygon, pb: Polygon) -> float:
+def _axis_aligned(o: SceneObject) -> bool:
+    return abs(math.sin(2.0 * o.yaw)) < 1e-12  # yaw a multiple of 90 degrees
+
+
+def _overlap(a: SceneObject, b: SceneObject, pa: Polygon | None = None, pb: Polygon | None = None) -> float:
     ba, bb = a.aabb(), b.aabb()
-    if ba[0] >= bb[1] or bb[0] >= ba[1] or ba[2] >= bb[3] or bb[2] >= ba[3]:
+    ix = min(ba[1], bb[1]) - max(ba[0], bb[0])
+    iy = min(ba[3], bb[3]) - max(ba[2], bb[2])
+    if ix <= 0.0 or iy <= 0.0:
         return 0.0  # cheap reject before the polygon clip
+    if _axis_aligned(a) and _axis_aligned(b):
+        return ix * iy / (a.size[0] * a.size[1])
+    pa = pa if pa is not None else _polygon(a)
+    pb = pb if pb is not None else _polygon(b)
     return float(pa.intersection(pb).area) / (a.size[0] * a.size[1])
 
 
@@ -86,22 +96,31 @@ def relation_candidates(scene: Scene, config: GraphConfig | None = None) -> dict
     """
     config = config or GraphConfig()
     objs = list(scene.objects)
-    polys = [_polygon(o) for o in objs]
+    polys: dict[int, Polygon] = {}
+
+    def poly(k: int) -> Polygon:
+        if k not in polys:
+            polys[k] = _polygon(objs[k])
+        return polys[k]
+
     out: dict[str, list[tuple[str, str]]] = {}
     for i, a in enumerate(objs):
         ins, ons = [], []
         for j, b in enumerate(objs):
             if i == j:
                 continue
-            overlap = _overlap(a, b, polys[i], polys[j])
-            if overlap <= 0.0:
-                continue
+            # The z tests are cheap; the footprint overlap is computed only when one of them holds.
             inside_z = min(a.zmax, b.zmax) - max(a.zmin, b.zmin)
-            if (b.volume() >= config.in_volume_ratio * a.volume()
-                    and overlap >= config.in_footprint_overlap
-                    and inside_z >= config.in_height_fraction * a.size[2]):
+            could_in = (b.volume() >= config.in_volume_ratio * a.volume()
+                        and inside_z >= config.in_height_fraction * a.size[2])
+            could_on = abs(a.zmin - b.zmax) < config.on_gap_cm
+            if not (could_in or could_on):
+                continue
+            overlap = _overlap(a, b, None if _axis_aligned(a) and _axis_aligned(b) else poly(i),
+                               None if _axis_aligned(a) and _axis_aligned(b) else poly(j))
+            if could_in and overlap >= config.in_footprint_overlap:
                 ins.append((b.volume(), b.instance_id))
-            if abs(a.zmin - b.zmax) < config.on_gap_cm and overlap > config.on_footprint_overlap:
+            if could_on and overlap > config.on_footprint_overlap:
                 ons.append((-b.zmax, -overlap, b.instance_id))
         out[a.instance_id] = ([(iid, "in") for _, iid in sorted(ins)]
                               + [(iid, "on") for *_, iid in sorted(ons)])
