@@ -1,0 +1,528 @@
+"""Hierarchy-constrained test-time optimisation (paper Sec. "Hierarchy-Constrained TTO").
+
+min_ξ λ_sdf·L_sdf + λ_rel·L_rel(G) + λ_reg·‖ξ − ξ_init‖² + λ_zone·L_zone, batched over scenes of
+different sizes (padded slots, masks) in one Adam optimisation. docs/tto.md has the formulas.
+
+Parametrisation ξ (METRES and radians; the engine and the scene work in cm):
+- table-level objects (parent = TABLE): (x, y, yaw) absolute; z held at h/2 (resting on the table);
+- ``on`` children: (u, v, ψ) = the centre offset in the parent's yawed frame and the yaw relative to
+  the parent; z held at the support's top (zmax(parent) + h/2);
+- ``in`` children: frozen in the parent's frame (offset, z offset and relative yaw are constants),
+  so a container and its contents move as one rigid body.
+Absolute poses come from a differentiable forward kinematics over the forest, one batched gather
+per tree depth. Pairs inside one rigid body cannot change and are left out of L_sdf.
+
+L_rel = support term (an ``on`` child's footprint may not slide further off its support than it
+started, hinge on the offset in the parent frame, plus a hard projection after every step) + near
+term (hinge keeping each table-level object's direction to its reference). L_zone = footprint
+corners outside the placement zone + overlap depth with restricted zones.
+
+Every scene returns its best iterate (lowest penetration energy; among collision-free iterates the
+lowest remaining objective), and never more energy than its input: if nothing beat the input,
+the input is returned unchanged.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, field, fields
+
+import numpy as np
+import torch
+
+from physcene.relations import DIRECTION_AXES, relation_preservation
+from physcene.scene import TABLE, Scene, SceneObject
+
+__all__ = ["TTOConfig", "TTOProblem", "TTOResult", "build_problem", "forward_kinematics", "optimise",
+           "relation_preservation", "repair"]
+
+# Kinds of parametrisation per object slot.
+ROOT, ON, IN = 0, 1, 2
+_CM = 100.0  # cm per metre: ξ is in metres, poses in cm
+
+
+@dataclass(kw_only=True)
+class TTOConfig:
+    """TTO settings (``configs/tto.yaml``); lengths in cm unless the name says otherwise."""
+
+    steps: int = 100
+    """Adam iterations (paper: 100)."""
+    lr: float = 0.01
+    """Adam step size in metres / radians (paper: 0.01)."""
+    lambda_sdf: float = 10.0
+    """Weight of the penetration energy, taken in metres (engine cm / 100)."""
+    lambda_rel: float = 5.0
+    """Weight of the structure term (support + near hinges, metres)."""
+    lambda_reg: float = 1.0
+    """Weight of ‖ξ − ξ_init‖² (metres², radians²)."""
+    lambda_zone: float = 10.0
+    """Weight of the zone term (metres)."""
+    near_margin_cm: float = 0.5
+    """Slack a near direction keeps over the axis tie (never more than the input had)."""
+    stop_energy_cm: float = 1e-3
+    """Optimised energy at or below this counts as collision-free (early stop, best iterate)."""
+    stop_violation_cm: float = 0.01
+    """Hinge terms at or below this count as met (early stop)."""
+    check_every: int = 10
+    """Host check for "every scene stopped" every k steps."""
+    early_stop: bool = True
+    """Freeze each scene at its first collision-free iterate that meets the hinges."""
+    collision_depth_cm: float = 0.1
+    """Reporting: pairs deeper than this are residual collisions."""
+    zone_tolerance_cm: float = 0.1
+    """Reporting: footprints further outside the zone than this are reported."""
+    device: str = "cpu"
+    """Torch device of the optimisation."""
+    report_relations: bool = True
+    """Rebuild each result's graph and measure relation preservation (host work)."""
+    batch_size: int = 512
+    """Scenes per optimisation batch in :func:`repair`."""
+
+    @classmethod
+    def from_config(cls, overrides: Sequence[str] = ()) -> TTOConfig:
+        """``configs/tto.yaml`` with ``key=value`` overrides."""
+        from omegaconf import OmegaConf
+
+        from physcene.config import ConfigError, load_config
+
+        cfg = OmegaConf.to_container(load_config("tto", list(overrides)))
+        known = {f.name: f for f in fields(cls)}
+        unknown = sorted(set(cfg) - set(known))
+        if unknown:
+            raise ConfigError(f"unknown tto option(s) {unknown}; known: {sorted(known)}")
+        config = cls(**cfg)
+        if config.steps < 0 or config.lr <= 0 or config.check_every < 1 or config.batch_size < 1:
+            raise ConfigError(f"tto: steps >= 0, lr > 0, check_every >= 1, batch_size >= 1 required, "
+                              f"got steps={config.steps} lr={config.lr} check_every={config.check_every} "
+                              f"batch_size={config.batch_size}")
+        return config
+
+
+@dataclass
+class TTOResult:
+    """One repaired scene: energies in cm (engine units, optimised pairs), displacement in cm."""
+
+    scene: Scene
+    energy_before: float
+    energy_after: float
+    max_displacement_cm: float
+    report: dict = field(default_factory=dict)
+
+
+@dataclass
+class TTOProblem:
+    """A padded batch of S scenes × N slots on one device (host-built, see :func:`build_problem`)."""
+
+    batch: object               # the engine's SceneBatch (poses/sizes/mask/ids)
+    mask: torch.Tensor          # (S, N) bool, real objects
+    kind: torch.Tensor          # (S, N) long, ROOT / ON / IN
+    parent: torch.Tensor        # (S, N) long, parent slot (own slot for roots)
+    depth_masks: list           # per depth d >= 1: (S, N) bool, slots at depth d
+    xi0: torch.Tensor           # (S, N, 3) initial ξ, metres / radians
+    trainable: torch.Tensor     # (S, N) bool, ξ free (roots and on children)
+    zloc: torch.Tensor          # (S, N) cm: root h/2; on parent_h/2 + h/2; in z − z_parent
+    sizes: torch.Tensor         # (S, N, 3) cm
+    raw_poses: torch.Tensor     # (S, N, 4) cm / rad, the input
+    parent_half: torch.Tensor   # (S, N, 2) cm, the parent's half width / depth (on children)
+    zone: torch.Tensor          # (S, 4) cm, xmin xmax ymin ymax
+    restricted: torch.Tensor    # (S, R, 4) cm
+    restricted_mask: torch.Tensor  # (S, R) bool
+    near: torch.Tensor          # (S, K, 2) long, (object slot, reference slot)
+    near_axis: torch.Tensor     # (S, K) long, 0 = x, 1 = y
+    near_sign: torch.Tensor     # (S, K) float, ±1
+    near_margin: torch.Tensor   # (S, K) cm
+    near_mask: torch.Tensor     # (S, K) bool
+    frozen_energy: torch.Tensor  # (S,) cm, energy of pairs inside one rigid in-body (constant)
+    group: np.ndarray           # (S, N) rigid-body root slot of every object (host)
+
+    @property
+    def n_scene(self) -> int:
+        return self.mask.shape[0]
+
+
+# --------------------------------------------------------------------------------------------
+# Host side: from hierarchical scenes to padded tensors
+# --------------------------------------------------------------------------------------------
+def _kinds(scene: Scene) -> tuple[np.ndarray, np.ndarray]:
+    """(kind, parent slot) per object of a hierarchical scene."""
+    index = {o.instance_id: i for i, o in enumerate(scene.objects)}
+    kind = np.zeros(len(scene), dtype=np.int64)
+    parent = np.arange(len(scene), dtype=np.int64)
+    for i, o in enumerate(scene.objects):
+        if o.parent not in (None, TABLE):
+            parent[i] = index[o.parent]
+            kind[i] = IN if o.relation == "in" else ON
+    return kind, parent
+
+
+def _depths(parent: np.ndarray) -> np.ndarray:
+    depth = np.zeros(len(parent), dtype=np.int64)
+    for i in range(len(parent)):
+        j = i
+        while parent[j] != j:
+            j = parent[j]
+            depth[i] += 1
+    return depth
+
+
+def _relative(child: SceneObject, parent: SceneObject) -> tuple[float, float, float]:
+    """The child's centre offset in the parent's yawed frame (cm) and relative yaw (rad)."""
+    dx, dy = child.center[0] - parent.center[0], child.center[1] - parent.center[1]
+    c, s = math.cos(parent.yaw), math.sin(parent.yaw)
+    return c * dx + s * dy, -s * dx + c * dy, child.yaw - parent.yaw
+
+
+def build_problem(scenes: Sequence[Scene], engine, config: TTOConfig) -> TTOProblem:
+    """Pack hierarchical, non-empty ``scenes`` (every object has a parent) for :func:`optimise`."""
+    from physcene.graph import near_references
+
+    batch = engine.pack(list(scenes))
+    n_scene, n_slot = batch.mask.shape
+    for s, scene in enumerate(scenes):
+        if list(batch.ids[s][: len(scene)]) != scene.ids():
+            raise RuntimeError("engine.pack changed the object order; TTO relies on scene order")
+    n_restricted = max([len(sc.restricted_zones) for sc in scenes] + [1])
+    n_near = max([len(sc) for sc in scenes] + [1])
+    kind = np.zeros((n_scene, n_slot), np.int64)
+    parent = np.tile(np.arange(n_slot), (n_scene, 1))
+    depth = np.zeros((n_scene, n_slot), np.int64)
+    xi0 = np.zeros((n_scene, n_slot, 3))
+    zloc = np.zeros((n_scene, n_slot))
+    parent_half = np.zeros((n_scene, n_slot, 2))
+    zone = np.zeros((n_scene, 4))
+    restricted = np.zeros((n_scene, n_restricted, 4))
+    restricted_mask = np.zeros((n_scene, n_restricted), bool)
+    near = np.zeros((n_scene, n_near, 2), np.int64)
+    near_axis = np.zeros((n_scene, n_near), np.int64)
+    near_sign = np.ones((n_scene, n_near))
+    near_margin = np.zeros((n_scene, n_near))
+    near_mask = np.zeros((n_scene, n_near), bool)
+    group = np.tile(np.arange(n_slot), (n_scene, 1))
+    for s, scene in enumerate(scenes):
+        n = len(scene)
+        objs = scene.objects
+        k, p = _kinds(scene)
+        kind[s, :n], parent[s, :n], depth[s, :n] = k, p, _depths(p)
+        for i in np.argsort(depth[s, :n], kind="stable"):  # parents before children
+            o = objs[i]
+            if k[i] == ROOT:
+                xi0[s, i] = (o.center[0] / _CM, o.center[1] / _CM, o.yaw)
+                zloc[s, i] = 0.5 * o.size[2]
+                continue
+            par = objs[p[i]]
+            u, v, psi = _relative(o, par)
+            xi0[s, i] = (u / _CM, v / _CM, psi)
+            parent_half[s, i] = (0.5 * par.size[0], 0.5 * par.size[1])
+            zloc[s, i] = 0.5 * (par.size[2] + o.size[2]) if k[i] == ON else o.center[2] - par.center[2]
+            group[s, i] = group[s, p[i]] if k[i] == IN else i
+        zone[s] = scene.zone.to_list()
+        for r, rz in enumerate(scene.restricted_zones):
+            restricted[s, r], restricted_mask[s, r] = rz.to_list(), True
+        index = {o.instance_id: i for i, o in enumerate(objs)}
+        refs = [(a, r) for a, r in near_references(scene).items() if r is not None]
+        for q, (a, (ref, direction)) in enumerate(refs):
+            ia, ib = index[a], index[ref]
+            axis, sign = DIRECTION_AXES[direction]
+            off = np.subtract(objs[ia].center[:2], objs[ib].center[:2])
+            slack = sign * off[axis] - abs(off[1 - axis])
+            near[s, q], near_axis[s, q], near_sign[s, q] = (ia, ib), axis, sign
+            near_margin[s, q] = min(config.near_margin_cm, max(slack, 0.0))
+            near_mask[s, q] = True
+    mask = batch.mask.detach().cpu().numpy().astype(bool)
+    dev = torch.device(config.device)
+    f32 = dict(dtype=torch.float32, device=dev)
+    i64 = dict(dtype=torch.long, device=dev)
+    max_depth = int(depth.max()) if depth.size else 0
+    kind_t = torch.as_tensor(kind, **i64)
+    return TTOProblem(
+        batch=batch,
+        mask=torch.as_tensor(mask, device=dev),
+        kind=kind_t,
+        parent=torch.as_tensor(parent, **i64),
+        depth_masks=[torch.as_tensor(depth == d, device=dev) for d in range(1, max_depth + 1)],
+        xi0=torch.as_tensor(xi0, **f32),
+        trainable=torch.as_tensor(mask, device=dev) & (kind_t != IN),
+        zloc=torch.as_tensor(zloc, **f32),
+        sizes=batch.sizes.to(**f32),
+        raw_poses=batch.poses.to(**f32),
+        parent_half=torch.as_tensor(parent_half, **f32),
+        zone=torch.as_tensor(zone, **f32),
+        restricted=torch.as_tensor(restricted, **f32),
+        restricted_mask=torch.as_tensor(restricted_mask, device=dev),
+        near=torch.as_tensor(near, **i64),
+        near_axis=torch.as_tensor(near_axis, **i64),
+        near_sign=torch.as_tensor(near_sign, **f32),
+        near_margin=torch.as_tensor(near_margin, **f32),
+        near_mask=torch.as_tensor(near_mask, device=dev),
+        frozen_energy=_frozen_energy(engine, batch, group).to(**f32),
+        group=group,
+    )
+
+
+def _frozen_energy(engine, batch, group: np.ndarray) -> torch.Tensor:
+    """(S,) cm: the input's energy over pairs inside one rigid in-body.
+
+    Such a pair keeps its relative pose under every ξ, so its energy is a constant the optimiser
+    cannot change (and its gradient cancels through the forward kinematics); it is subtracted so
+    that "collision-free" means free of the collisions TTO is responsible for.
+    """
+    out = engine.evaluate(batch)
+    slots = batch.pair_slots()
+    n_scene = batch.mask.shape[0]
+    if len(slots) == 0:
+        return torch.zeros(n_scene)
+    same = group[slots[:, 0], slots[:, 1]] == group[slots[:, 0], slots[:, 2]]
+    energy = out["pair_energy"].detach().cpu().numpy().astype(np.float64)
+    return torch.as_tensor(np.bincount(slots[same, 0], weights=energy[same], minlength=n_scene))
+
+
+# --------------------------------------------------------------------------------------------
+# Device side: forward kinematics, loss terms, the Adam loop
+# --------------------------------------------------------------------------------------------
+def forward_kinematics(problem: TTOProblem, xi: torch.Tensor) -> torch.Tensor:
+    """Absolute poses (S, N, 4) cm / rad from ξ (S, N, 3) metres / rad; one gather per tree depth."""
+    x, y, yaw = xi[..., 0] * _CM, xi[..., 1] * _CM, xi[..., 2]
+    pose = torch.stack((x, y, problem.zloc, yaw), dim=-1)  # correct for roots
+    index = problem.parent.unsqueeze(-1).expand(-1, -1, 4)
+    for at_depth in problem.depth_masks:
+        par = torch.gather(pose, 1, index)
+        c, s = torch.cos(par[..., 3]), torch.sin(par[..., 3])
+        child = torch.stack((par[..., 0] + c * x - s * y, par[..., 1] + s * x + c * y,
+                             par[..., 2] + problem.zloc, par[..., 3] + yaw), dim=-1)
+        pose = torch.where(at_depth.unsqueeze(-1), child, pose)
+    return pose
+
+
+def _footprints(poses: torch.Tensor, sizes: torch.Tensor) -> torch.Tensor:
+    """Yawed footprint corners (S, N, 4, 2) cm."""
+    hw, hd = 0.5 * sizes[..., 0], 0.5 * sizes[..., 1]
+    lx = torch.stack((-hw, hw, hw, -hw), dim=-1)
+    ly = torch.stack((-hd, -hd, hd, hd), dim=-1)
+    c, s = torch.cos(poses[..., 3:4]), torch.sin(poses[..., 3:4])
+    return torch.stack((poses[..., 0:1] + c * lx - s * ly, poses[..., 1:2] + s * lx + c * ly), dim=-1)
+
+
+def _zone_violation(problem: TTOProblem, poses: torch.Tensor) -> torch.Tensor:
+    """(S,) cm: Σ corner distance outside the zone + Σ overlap depth with restricted zones."""
+    corners = _footprints(poses, problem.sizes)  # (S, N, 4, 2)
+    z = problem.zone[:, None, None, :]
+    outside = (torch.relu(z[..., 0] - corners[..., 0]) + torch.relu(corners[..., 0] - z[..., 1])
+               + torch.relu(z[..., 2] - corners[..., 1]) + torch.relu(corners[..., 1] - z[..., 3]))
+    total = (outside.sum(-1) * problem.mask).sum(-1)
+    lo, hi = corners.amin(dim=2), corners.amax(dim=2)  # (S, N, 2) footprint AABB
+    r = problem.restricted[:, None, :, :]  # (S, 1, R, 4)
+    depth = torch.minimum(
+        torch.minimum(hi[..., None, 0] - r[..., 0], r[..., 1] - lo[..., None, 0]),
+        torch.minimum(hi[..., None, 1] - r[..., 2], r[..., 3] - lo[..., None, 1]))
+    inside = torch.relu(depth) * problem.restricted_mask[:, None, :] * problem.mask[..., None]
+    return total + inside.sum((1, 2))
+
+
+def _support_bounds(problem: TTOProblem, xi: torch.Tensor) -> torch.Tensor:
+    """(S, N, 2) metres: how far an on child's centre may sit from its support's centre.
+
+    Per axis of the parent frame, never further out than the input was and always allowed to be
+    fully over the support: max(|u0|, |P − h(ψ)|), with h the child's half extent there.
+    """
+    psi = xi[..., 2]
+    c, s = torch.cos(psi).abs(), torch.sin(psi).abs()
+    hw, hd = 0.5 * problem.sizes[..., 0], 0.5 * problem.sizes[..., 1]
+    half = torch.stack((c * hw + s * hd, s * hw + c * hd), dim=-1)
+    return torch.maximum(problem.xi0[..., :2].abs(), (problem.parent_half - half).abs() / _CM)
+
+
+def _support_violation(problem: TTOProblem, xi: torch.Tensor) -> torch.Tensor:
+    """(S,) metres: on children's offsets beyond their support bounds."""
+    excess = torch.relu(xi[..., :2].abs() - _support_bounds(problem, xi)).sum(-1)
+    return (excess * (problem.kind == ON)).sum(-1)
+
+
+def _near_violation(problem: TTOProblem, poses: torch.Tensor) -> torch.Tensor:
+    """(S,) cm: Σ ReLU(margin − (sign·d_axis − |d_other|)) over near relations."""
+    a = torch.gather(poses[..., :2], 1, problem.near[..., 0:1].expand(-1, -1, 2))
+    b = torch.gather(poses[..., :2], 1, problem.near[..., 1:2].expand(-1, -1, 2))
+    d = a - b  # (S, K, 2)
+    along = torch.gather(d, 2, problem.near_axis.unsqueeze(-1)).squeeze(-1) * problem.near_sign
+    other = torch.gather(d, 2, (1 - problem.near_axis).unsqueeze(-1)).squeeze(-1).abs()
+    return (torch.relu(problem.near_margin - (along - other)) * problem.near_mask).sum(-1)
+
+
+def penetration(engine, problem: TTOProblem, poses: torch.Tensor) -> torch.Tensor:
+    """(S,) cm: the engine's differentiable energy over the pairs the optimisation can change."""
+    return engine.penetration_energy(problem.batch, poses) - problem.frozen_energy
+
+
+@dataclass
+class TTOSolution:
+    """Device results of :func:`optimise` for S scenes."""
+
+    xi: torch.Tensor          # (S, N, 3) best ξ
+    poses: torch.Tensor       # (S, N, 4) cm, poses of the best ξ
+    energy: torch.Tensor      # (S,) cm, optimised energy of the best ξ
+    energy_input: torch.Tensor  # (S,) cm, the same energy of the unmodified input
+    steps: torch.Tensor       # (S,) long, steps taken before the scene stopped
+
+
+def optimise(problem: TTOProblem, engine, config: TTOConfig) -> TTOSolution:
+    """Batched Adam over ξ; host syncs only every ``check_every`` steps (all-stopped test)."""
+    xi0, trainable = problem.xi0, problem.trainable.unsqueeze(-1)
+    xi = xi0.clone().requires_grad_(True)
+    opt = torch.optim.Adam([xi], lr=config.lr)
+    n = problem.n_scene
+    dev = xi0.device
+    inf = torch.full((n,), math.inf, device=dev)
+    best_xi, best_e, best_rest = xi0.clone(), inf.clone(), inf.clone()
+    active = torch.ones(n, dtype=torch.bool, device=dev)
+    steps_taken = torch.full((n,), config.steps, dtype=torch.long, device=dev)
+    on = problem.kind == ON
+    for step in range(config.steps + 1):
+        xi_eff = torch.where(trainable, xi, xi0)  # in children and padding stay put
+        poses = forward_kinematics(problem, xi_eff)
+        energy = penetration(engine, problem, poses)
+        hinge_cm = (_CM * _support_violation(problem, xi_eff) + _near_violation(problem, poses),
+                    _zone_violation(problem, poses))
+        drift = ((xi_eff - xi0) ** 2 * trainable).sum((1, 2))
+        rest = (config.lambda_rel * hinge_cm[0] + config.lambda_zone * hinge_cm[1]) / _CM \
+            + config.lambda_reg * drift
+        with torch.no_grad():
+            e, r = energy.detach(), rest.detach()
+            free, best_free = e <= config.stop_energy_cm, best_e <= config.stop_energy_cm
+            better = active & torch.where(free & best_free, r < best_rest, e < best_e)
+            best_xi = torch.where(better[:, None, None], xi_eff.detach(), best_xi)
+            best_e, best_rest = torch.where(better, e, best_e), torch.where(better, r, best_rest)
+            if config.early_stop:
+                done = active & free & (hinge_cm[0] + hinge_cm[1] <= config.stop_violation_cm)
+                steps_taken = torch.where(done, torch.full_like(steps_taken, step), steps_taken)
+                active = active & ~done
+        if step == config.steps:
+            break
+        loss = ((config.lambda_sdf * energy / _CM + rest) * active).sum()
+        opt.zero_grad(set_to_none=False)
+        loss.backward()
+        opt.step()
+        with torch.no_grad():
+            bound = _support_bounds(problem, xi)
+            projected = torch.maximum(torch.minimum(xi[..., :2], bound), -bound)
+            xi[..., :2] = torch.where(on.unsqueeze(-1), projected, xi[..., :2])
+            xi.copy_(torch.where(active[:, None, None], xi, best_xi))
+        if config.early_stop and (step + 1) % config.check_every == 0 and not bool(active.any()):
+            break
+    with torch.no_grad():
+        poses = forward_kinematics(problem, best_xi)
+        energy_input = penetration(engine, problem, problem.raw_poses)
+    return TTOSolution(best_xi, poses, best_e, energy_input, steps_taken)
+
+
+# --------------------------------------------------------------------------------------------
+# Public entry point
+# --------------------------------------------------------------------------------------------
+def repair(scenes: Sequence[Scene], config: TTOConfig | None = None, engine=None) -> list[TTOResult]:
+    """Project each scene onto the collision-free set without breaking its hierarchy.
+
+    ``scenes`` may carry a hierarchy (parent/relation, e.g. from CTRC) or not (it is built with
+    :func:`physcene.graph.build_hierarchy`). Returns one :class:`TTOResult` per scene, in order;
+    the returned scene is the input with new poses (annotations as in the input).
+    """
+    from physcene.graph import ensure_hierarchy
+
+    config = config or TTOConfig.from_config()
+    if engine is None:
+        from physcene.physics import PhysicsEngine
+
+        engine = PhysicsEngine(device=config.device)
+    scenes = list(scenes)
+    results: list[TTOResult | None] = [None] * len(scenes)
+    todo = [i for i, sc in enumerate(scenes) if len(sc) > 0]
+    for i, sc in enumerate(scenes):
+        if len(sc) == 0:
+            results[i] = TTOResult(sc, 0.0, 0.0, 0.0, _empty_report(sc))
+    for start in range(0, len(todo), config.batch_size):
+        chunk = todo[start:start + config.batch_size]
+        hier = [ensure_hierarchy(scenes[i]) for i in chunk]
+        problem = build_problem(hier, engine, config)
+        solution = optimise(problem, engine, config)
+        for k, result in enumerate(_results(problem, solution, [scenes[i] for i in chunk], hier,
+                                            engine, config)):
+            results[chunk[k]] = result
+    return results
+
+
+def _empty_report(scene: Scene) -> dict:
+    return {"n_objects": 0, "energy_before": 0.0, "energy_after": 0.0, "max_depth_before_cm": 0.0,
+            "max_depth_after_cm": 0.0, "collision_free": True, "max_displacement_cm": 0.0,
+            "steps": 0, "kept_input": True, "relations": None, "unsatisfied": []}
+
+
+def _results(problem: TTOProblem, solution: TTOSolution, inputs: list[Scene], hier: list[Scene],
+             engine, config: TTOConfig) -> list[TTOResult]:
+    """Host side: choose best-or-input per scene, score both, and write the reports."""
+    energy = solution.energy.cpu().numpy().astype(float)
+    energy_in = solution.energy_input.cpu().numpy().astype(float)
+    poses = solution.poses.detach().cpu().numpy().astype(np.float64)
+    steps = solution.steps.cpu().numpy()
+    outs = []
+    for s, scene in enumerate(inputs):
+        n = len(scene)
+        kept_input = not energy[s] <= energy_in[s]  # NaN or worse: keep the input
+        after = scene if kept_input else scene.with_poses(poses[s, :n])
+        outs.append((after, kept_input))
+    before_score = engine.score(inputs)
+    after_score = engine.score([a for a, _ in outs])
+    results = []
+    for s, (after, kept_input) in enumerate(outs):
+        disp = np.linalg.norm(after.poses()[:, :3] - inputs[s].poses()[:, :3], axis=1)
+        e_after = energy_in[s] if kept_input else energy[s]
+        report = _describe(hier[s], after, problem.group[s, :len(after)], before_score, after_score,
+                           s, config)
+        report.update(energy_before=float(energy_in[s]), energy_after=float(e_after),
+                      max_displacement_cm=float(disp.max()), mean_displacement_cm=float(disp.mean()),
+                      steps=int(steps[s]), kept_input=bool(kept_input))
+        if kept_input:
+            report["unsatisfied"].append("no iterate had less penetration energy than the input: "
+                                         "input returned unchanged")
+        results.append(TTOResult(after, float(energy_in[s]), float(e_after), float(disp.max()), report))
+    return results
+
+
+def _describe(before: Scene, after: Scene, group: np.ndarray, before_score, after_score, s: int,
+              config: TTOConfig) -> dict:
+    """Per-scene report: depths, residual collisions, relations kept, what could not be satisfied."""
+    ids = after.ids()
+    unsatisfied: list[str] = []
+    residual = []
+    for i, j, depth in after_score.pairs[s]:
+        if float(depth) > config.collision_depth_cm:
+            frozen = bool(group[i] == group[j])
+            residual.append({"a": ids[i], "b": ids[j], "depth_cm": round(float(depth), 4), "frozen": frozen})
+            why = " (both in one rigid in-body: frozen by the hierarchy)" if frozen else ""
+            unsatisfied.append(f"{ids[i]} and {ids[j]} still penetrate by {float(depth):.2f} cm{why}")
+    zone = after.zone
+    for o in after.objects:
+        box = o.aabb()
+        if box[1] - box[0] > zone.width + 1e-6 or box[3] - box[2] > zone.depth + 1e-6:
+            unsatisfied.append(f"{o.instance_id} ({box[1] - box[0]:.1f} x {box[3] - box[2]:.1f} cm) is "
+                               f"larger than the placement zone ({zone.width:.1f} x {zone.depth:.1f} cm)")
+        out = max(zone.xmin - box[0], box[1] - zone.xmax, zone.ymin - box[2], box[3] - zone.ymax)
+        if out > config.zone_tolerance_cm:
+            unsatisfied.append(f"{o.instance_id} lies {out:.2f} cm outside the placement zone")
+        for k, rz in enumerate(after.restricted_zones):
+            depth = min(box[1] - rz.xmin, rz.xmax - box[0], box[3] - rz.ymin, rz.ymax - box[2])
+            if depth > config.zone_tolerance_cm:
+                unsatisfied.append(f"{o.instance_id} overlaps restricted zone {k} by {depth:.2f} cm")
+    report = {
+        "n_objects": len(after),
+        "max_depth_before_cm": float(before_score.max_depth[s]),
+        "max_depth_after_cm": float(after_score.max_depth[s]),
+        "collision_free": not residual,
+        "residual_collisions": residual,
+        "relations": None,
+        "unsatisfied": unsatisfied,
+    }
+    if config.report_relations:
+        kept = relation_preservation(before, after)
+        report["relations"] = kept
+        unsatisfied.extend(f"{oid}: {before.get(oid).relation} edge to {before.get(oid).parent} broken"
+                           for oid in kept["in_on_broken"])
+        unsatisfied.extend(f"{oid}: near direction to its reference lost" for oid in kept["near_broken"])
+    return report
