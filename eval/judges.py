@@ -169,6 +169,9 @@ def _mean_min(values: Sequence[float]) -> float:
     return 0.5 * float(np.mean(values)) + 0.5 * float(np.min(values)) if len(values) else 1.0
 
 
+_IDENTIFIABLE_FRACTION = 0.5
+
+
 def _overlap_1d(a0, a1, b0, b1) -> float:
     return max(0.0, min(a1, b1) - max(a0, b0))
 
@@ -207,16 +210,17 @@ class RuleJudge:
     def object_size_reasonableness(self, scene: Scene) -> float:
         """OSR: per object with a size prior, the log-ratio of each dimension to the prior mean in
         units of the prior's relative std (floor 0.15); beyond ``size_tolerance`` it costs
-        exp(−½·excess²). Horizontal dimensions are compared sorted (yaw may swap w and d)."""
+        exp(−½·excess²). Dimensions are compared sorted (objects may lie or stand either way)."""
         per_object = []
         for o in scene.objects:
             prior = CATEGORY_PRIORS.get(canonical_category(o.category))
             if prior is None:
                 continue
-            size = np.array([*sorted(o.size[:2]), o.size[2]])
-            order = np.argsort(prior.mean_cm[:2])
-            mean = np.array([*np.asarray(prior.mean_cm[:2])[order], prior.mean_cm[2]])
-            std = np.array([*np.asarray(prior.std_cm[:2])[order], prior.std_cm[2]])
+            # Sorted dimensions: a pen may stand upright in its holder, a book lie on its side.
+            size = np.sort(np.asarray(o.size))
+            order = np.argsort(prior.mean_cm)
+            mean = np.asarray(prior.mean_cm)[order]
+            std = np.asarray(prior.std_cm)[order]
             sigma = np.maximum(std / mean, 0.15)
             excess = np.maximum(np.abs(np.log(size / mean)) / sigma - self.size_tolerance, 0.0)
             per_object.append(float(np.exp(-0.5 * np.mean(excess**2))))
@@ -244,7 +248,8 @@ class RuleJudge:
     def object_visibility(self, scene: Scene) -> float:
         """OV: per object, visibility = 0 if it sits inside a non-container, else the larger of its
         top-view and front-view visible fractions (boxes covered by other boxes above it /
-        in front of it; an open container does not hide its contents from the top)."""
+        in front of it; an open container does not hide its contents from the top), divided by
+        0.5 and capped at 1 (half in sight is identifiable); OV = 1 + 9·(½ mean + ½ min)."""
         objs = list(scene.objects)
         if not objs:
             return 1.0
@@ -275,7 +280,9 @@ class RuleJudge:
                 continue
             v_top = 1.0 - min(top_cover / area_top, 1.0) if area_top > 0 else 1.0
             v_front = 1.0 - min(front_cover / area_front, 1.0) if area_front > 0 else 1.0
-            vis.append(max(v_top, v_front))
+            # Half an object in sight is enough to identify it (Prompt 5: "identifiable in at
+            # least one of the views").
+            vis.append(min(1.0, max(v_top, v_front) / _IDENTIFIABLE_FRACTION))
         return _to_score(_mean_min(vis))
 
     # -- entry point ------------------------------------------------------------------------

@@ -193,10 +193,12 @@ def summarize(results: Sequence[SceneResult], thresholds: Iterable[float] = THRE
               taus: Iterable[float] = QPR_TAUS) -> dict:
     """The table row of one method: QPR(τ), mean criteria and their average, SCR/ACR at every
     threshold, floating and out-of-zone rates, and the optional columns present in ``extra``."""
-    phys = [r.physics for r in results]
+    # Unparsable outputs fail QPR (no judge average) but have no geometry for the physics rates.
+    parsed = [r for r in results if not r.extra.get("parse_error")]
+    phys = [r.physics for r in parsed]
     row = {"n": len(results),
-           "QPR": qpr([r.judge_avg for r in results], phys, taus),
-           "judge": {c: _mean(r.judge.get(c) for r in results) for c in (*CRITERIA, "avg")},
+           "QPR": qpr([r.judge_avg for r in results], [r.physics for r in results], taus),
+           "judge": {c: _mean(r.judge.get(c) for r in parsed) for c in (*CRITERIA, "avg")},
            "judge_failures": sum(1 for r in results if r.judge.get("error")),
            "collision": collision_rates(phys, thresholds),
            "floating": floating_rate(phys),

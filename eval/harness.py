@@ -1,0 +1,262 @@
+"""The evaluation harness: benchmark items -> generator -> (optional TTO) -> physics + judge ->
+:class:`~physcene.eval.metrics.SceneResult` per scene -> reports.
+
+Generators (``--generator``): ``reference`` (the split's layouts), ``tto`` (reference + TTO),
+``heuristic`` (non-learned placer), ``file:DIR`` (layouts on disk), ``model:PATH`` (a trained
+checkpoint through :func:`physcene.train.generate.generate`), ``endpoint:URL`` (zero-shot LLM with
+the paper's Prompt 3 over an OpenAI-compatible endpoint). Any of them can be followed by TTO
+(``repair=true``).
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from physcene.eval.judges import EndpointJudge, EvalCase, LayoutStats, RuleJudge, post_chat, reply_text
+from physcene.eval.metrics import ScenePhysics, SceneResult, physics_from_score
+from tqdm.auto import tqdm
+
+from physcene.scene import Scene
+
+__all__ = ["BenchmarkItem", "EvalError", "evaluate_method", "generate", "load_benchmark", "make_judge",
+           "method_report", "score_scenes"]
+
+GENERATOR_KINDS = ("reference", "tto", "heuristic", "file:", "model:", "endpoint:")
+
+
+class EvalError(ValueError):
+    """Bad evaluation input: an unknown generator, a missing layout directory ..."""
+
+
+@dataclass(frozen=True)
+class BenchmarkItem:
+    """One benchmark request with its reference layout."""
+
+    id: str
+    scene_type: str
+    level: int
+    instruction: str
+    prompt: str
+    reference: Scene
+    case: EvalCase
+
+
+def load_benchmark(split: str, n: int | None = None, seed: int = 0,
+                   progress: bool = True) -> list[BenchmarkItem]:
+    """The first ``n`` records of a synthetic split (``train``/``test``/``ood``) from
+    :func:`physcene.data.synthesize`, as benchmark items."""
+    from physcene.data import synthesize
+    from physcene.layout import load_layout
+
+    items = []
+    records = synthesize(split, n=n, seed=seed)
+    for rec in tqdm(records, total=n, desc=f"synthesise {split}", disable=not progress, unit="scene"):
+        scene = load_layout(rec["layout"], source=f"{split}:{rec['id']}")
+        if not scene.scene_type:
+            scene = scene.__class__(scene.zone, scene.objects, rec["scene_type"], rec["instruction"],
+                                    scene.restricted_zones, scene.meta)
+        items.append(BenchmarkItem(str(rec["id"]), rec["scene_type"], int(rec["level"]), rec["instruction"],
+                                   rec.get("prompt", ""), scene, EvalCase.from_reference(scene)))
+    return items
+
+
+def _with_request(scene: Scene, item: BenchmarkItem) -> Scene:
+    """A generated scene carrying the request's type and instruction (what judges read)."""
+    return scene.__class__(scene.zone, scene.objects, item.scene_type, item.instruction,
+                           scene.restricted_zones or item.reference.restricted_zones, scene.meta)
+
+
+def _load_dir(items: Sequence[BenchmarkItem], directory: Path) -> list:
+    """Layouts from ``DIR``: ``<id>.json`` / ``<id>/layout.json`` (MesaTask) or ``<id>.txt`` (a
+    model completion, CTRC or Prompt-3 flat JSON). A missing file is an error naming the id."""
+    from physcene.ctrc import parse
+    from physcene.layout import read_layout
+
+    if not directory.is_dir():
+        raise EvalError(f"generator file:{directory}: not a directory")
+    out = []
+    for it in items:
+        for cand in (directory / f"{it.id}.json", directory / it.id / "layout.json"):
+            if cand.is_file():
+                out.append(read_layout(cand))
+                break
+        else:
+            txt = directory / f"{it.id}.txt"
+            if not txt.is_file():
+                raise EvalError(f"generator file:{directory}: no layout for benchmark id {it.id!r} "
+                                f"(looked for {it.id}.json, {it.id}/layout.json, {it.id}.txt)")
+            out.append(parse(txt.read_text(), zone=it.reference.zone))
+    return out
+
+
+def _zero_shot(items: Sequence[BenchmarkItem], url: str, model: str, api_key_env: str,
+               progress: bool) -> list:
+    import os
+
+    from physcene.eval.baselines import zero_shot_prompt
+    from physcene.eval.judges import _chat_url
+
+    from physcene.ctrc import parse
+
+    endpoint = _chat_url(url)
+    out = []
+    for it in tqdm(items, desc="zero-shot LLM", disable=not progress, unit="scene"):
+        payload = {"model": model, "temperature": 0.0,
+                   "messages": [{"role": "user", "content": zero_shot_prompt(it.reference)}]}
+        try:
+            text = reply_text(post_chat(endpoint, payload, api_key=os.environ.get(api_key_env)))
+        except OSError as exc:
+            text = f"<endpoint error: {exc}>"
+        out.append(parse(text, zone=it.reference.zone))
+    return out
+
+
+def generate(items: Sequence[BenchmarkItem], generator: str, *, seed: int = 0, model: str = "gpt-4o",
+             api_key_env: str = "PHYSCENE_GENERATOR_API_KEY", max_new_tokens: int = 4096,
+             progress: bool = True) -> list:
+    """One output per item: a Scene or a ParseError (model output that did not parse)."""
+    from physcene.ctrc import ParseError
+
+    if generator in ("reference", "tto"):
+        out = [it.reference for it in items]
+    elif generator == "heuristic":
+        from physcene.eval.baselines import heuristic_place
+
+        out = [heuristic_place(it.reference, seed=seed * 100003 + k) for k, it in enumerate(items)]
+    elif generator.startswith("file:"):
+        out = _load_dir(items, Path(generator[5:]))
+    elif generator.startswith("model:"):
+        try:
+            from physcene.train.generate import generate as model_generate
+        except ImportError as exc:
+            raise EvalError(f"generator {generator}: physcene.train.generate is unavailable ({exc})") from exc
+        from physcene.ctrc import parse
+
+        texts = model_generate(generator[6:], [it.prompt for it in items], max_new_tokens=max_new_tokens)
+        out = [parse(t, zone=it.reference.zone) for t, it in zip(texts, items)]
+    elif generator.startswith("endpoint:"):
+        out = _zero_shot(items, generator[9:], model, api_key_env, progress)
+    else:
+        raise EvalError(f"unknown generator {generator!r}; expected one of reference, tto, heuristic, "
+                        "file:DIR, model:PATH, endpoint:URL")
+    return [o if isinstance(o, ParseError) else _with_request(o, it) for o, it in zip(out, items)]
+
+
+def repair_outputs(outputs: list, *, tto_overrides: Sequence[str] = (), engine=None,
+                   progress: bool = True) -> tuple[list, list[dict]]:
+    """TTO over every parsed output (ParseErrors pass through). Returns (outputs, per-scene
+    extras: energy before/after, max displacement, relation preservation)."""
+    from physcene.tto import TTOConfig, relation_preservation, repair
+
+    config = TTOConfig.from_config(list(tto_overrides))
+    idx = [k for k, o in enumerate(outputs) if isinstance(o, Scene)]
+    extras: list[dict] = [{} for _ in outputs]
+    out = list(outputs)
+    step = max(1, int(getattr(config, "batch_size", 16)))
+    for start in tqdm(range(0, len(idx), step), desc="TTO repair", disable=not progress, unit="batch"):
+        chunk = idx[start:start + step]
+        for k, res in zip(chunk, repair([outputs[k] for k in chunk], config=config, engine=engine)):
+            kept = relation_preservation(outputs[k], res.scene)
+            out[k] = res.scene
+            extras[k] = {"tto_energy_before": float(res.energy_before),
+                         "tto_energy_after": float(res.energy_after),
+                         "tto_max_displacement_cm": float(res.max_displacement_cm),
+                         "relation_preservation": float(kept.get("in_on_kept", float("nan")))}
+    return out, extras
+
+
+def make_judge(kind: str, references: Sequence[Scene], *, url: str | None = None, model: str = "gpt-4o",
+               cache_dir: str | None = None):
+    """``rule`` (fitted on ``references``) or ``endpoint`` (needs ``url``)."""
+    if kind == "rule":
+        return RuleJudge(LayoutStats.fit(references))
+    if kind == "endpoint":
+        if not url:
+            raise EvalError("judge=endpoint needs judge_url=http://host:port/v1")
+        return EndpointJudge(url, model=model, cache_dir=cache_dir)
+    raise EvalError(f"unknown judge {kind!r}; expected rule or endpoint")
+
+
+def score_scenes(items: Sequence[BenchmarkItem], outputs: Sequence, judge, engine=None, *,
+                 batch_size: int = 16, settle: bool = False, extras: Sequence[dict] | None = None,
+                 progress: bool = True, desc: str = "score") -> list[SceneResult]:
+    """Physics (engine, batched) + judge (+ optional MuJoCo settling) for every output."""
+    from physcene.ctrc import ParseError
+
+    if engine is None:
+        from physcene.physics import PhysicsEngine
+
+        engine = PhysicsEngine()
+    extras = list(extras) if extras is not None else [{} for _ in outputs]
+    scenes_idx = [k for k, o in enumerate(outputs) if isinstance(o, Scene) and len(o)]
+    physics: dict[int, ScenePhysics] = {}
+    bar = tqdm(total=len(outputs), desc=desc, disable=not progress, unit="scene")
+    for start in range(0, len(scenes_idx), batch_size):
+        chunk = scenes_idx[start:start + batch_size]
+        scenes = [outputs[k] for k in chunk]
+        for k, ph in zip(chunk, physics_from_score(scenes, engine.score(scenes))):
+            physics[k] = ph
+        bar.update(len(chunk))
+    results = []
+    for k, (it, out) in enumerate(zip(items, outputs)):
+        extra = dict(extras[k])
+        if isinstance(out, ParseError):
+            extra["parse_error"] = out.reason
+            failed = {"error": f"unparsable output: {out.reason}", "avg": float("nan")}
+            results.append(SceneResult(it.id, it.scene_type, it.level, ScenePhysics(0), failed, extra))
+            continue
+        ph = physics.get(k, ScenePhysics(len(out)))
+        if k not in physics:
+            bar.update(1)
+        if settle and len(out):
+            from physcene.settle import settle as settle_scene
+
+            extra["stable"] = bool(settle_scene(out).stable)
+        results.append(SceneResult(it.id, it.scene_type, it.level, ph, judge.score(out, it.case, ph), extra))
+    bar.close()
+    return results
+
+
+def method_report(results: Sequence[SceneResult], outputs: Sequence) -> dict:
+    """summary, per-level and per-type breakdowns and diversity of one method's results."""
+    from physcene.eval.metrics import breakdown, diversity, summarize
+
+    scenes = [o for o in outputs if isinstance(o, Scene)]
+    return {"summary": summarize(results), "by_level": breakdown(results, "level"),
+            "by_type": breakdown(results, "scene_type"), "diversity": diversity(scenes),
+            "scenes": [r.to_dict() for r in results]}
+
+
+def evaluate_method(items: Sequence[BenchmarkItem], generator: str, judge, *, engine=None,
+                    repair: bool = False, tto_overrides: Sequence[str] = (), settle: bool = False,
+                    seed: int = 0, progress: bool = True, **generator_options) -> tuple[dict, list]:
+    """Generate (+ repair) and score one method. Returns (its report dict, its outputs)."""
+    outputs = generate(items, generator, seed=seed, progress=progress, **generator_options)
+    extras = None
+    if repair or generator == "tto":
+        outputs, extras = repair_outputs(outputs, tto_overrides=tto_overrides, engine=engine,
+                                         progress=progress)
+    results = score_scenes(items, outputs, judge, engine, settle=settle, extras=extras, progress=progress,
+                           desc=f"score {generator}")
+    return method_report(results, outputs), outputs
+
+
+def write_json(path: Path, data) -> None:
+    """JSON with NaN written as null (strict JSON readers reject NaN)."""
+    def clean(x):
+        if isinstance(x, float) and not np.isfinite(x):
+            return None
+        if isinstance(x, dict):
+            return {str(k): clean(v) for k, v in x.items()}
+        if isinstance(x, (list, tuple)):
+            return [clean(v) for v in x]
+        if isinstance(x, np.generic):
+            return clean(x.item())
+        return x
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(clean(data), indent=1))
