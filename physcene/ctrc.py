@@ -247,6 +247,9 @@ def decode(entries: Iterable[dict], zone: Zone, *, scene_type: str = "", instruc
             continue
         if iid in parsed:
             raise SceneError("duplicate instance id", obj=iid, field="instance_id")
+        layer = _field(entry, "layer", iid, int)  # redundant with the parents: type-checked only
+        if layer is not None and layer < 0:
+            raise SceneError(f"negative layer {layer}", obj=iid, field="layer")
         parent = _field(entry, "parent_id", iid, str, TABLE)
         relation = _relation(entry, iid, parent)
         box = _relative_box(entry.get("relative_bbox"), iid)

@@ -1,0 +1,319 @@
+"""CTRC: relative boxes, encode/decode, completion text, prompts, parser; round-trip property."""
+
+import json
+import math
+
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from physcene.ctrc import (
+    ParseError,
+    build_prompt,
+    coarse_location,
+    completion_text,
+    decode,
+    encode,
+    parse,
+    sub_instructions,
+    zero_shot_prompt,
+)
+from physcene.graph import build_hierarchy
+from physcene.layout import layout_to_dict, load_layout, read_layout, yaw_to_quaternion
+from physcene.scene import TABLE, Scene, SceneError, SceneObject, Zone
+
+EXAMPLE = "examples/office_table.layout.json"
+
+
+def assert_scenes_close(a: Scene, b: Scene, tol: float = 1e-4):
+    """Same ids, categories, descriptions; poses and sizes within tol (cm, rad)."""
+    np.testing.assert_allclose(a.zone.to_list(), b.zone.to_list(), atol=tol)
+    assert sorted(a.ids()) == sorted(b.ids())
+    bb = b.by_id()
+    for o in a.objects:
+        p = bb[o.instance_id]
+        assert (o.category, o.description) == (p.category, p.description), o.instance_id
+        np.testing.assert_allclose(o.center, p.center, atol=tol, err_msg=o.instance_id)
+        np.testing.assert_allclose(o.size, p.size, atol=tol, err_msg=o.instance_id)
+        dyaw = math.remainder(o.yaw - p.yaw, 2 * math.pi)
+        assert abs(dyaw) <= tol, (o.instance_id, o.yaw, p.yaw)
+
+
+def obj(iid, center, size, yaw=0.0, **kw):
+    return SceneObject(instance_id=iid, category=iid.rsplit("_", 1)[0], center=center, size=size, yaw=yaw,
+                       **kw)
+
+
+# Relative placement --------------------------------------------------------------------------
+def test_relative_bbox_of_child_in_rotated_parent():
+    zone = Zone(0, 100, 0, 60)
+    parent = obj("tray_0", (50.0, 30.0, 1.0), (20.0, 10.0, 2.0), yaw=math.pi / 2)
+    child = obj("cup_0", (50.0, 30.0, 6.0), (4.0, 6.0, 8.0), yaw=math.pi / 2 + 0.25)
+    entries = {e["instance_id"]: e for e in encode(Scene(zone, (parent, child)))}
+    assert entries["tray_0"]["relative_bbox"] == pytest.approx([40, 60, 25, 35, 0, 2])
+    e = entries["cup_0"]
+    assert (e["parent_id"], e["relation_type"], e["layer"]) == ("tray_0", "on", 2)
+    # Centred in the parent's frame (10, 5) from its (xmin, ymin) corner, own extents 4 x 6 x 8,
+    # z from the parent's top.
+    assert e["relative_bbox"] == pytest.approx([8, 12, 2, 8, 0, 8])
+    assert e["relative_rotation_deg"] == pytest.approx(math.degrees(0.25))
+
+
+def test_in_relation_z_from_parent_bottom_and_zone_corner_offset():
+    zone = Zone(-10, 90, 5, 65)
+    holder = obj("pen_holder_0", (10.0, 20.0, 5.0), (8.0, 8.0, 10.0))
+    pen = obj("pen_0", (10.0, 20.0, 7.5), (1.0, 1.0, 14.0))
+    entries = {e["instance_id"]: e for e in encode(Scene(zone, (holder, pen)))}
+    assert entries["pen_holder_0"]["relative_bbox"] == pytest.approx([16, 24, 11, 19, 0, 10])
+    assert entries["pen_0"]["relation_type"] == "in"
+    assert entries["pen_0"]["relative_bbox"] == pytest.approx([3.5, 4.5, 3.5, 4.5, 0.5, 14.5])
+
+
+def test_encode_decode_exact_and_subtree_moves_rigidly():
+    scene = build_hierarchy(read_layout(EXAMPLE))
+    entries = encode(scene)
+    assert_scenes_close(decode(entries, scene.zone), scene, tol=1e-9)
+    # Moving / turning the parent in the text moves its child with it (rigid subtree).
+    book = next(e for e in entries if e["instance_id"] == "2_book_0")
+    book["relative_rotation_deg"] += 90.0
+    moved = decode(entries, scene.zone)
+    b0, b1 = moved.get("2_book_0"), moved.get("3_book_1")
+    orig0, orig1 = scene.get("2_book_0"), scene.get("3_book_1")
+    assert math.dist(b0.center, b1.center) == pytest.approx(math.dist(orig0.center, orig1.center))
+    assert b1.yaw - b0.yaw == pytest.approx(orig1.yaw - orig0.yaw)
+
+
+def test_decode_errors_name_object_and_field():
+    zone = Zone(0, 100, 0, 60)
+    good = {"instance_id": "cup_0", "parent_id": TABLE, "relation_type": "near",
+            "relative_bbox": [1, 5, 1, 5, 0, 8], "relative_rotation_deg": 0}
+    cases = [
+        ({"relative_bbox": [5, 1, 1, 5, 0, 8]}, "relative_bbox"),
+        ({"relative_bbox": [1, 5, 1, 5, 0, float("nan")]}, "relative_bbox"),
+        ({"relative_bbox": [1, 5, 1, 5, 0, 1e9]}, "relative_bbox"),
+        ({"relative_rotation_deg": "90"}, "relative_rotation_deg"),
+        ({"parent_id": "ghost_0", "relation_type": "on"}, "parent_id"),
+        ({"parent_id": TABLE, "relation_type": "under"}, "relation_type"),
+        ({"description": 3}, "description"),
+        ({"layer": "one"}, "layer"),
+    ]
+    for change, field in cases:
+        with pytest.raises(SceneError) as info:
+            decode([{**good, **change}], zone)
+        assert info.value.obj == "cup_0" and info.value.field == field, change
+    with pytest.raises(SceneError, match="duplicate"):
+        decode([good, good], zone)
+    a = {**good, "instance_id": "a_0", "parent_id": "b_0", "relation_type": "on"}
+    b = {**good, "instance_id": "b_0", "parent_id": "a_0", "relation_type": "on"}
+    with pytest.raises(SceneError, match="cycle"):
+        decode([a, b], zone)
+
+
+# Text ----------------------------------------------------------------------------------------
+def test_completion_text_format():
+    scene = read_layout(EXAMPLE)
+    text = completion_text(scene)
+    plan, layout = text.split("**Scene Layout:**")
+    lines = [ln for ln in plan.splitlines() if ln[:1].isdigit()]
+    assert len(lines) == len(scene)
+    assert lines[0] == "1. Place 1_laptop_0 at the center of the table."
+    assert "Place 5_pen_0 in 4_pen_holder_0." in plan and "Place 7_mug_0 on 6_saucer_0." in plan
+    assert "Place 4_pen_holder_0 to the left of 1_laptop_0, about 44 cm away, at the left back" in plan
+    data = json.loads(layout)
+    assert data["item_placement_zone"] == [0, 120, 0, 60]
+    assert data["objects"][0] == {"layer": 0, "instance_id": TABLE, "type": "zone",
+                                  "bbox": [0, 120, 0, 60, 0, 0], "z_rotation": 0}
+    keys = {"layer", "instance_id", "category", "parent_id", "relation_type", "description",
+            "relative_bbox", "relative_rotation_deg"}
+    assert all(set(e) == keys for e in data["objects"][1:])
+    ids = [e["instance_id"] for e in data["objects"][1:]]
+    assert ids.index("4_pen_holder_0") + 1 == ids.index("5_pen_0")  # children right after the parent
+    assert isinstance(parse(text), Scene)
+    assert [i for i, _ in sub_instructions(scene)] == ids
+
+
+def test_coarse_location():
+    zone = Zone(0, 90, 0, 60)
+    at = lambda x, y: coarse_location(obj("a_0", (x, y, 1.0), (1.0, 1.0, 2.0)), zone)  # noqa: E731
+    assert [at(45, 30), at(5, 55), at(85, 5), at(45, 55), at(5, 30)] == [
+        "center", "left back", "right front", "back", "left"]
+
+
+def test_prompts():
+    objects = read_layout(EXAMPLE).objects
+    p = build_prompt("Set up a desk.", "office table", Zone(0, 120, 0, 60), objects)
+    assert "Set up a desk." in p and "office table" in p and "[0.0, 120.0, 0.0, 60.0]" in p
+    assert "book (2)" in p and "pen holder (1)" in p
+    assert "Object List" not in build_prompt("x", "office table", [0, 120, 0, 60])
+    z = zero_shot_prompt("Tidy up.", [0, 80.5, 0, 41.9], ["woven_basket_0", "1_lotion_bottle_1"])
+    assert "**item_placement_zone**: [0.0, 80.5, 0.0, 41.9]" in z
+    assert "woven basket (1), lotion bottle (1)" in z
+    assert '"instance": "unique_object_name"' in z
+
+
+# Parser --------------------------------------------------------------------------------------
+PROMPT3_OUTPUT = """<json>
+{
+    "item_placement_zone": [0.0, 80.5, 0.0, 41.9],
+    "objects": [
+        {"instance": "woven_basket_0", "z_rotation": 0.0, "size": [20.0, 15.0, 12.0],
+         "position": [65.0, 28.0, 6.0], "description": "basket"},
+        {"instance": "lotion_bottle_1", "z_rotation": 1.5708, "size": [5.0, 5.0, 15.0],
+         "position": [10.0, 30.0, 7.5], "description": "bottle"},
+    ]
+}
+<json>"""
+
+
+def test_parse_prompt3_flat_output():
+    scene = parse(PROMPT3_OUTPUT)
+    assert isinstance(scene, Scene), scene
+    assert scene.get("lotion_bottle_1").yaw == pytest.approx(1.5708)
+    assert scene.get("woven_basket_0").category == "woven_basket"
+    assert scene.zone.to_list() == [0.0, 80.5, 0.0, 41.9]
+    # An explicit zone (the task's table) wins over the completion's.
+    assert parse(PROMPT3_OUTPUT, zone=[0, 100, 0, 50]).zone.to_list() == [0, 100, 0, 50]
+
+
+@pytest.mark.parametrize("wrap", [
+    lambda t: t,
+    lambda t: "Sure! Here is the layout.\n```json\n" + t.split("**Scene Layout:**")[1] + "```\nDone.",
+    lambda t: "<json>" + t.split("**Scene Layout:**")[1] + "<json>",
+    lambda t: t.replace("\n  ],", ",\n  ],"),  # a trailing comma
+])
+def test_parse_wrappings(wrap):
+    scene = read_layout(EXAMPLE)
+    assert_scenes_close(parse(wrap(completion_text(scene))), scene)
+
+
+def test_parse_paper_appendix_example():
+    text = """**Scene Layout:**
+{"objects": [{"layer": 0, "instance_id": "root_zone", "type": "zone",
+ "bbox": [0.0, 80.5, 0.0, 41.9, 0.0, 0.0], "z_rotation": 0.0},
+ {"layer": 1, "instance_id": "2_woven_basket_0", "parent_id": "root_zone",
+ "relation_type": "on_surface", "description": "basket",
+ "relative_bbox": [57.05, 78.75, 20.7, 35.5, 0.0, 15.0],
+ "relative_rotation_deg": 0.0}], "item_placement_zone": [0.0, 80.5, 0.0, 41.9]}"""
+    scene = parse(text)
+    o = scene.get("2_woven_basket_0")
+    assert o.category == "woven_basket" and o.relation == "near" and o.parent == TABLE
+    np.testing.assert_allclose(o.center, [67.9, 28.1, 7.5])
+    np.testing.assert_allclose(o.size, [21.7, 14.8, 15.0])
+
+
+@pytest.mark.parametrize("text, reason", [
+    ("", "empty"), ("   \n", "empty"), ("no json here", "no JSON"), ('{"objects": []', "truncated"),
+    ('{"objects": [], "item_placement_zone": [0, 1, 0, 1]}', "no objects"),
+    ('{"objects": [{"instance_id": "a_0", "relative_bbox": [0, 1, 0, 1, 0, 1]}]}', "item_placement_zone"),
+    ('{"objects": [{"instance_id": "a_0", "relative_bbox": [0, NaN, 0, 1, 0, 1]}], '
+     '"item_placement_zone": [0, 1, 0, 1]}', "NaN"),
+    ("[" * 100000, "JSON"), ('{"a":' * 30000, "deep"), ("{" * 300000, "exceeds"), (None, "string"),
+], ids=["empty", "blank", "no-json", "truncated", "no-objects", "no-zone", "nan", "brackets", "deep", "long",
+        "none"])
+def test_parse_rejects_with_reason(text, reason):
+    result = parse(text)
+    assert isinstance(result, ParseError) and reason.lower() in result.reason.lower(), result
+
+
+# Round-trip property ------------------------------------------------------------------------
+_WORDS = ["mug", "book", "pen", "plate", "bowl", "lamp", "box", "cylinder", "sphere", "tray"]
+_DESCRIPTIONS = st.sampled_from(["", "A plain mug.", 'He said "hi" {ok}', "Scene Layout: <json> ]",
+                                 "Über 10°", "line\nbreak", "tab\there"])
+
+
+@st.composite
+def layouts(draw):
+    """A MesaTask layout dict whose intended hierarchy is unambiguous, and that hierarchy.
+
+    Roots sit in separate grid cells (some flush with the zone edges, some rotated); on each root
+    there may be a stack up to three deep (each level small and centred enough to be fully
+    supported) or, for containers, one object inside.
+    """
+    x0, y0 = draw(st.floats(-50, 50)), draw(st.floats(-50, 50))
+    nx, ny = draw(st.integers(1, 3)), draw(st.integers(1, 2))
+    cell_w, cell_d = draw(st.floats(25, 60)), draw(st.floats(25, 60))
+    zone = [x0, x0 + nx * cell_w, y0, y0 + ny * cell_d]
+    objects, intended = [], {}
+    counter = iter(range(10_000))
+
+    def add(category, center, size, yaw, parent, relation):
+        iid = f"{next(counter)}_{category}_{draw(st.integers(0, 3))}"
+        entry = {"instance": iid, "position": list(center), "size": list(size),
+                 "description": draw(_DESCRIPTIONS)}
+        style = draw(st.sampled_from(["quat", "both", "z"]))
+        if style in ("quat", "both"):
+            entry["rotation"] = yaw_to_quaternion(yaw)
+        if style in ("both", "z"):
+            entry["z_rotation"] = yaw if style == "z" else yaw + 1.0  # the quaternion must win
+        if draw(st.booleans()):
+            entry["retrieved_uid"] = f"uid{draw(st.integers(0, 99))}"
+        objects.append(entry)
+        intended[iid] = (parent, relation)
+        return iid
+
+    for i in range(nx):
+        for j in range(ny):
+            if not draw(st.booleans()):
+                continue
+            m = min(cell_w, cell_d)
+            w, d = draw(st.floats(0.3 * m, 0.65 * m)), draw(st.floats(0.3 * m, 0.65 * m))
+            h = draw(st.floats(5.0, 30.0))
+            yaw = draw(st.sampled_from([0.0, math.pi / 2, -math.pi, draw(st.floats(-math.pi, math.pi))]))
+            # Centre inside the cell, or flush with a zone edge when the cell is on the border.
+            # Half extents of the yawed footprint's axis-aligned box.
+            ex = 0.5 * (abs(w * math.cos(yaw)) + abs(d * math.sin(yaw)))
+            ey = 0.5 * (abs(w * math.sin(yaw)) + abs(d * math.cos(yaw)))
+            cx = x0 + (i + 0.5) * cell_w + draw(st.floats(-0.05, 0.05)) * cell_w
+            cy = y0 + (j + 0.5) * cell_d + draw(st.floats(-0.05, 0.05)) * cell_d
+            if i in (0, nx - 1) and draw(st.booleans()):
+                cx = x0 + ex if i == 0 else zone[1] - ex
+            if j in (0, ny - 1) and draw(st.booleans()):
+                cy = y0 + ey if j == 0 else zone[3] - ey
+            kind = draw(st.sampled_from(["single", "stack", "container"]))
+            cat = draw(st.sampled_from(_WORDS))
+            root = add(cat, (cx, cy, 0.5 * h), (w, d, h), yaw, TABLE, "near")
+            if kind == "container":
+                cw, cd = draw(st.floats(0.1, 0.5)) * min(w, d), draw(st.floats(0.1, 0.5)) * min(w, d)
+                t = draw(st.floats(0.0, 0.8))
+                ch = draw(st.floats(0.5, 1.8)) * (h - t)
+                off = draw(st.floats(-0.1, 0.1)) * min(w, d)
+                add("pen", (cx + off, cy - off, t + 0.5 * ch), (cw, cd, ch), draw(st.floats(-3.2, 3.2)),
+                    root, "in")
+            elif kind == "stack":
+                parent, pw, pd, ptop, px, py = root, w, d, h, cx, cy
+                for _ in range(draw(st.sampled_from([1, 2, 3, 3]))):
+                    m = min(pw, pd)
+                    sw, sd = draw(st.floats(0.2, 0.5)) * m, draw(st.floats(0.2, 0.5)) * m
+                    sh = draw(st.floats(1.5, 8.0))
+                    offx, offy = draw(st.floats(-0.1, 0.1)) * m, draw(st.floats(-0.1, 0.1)) * m
+                    gap = draw(st.floats(-0.3, 0.3))  # resting within the 1 cm "on" tolerance
+                    px, py = px + offx, py + offy
+                    parent = add(draw(st.sampled_from(_WORDS)), (px, py, ptop + gap + 0.5 * sh), (sw, sd, sh),
+                                 draw(st.floats(-math.pi, math.pi)), parent, "on")
+                    pw, pd, ptop = sw, sd, ptop + gap + sh
+    if not objects:
+        add("mug", (x0 + 10, y0 + 10, 5.0), (8.0, 8.0, 10.0), 0.0, TABLE, "near")
+    as_dict = draw(st.booleans())
+    data = {"item_placement_zone": zone, "restricted_zone": [], "scene_type": "office table",
+            "objects": {o.pop("instance"): o for o in objects} if as_dict else objects}
+    return data, intended
+
+
+@settings(max_examples=500, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(layouts())
+def test_round_trip_layout_ctrc_text_parse(case):
+    data, intended = case
+    scene = load_layout(json.loads(json.dumps(data)))
+    hierarchy = build_hierarchy(scene)
+    assert {o.instance_id: (o.parent, o.relation) for o in hierarchy.objects} == intended
+    text = completion_text(scene)
+    parsed = parse(text)
+    assert isinstance(parsed, Scene), (parsed, text)
+    assert_scenes_close(parsed, scene, tol=1e-4)
+    assert {o.instance_id: (o.parent, o.relation) for o in parsed.objects} == intended
+    assert {o.instance_id: o.asset_id for o in scene.objects} == {
+        o["instance"]: o["retrieved_uid"] for o in layout_to_dict(scene)["objects"]}
+    # The layout JSON is stable: encoding the parsed scene again writes the same numbers (the
+    # plan's whole-cm distances may flip at a .5 boundary).
+    assert completion_text(parsed).split("**Scene Layout:**")[1] == text.split("**Scene Layout:**")[1]
