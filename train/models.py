@@ -1,0 +1,172 @@
+"""Models for the training configs: Qwen3 built from a config (``tiny``, ``small``) or a local checkpoint.
+
+- ``scratch``: a ``transformers.Qwen3ForCausalLM`` built from ``Qwen3Config`` with the sizes in the
+  config's ``model.arch`` and a tokenizer trained locally (:mod:`physcene.train.tokenizer`). The same
+  architecture as the paper's backbone family, small enough for CPU tests (``tiny``, ~0.2 M parameters)
+  or one GPU (``small``, ~27 M parameters, a 55 MB bf16 checkpoint).
+- ``pretrained``: any local Hugging Face checkpoint, e.g. Qwen3-VL-8B-Instruct. Vision-language
+  checkpoints load with ``AutoModelForImageTextToText`` and are fed text only; their vision tower is
+  frozen (``requires_grad=False``) so neither the optimizer nor ZeRO-2 keeps states for it.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Iterable
+from pathlib import Path
+
+import torch
+from omegaconf import DictConfig, OmegaConf
+from physcene.train.tokenizer import train_tokenizer
+from transformers import (
+    AutoConfig,
+    AutoModelForCausalLM,
+    AutoModelForImageTextToText,
+    AutoTokenizer,
+    PreTrainedModel,
+    PreTrainedTokenizerBase,
+    Qwen3Config,
+    Qwen3ForCausalLM,
+)
+from transformers.models.auto.modeling_auto import MODEL_FOR_IMAGE_TEXT_TO_TEXT_MAPPING_NAMES
+
+__all__ = [
+    "RUN_INFO",
+    "TrainingSetupError",
+    "build_scratch_model",
+    "count_parameters",
+    "freeze_vision_tower",
+    "load_model",
+    "load_tokenizer",
+    "prepare_model_and_tokenizer",
+    "read_run_info",
+    "torch_dtype",
+    "write_run_info",
+]
+
+# Written next to every checkpoint this package saves: how to feed the model (chat template or plain
+# text) so that anchors, PADA and eval need no extra flags.
+RUN_INFO = "physcene_run.json"
+
+
+class TrainingSetupError(ValueError):
+    """A training config, model path or data file was wrong."""
+
+
+def torch_dtype(name: str) -> torch.dtype:
+    """``"bfloat16"``/``"bf16"``/``"float16"``/``"fp16"``/``"float32"`` -> torch dtype."""
+    table = {"bfloat16": torch.bfloat16, "bf16": torch.bfloat16, "float16": torch.float16,
+             "fp16": torch.float16, "float32": torch.float32, "fp32": torch.float32}
+    if name not in table:
+        raise TrainingSetupError(f"unknown dtype {name!r}; use one of {sorted(table)}")
+    return table[name]
+
+
+def count_parameters(model: torch.nn.Module, trainable_only: bool = False) -> int:
+    """Number of parameters (tied embeddings counted once)."""
+    seen: set[int] = set()
+    total = 0
+    for p in model.parameters():
+        if id(p) in seen or (trainable_only and not p.requires_grad):
+            continue
+        seen.add(id(p))
+        total += p.numel()
+    return total
+
+
+def build_scratch_model(arch: DictConfig | dict, tokenizer: PreTrainedTokenizerBase, seed: int = 0,
+                        dtype: str = "float32") -> Qwen3ForCausalLM:
+    """A randomly initialised Qwen3 causal LM with the sizes in ``arch`` and ``tokenizer``'s vocabulary."""
+    arch = OmegaConf.to_container(arch, resolve=True) if isinstance(arch, DictConfig) else dict(arch)
+    torch.manual_seed(seed)
+    config = Qwen3Config(
+        vocab_size=len(tokenizer),
+        eos_token_id=tokenizer.eos_token_id,
+        pad_token_id=tokenizer.pad_token_id,
+        bos_token_id=None,
+        tie_word_embeddings=True,
+        **arch,
+    )
+    model = Qwen3ForCausalLM(config)
+    model.generation_config.eos_token_id = tokenizer.eos_token_id
+    model.generation_config.pad_token_id = tokenizer.pad_token_id
+    return model.to(torch_dtype(dtype))
+
+
+def _is_image_text_checkpoint(path: str | Path) -> bool:
+    config = AutoConfig.from_pretrained(str(path))
+    return config.model_type in MODEL_FOR_IMAGE_TEXT_TO_TEXT_MAPPING_NAMES
+
+
+def freeze_vision_tower(model: torch.nn.Module) -> int:
+    """Freeze every parameter of a vision tower (names containing ``visual``/``vision``); returns how many."""
+    frozen = 0
+    for name, p in model.named_parameters():
+        if ".visual." in f".{name}" or "vision_tower" in name or "vision_model" in name:
+            p.requires_grad_(False)
+            frozen += p.numel()
+    return frozen
+
+
+def load_model(path: str | Path, dtype: str = "bfloat16", freeze_vision: bool = True) -> PreTrainedModel:
+    """A local checkpoint (causal LM or image-text-to-text, used text-only), vision tower frozen."""
+    path = Path(path)
+    if not (path / "config.json").is_file():
+        raise TrainingSetupError(f"model path {str(path)!r} has no config.json "
+                                 "(a local Hugging Face checkpoint is needed)")
+    loader = AutoModelForImageTextToText if _is_image_text_checkpoint(path) else AutoModelForCausalLM
+    model = loader.from_pretrained(str(path), dtype=torch_dtype(dtype))
+    if freeze_vision:
+        freeze_vision_tower(model)
+    return model
+
+
+def load_tokenizer(path: str | Path) -> PreTrainedTokenizerBase:
+    """The tokenizer saved with a checkpoint, left-padded for generation, with a pad token."""
+    tokenizer = AutoTokenizer.from_pretrained(str(path))
+    if tokenizer.pad_token is None:
+        tokenizer.pad_token = tokenizer.eos_token
+    tokenizer.padding_side = "left"
+    return tokenizer
+
+
+def prepare_model_and_tokenizer(cfg: DictConfig, texts: Iterable[str] | None = None,
+                                out_dir: str | Path | None = None):
+    """The stage-1 starting point of ``cfg.model``: (model, tokenizer).
+
+    ``scratch`` trains a tokenizer on ``texts`` (saved to ``out_dir/tokenizer`` when given) and builds
+    a random Qwen3; ``pretrained`` loads ``cfg.model.path``.
+    """
+    m = cfg.model
+    if m.source == "scratch":
+        if texts is None:
+            raise TrainingSetupError("a scratch model needs training texts to build its tokenizer")
+        tok_dir = Path(out_dir) / "tokenizer" if out_dir is not None else None
+        if tok_dir is not None and (tok_dir / "tokenizer.json").is_file():
+            tokenizer = load_tokenizer(tok_dir)  # resume: the vocabulary must not change under a checkpoint
+        elif tok_dir is not None:
+            train_tokenizer(texts, tok_dir, vocab_size=int(m.tokenizer.vocab_size))
+            tokenizer = load_tokenizer(tok_dir)
+        else:
+            from physcene.train.tokenizer import build_tokenizer
+            tokenizer = build_tokenizer(texts, vocab_size=int(m.tokenizer.vocab_size))
+        model = build_scratch_model(m.arch, tokenizer, seed=int(cfg.seed), dtype=str(m.dtype))
+        return model, tokenizer
+    if m.source == "pretrained":
+        if not m.path:
+            raise TrainingSetupError("model.source=pretrained needs model.path (a local checkpoint dir)")
+        model = load_model(m.path, dtype=str(m.dtype), freeze_vision=bool(m.freeze_vision))
+        return model, load_tokenizer(m.path)
+    raise TrainingSetupError(f"model.source must be 'scratch' or 'pretrained', got {m.source!r}")
+
+
+def write_run_info(out_dir: str | Path, **info) -> None:
+    """Record how a checkpoint expects its input (``chat_format``, ``stage``, ``base_model`` ...)."""
+    Path(out_dir).mkdir(parents=True, exist_ok=True)
+    (Path(out_dir) / RUN_INFO).write_text(json.dumps(info, indent=2, sort_keys=True))
+
+
+def read_run_info(model_dir: str | Path) -> dict:
+    """The :data:`RUN_INFO` of a checkpoint, or ``{}`` for a foreign checkpoint."""
+    path = Path(model_dir) / RUN_INFO
+    return json.loads(path.read_text()) if path.is_file() else {}

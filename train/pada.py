@@ -1,0 +1,322 @@
+"""Stage 2: PADA — GRPO with a cross-entropy pull toward physically-projected semantic anchors.
+
+The paper's objective (Sec. 3.3, appendix "Stage 2")::
+
+    J(θ) = E[ 1/K Σ_k A_k π_θ(S_k)/π_old(S_k) ]  +  α · L_CE(π_θ, S*_anchor)        (α = 0.1)
+
+is TRL's GRPO loss plus one term. Following TRL's extension pattern (``trl/experimental/gmpo``), the
+subclass :class:`PADATrainer` overrides only
+
+- ``_generate_and_score_completions``: after TRL has generated and scored the group, tokenise each
+  prompt's anchor (the ``anchor`` column written by :mod:`physcene.train.anchors`) into
+  ``anchor_ids``/``anchor_attention_mask``/``anchor_loss_mask`` so TRL shuffles and splits them with
+  the rest of the batch;
+- ``_compute_loss``: ``loss = GRPO loss + α · CE(anchor)``, with the same gradient-accumulation scaling
+  TRL applies to its own loss, and the CE logged as ``anchor_ce``.
+
+Variants (``pada.variant``): ``pada`` (TTO-repaired anchors), ``pada_star`` (raw SFT output as the
+anchor, CE masked to non-numeric tokens: the box and rotation values are left to GRPO, as the
+paper's PADA*), ``grpo`` (α = 0: plain GRPO, no anchor forward pass). Rows whose anchor is empty (the
+SFT output did not parse) contribute no CE.
+
+β (KL to the SFT model) starts at 0.04 and is adapted by :class:`AdaptiveKLCallback`.
+"""
+
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import torch
+from transformers import PreTrainedTokenizerBase, TrainerCallback
+from trl import GRPOConfig, GRPOTrainer
+
+__all__ = [
+    "VARIANTS",
+    "AdaptiveKLCallback",
+    "PADAConfig",
+    "PADATrainer",
+    "numeric_spans",
+    "tokenize_anchor",
+]
+
+# variant -> (anchor column, numeric tokens masked out of the CE); grpo has no anchor (α = 0)
+VARIANTS = {"pada": ("anchor", False), "pada_star": ("anchor_raw", True), "grpo": (None, False)}
+
+# JSON keys whose numbers PADA* leaves to exploration: the geometry, not the semantics.
+GEOMETRY_KEYS = ("relative_bbox", "relative_rotation_deg")
+_NUMBER = re.compile(r"-?\d+(?:\.\d+)?(?:[eE][-+]?\d+)?")
+
+
+@dataclass
+class PADAConfig(GRPOConfig):
+    """``GRPOConfig`` plus the anchor term. Defaults are the paper's (α = 0.1, β = 0.04, G = 4)."""
+
+    anchor_alpha: float = field(default=0.1, metadata={"help": "Weight α of the anchor CE; 0 = GRPO."})
+    anchor_column: str = field(default="anchor", metadata={"help": "Dataset column holding the anchor text."})
+    anchor_numeric_mask: bool = field(
+        default=False, metadata={"help": "PADA*: leave geometry numbers out of the anchor CE."})
+    anchor_geometry_keys: list[str] = field(
+        default_factory=lambda: list(GEOMETRY_KEYS),
+        metadata={"help": "JSON keys whose numeric values the PADA* mask removes from the CE."})
+    beta: float = field(default=0.04, metadata={"help": "Initial KL coefficient (AdaptiveKLCallback)."})
+    num_generations: int | None = field(default=4, metadata={"help": "Group size G."})
+
+
+def numeric_spans(text: str, keys: tuple[str, ...] | list[str] = GEOMETRY_KEYS) -> list[tuple[int, int]]:
+    """Character spans ``[start, end)`` of the numbers inside the JSON values of ``keys`` in ``text``.
+
+    A value is the bracketed list or the scalar after ``"key":``. Numbers elsewhere (instance ids such
+    as ``pen_0``, layer indices, the zone) are semantic and stay supervised.
+    """
+    spans = []
+    for key in keys:
+        for m in re.finditer(rf'"{re.escape(key)}"\s*:\s*(\[[^\]]*\]|[-+0-9.eE]+)', text):
+            base = m.start(1)
+            spans.extend((base + n.start(), base + n.end()) for n in _NUMBER.finditer(m.group(1)))
+    return sorted(spans)
+
+
+def tokenize_anchor(tokenizer: PreTrainedTokenizerBase, text: str, *, max_length: int,
+                    numeric_mask: bool = False, keys=GEOMETRY_KEYS) -> tuple[list[int], list[int]]:
+    """(token ids, loss mask) of an anchor completion, EOS appended, at most ``max_length`` tokens.
+
+    The EOS is supervised like the generated completions' EOS (the model must learn to stop). With
+    ``numeric_mask`` every token overlapping a geometry number gets loss mask 0. Empty text -> ``([], [])``.
+    """
+    if not text:
+        return [], []
+    enc = tokenizer(text, add_special_tokens=False, return_offsets_mapping=numeric_mask)
+    ids = list(enc["input_ids"]) + [tokenizer.eos_token_id]
+    mask = [1] * len(ids)
+    if numeric_mask:
+        spans = numeric_spans(text, keys)
+        for t, (a, b) in enumerate(enc["offset_mapping"]):
+            if any(a < e and s < b for s, e in spans):
+                mask[t] = 0
+    return ids[:max_length], mask[:max_length]
+
+
+class PADATrainer(GRPOTrainer):
+    """GRPO + α·CE(anchor) (see the module docstring). ``args`` is a :class:`PADAConfig`."""
+
+    _tag_names = ["trl", "grpo", "pada"]
+
+    def __init__(self, model, reward_funcs, args: PADAConfig | None = None, **kwargs):
+        if args is None:
+            args = PADAConfig("pada")
+        super().__init__(model, reward_funcs, args=args, **kwargs)
+        self.anchor_alpha = float(args.anchor_alpha)
+
+    def _set_signature_columns_if_needed(self):
+        super()._set_signature_columns_if_needed()
+        # Keep the anchor column through Trainer's column pruning.
+        if self.args.anchor_column not in self._signature_columns:
+            self._signature_columns.append(self.args.anchor_column)
+
+    def _generate_and_score_completions(self, inputs):
+        output = super()._generate_and_score_completions(inputs)
+        if self.anchor_alpha == 0.0:
+            return output
+        device = self.accelerator.device
+        rows = [tokenize_anchor(self._tokenizer, x.get(self.args.anchor_column) or "",
+                                max_length=self.max_completion_length,
+                                numeric_mask=self.args.anchor_numeric_mask,
+                                keys=tuple(self.args.anchor_geometry_keys)) for x in inputs]
+        width = max(1, max(len(ids) for ids, _ in rows))
+        pad = self._tokenizer.pad_token_id
+        # Right padding, like TRL's completion_ids, so [prompt | anchor] reads as prompt + completion.
+        output["anchor_ids"] = torch.tensor([ids + [pad] * (width - len(ids)) for ids, _ in rows],
+                                            device=device)
+        output["anchor_attention_mask"] = torch.tensor(
+            [[1] * len(ids) + [0] * (width - len(ids)) for ids, _ in rows], device=device)
+        output["anchor_loss_mask"] = torch.tensor([m + [0] * (width - len(m)) for _, m in rows],
+                                                  device=device)
+        return output
+
+    def anchor_cross_entropy(self, model, inputs) -> torch.Tensor:
+        """Mean token NLL of the anchors given their prompts, over the supervised anchor tokens (scalar)."""
+        anchor_ids = inputs["anchor_ids"]
+        input_ids = torch.cat([inputs["prompt_ids"], anchor_ids], dim=1)
+        attention_mask = torch.cat([inputs["prompt_mask"], inputs["anchor_attention_mask"]], dim=1)
+        logps, _, _ = self._get_per_token_logps_and_entropies(model, input_ids, attention_mask,
+                                                              anchor_ids.size(1))
+        mask = inputs["anchor_loss_mask"].to(logps.dtype)
+        return -(logps * mask).sum() / mask.sum().clamp(min=1.0)
+
+    def _compute_loss(self, model, inputs):
+        loss = super()._compute_loss(model, inputs)
+        if self.anchor_alpha == 0.0 or "anchor_ids" not in inputs:
+            return loss
+        mode = "train" if self.model.training else "eval"
+        has_anchor = inputs["anchor_loss_mask"].sum() > 0
+        ce = self.anchor_cross_entropy(model, inputs) if has_anchor else loss.new_zeros(())
+        # TRL divides its own loss by the accumulation steps (HF auto-scaling is off): do the same.
+        normalizer = self.current_gradient_accumulation_steps if mode == "train" else 1.0
+        stats = torch.stack([ce.detach() * has_anchor, has_anchor.float()])
+        stats = self.accelerator.reduce(stats, reduction="sum")
+        if stats[1] > 0:
+            self._metrics[mode]["anchor_ce"].append((stats[0] / stats[1]).item())
+        return loss + self.anchor_alpha * ce / normalizer
+
+
+class AdaptiveKLCallback(TrainerCallback):
+    """Adaptive KL coefficient (Ziegler et al. 2019): β ← β · (1 + clip(KL/target − 1, ±0.2) · n/horizon).
+
+    Reads the ``kl`` that GRPOTrainer logs (mean per-token KL to the reference), ``n`` = optimizer
+    steps since the last update; β stays in ``[min_beta, max_beta]`` (it must stay > 0: TRL only
+    computes reference log-probs when β ≠ 0). The new β is logged as ``beta``.
+    """
+
+    def __init__(self, trainer: GRPOTrainer, target: float = 0.05, horizon: int = 100,
+                 min_beta: float = 1e-3, max_beta: float = 1.0):
+        if trainer.beta <= 0:
+            raise ValueError(f"adaptive KL needs an initial beta > 0, got {trainer.beta}")
+        if target <= 0 or horizon <= 0:
+            raise ValueError(f"adaptive KL needs target > 0 and horizon > 0, got {target}, {horizon}")
+        self.trainer, self.target, self.horizon = trainer, target, horizon
+        self.min_beta, self.max_beta = min_beta, max_beta
+        self._last_step = 0
+
+    def update(self, kl: float, global_step: int) -> float:
+        """Apply one update for the measured ``kl`` at ``global_step``; returns the new β."""
+        error = min(max(kl / self.target - 1.0, -0.2), 0.2)
+        steps = max(global_step - self._last_step, 1)
+        self._last_step = global_step
+        beta = self.trainer.beta * (1.0 + error * steps / self.horizon)
+        self.trainer.beta = min(max(beta, self.min_beta), self.max_beta)
+        self.trainer._metrics["train"]["beta"].append(self.trainer.beta)
+        return self.trainer.beta
+
+    def on_log(self, args, state, control, logs=None, **kwargs):
+        if logs and "kl" in logs and state.global_step > self._last_step:
+            self.update(float(logs["kl"]), state.global_step)
+
+
+class PhysicsRewardFunction:
+    """TRL reward function around ``physcene.reward.physics_reward``, scoring on this rank's device.
+
+    Each rank scores only its own completions (TRL gathers the rewards afterwards), so on N GPUs the
+    engine runs N-way parallel. Also logs, through the trainer's ``log_metric``: ``parse_rate``
+    (reward ≠ −100), ``collision_free_rate`` (reward = +50) and ``penetration_mm``: the mean E_pen of
+    the parsed completions, recovered from the reward (E = −100·R mm for −50 < R < 0; clipped rewards
+    count as 5000 mm, so it is a lower bound when any completion hit the −50 clip).
+    """
+
+    __name__ = "physics"
+
+    def __init__(self, device: str | torch.device = "cpu", reward_fn=None):
+        if reward_fn is None:
+            from physcene.reward import physics_reward as reward_fn
+        self.device = str(device)
+        self.reward_fn = reward_fn
+
+    def __call__(self, prompts, completions, log_metric=None, **columns) -> list[float]:
+        # Conversational completions arrive as [{"role": "assistant", "content": ...}].
+        texts = [c if isinstance(c, str) else c[-1]["content"] for c in completions]
+        columns = {k: v for k, v in columns.items()
+                   if k not in ("trainer_state", "log_extra", "completion_ids")}
+        rewards = [float(r) for r in self.reward_fn(prompts, texts, device=self.device, **columns)]
+        if log_metric is not None:
+            for name, value in reward_statistics(rewards).items():
+                log_metric(name, value)
+        return rewards
+
+
+def reward_statistics(rewards: list[float]) -> dict[str, float]:
+    """parse_rate, collision_free_rate and penetration_mm (see :class:`PhysicsRewardFunction`)."""
+    parsed = [r for r in rewards if r != -100.0]
+    stats = {"parse_rate": len(parsed) / max(len(rewards), 1),
+             "collision_free_rate": sum(r == 50.0 for r in rewards) / max(len(rewards), 1)}
+    if parsed:
+        stats["penetration_mm"] = sum(0.0 if r == 50.0 else -100.0 * r for r in parsed) / len(parsed)
+    return stats
+
+
+def pada_arguments(cfg, variant: str) -> PADAConfig:
+    """The :class:`PADAConfig` of ``cfg.pada`` for ``variant`` (paper stage 2 defaults in the configs)."""
+    from omegaconf import OmegaConf
+    from physcene.train.sft import _precision, accumulation_steps, world_size
+
+    if variant not in VARIANTS:
+        raise ValueError(f"unknown PADA variant {variant!r}; use one of {sorted(VARIANTS)}")
+    p = cfg.pada
+    column, numeric_mask = VARIANTS[variant]
+    deepspeed = OmegaConf.to_container(p.deepspeed, resolve=True) if p.deepspeed is not None else None
+    return PADAConfig(
+        output_dir=str(p.output_dir),
+        anchor_alpha=0.0 if column is None else float(p.alpha),
+        anchor_column=column or "anchor",
+        anchor_numeric_mask=numeric_mask,
+        beta=float(p.beta),
+        num_generations=int(p.num_generations),
+        max_completion_length=int(p.max_completion_length),
+        temperature=float(p.temperature),
+        learning_rate=float(p.learning_rate),
+        lr_scheduler_type=str(p.lr_scheduler_type),
+        num_train_epochs=float(p.epochs),
+        max_steps=int(p.max_steps),
+        per_device_train_batch_size=int(p.per_device_batch_size),
+        gradient_accumulation_steps=accumulation_steps(int(p.global_batch_size), int(p.per_device_batch_size),
+                                                       world_size()),
+        save_steps=int(p.save_steps),
+        save_total_limit=2,
+        logging_steps=int(p.logging_steps),
+        report_to="none",
+        seed=int(cfg.seed),
+        deepspeed=deepspeed,
+        dataloader_num_workers=0,
+        **_precision(cfg),
+    )
+
+
+def run_pada(cfg, variant: str | None = None, reward_fn=None) -> Path:
+    """Train stage 2 (``variant`` or ``cfg.pada.variant``) from ``cfg.pada.model`` on ``cfg.pada.anchors``.
+
+    Saves the LoRA adapter, tokenizer and run info to ``cfg.pada.output_dir``; resumes from its last
+    checkpoint. ``reward_fn`` replaces ``physcene.reward.physics_reward`` (same signature) if given.
+    """
+    from accelerate import PartialState
+    from physcene.train.models import load_model, load_tokenizer, read_run_info, write_run_info
+    from physcene.train.records import load_records, training_dataset
+    from physcene.train.sft import lora_config
+    from transformers.trainer_utils import get_last_checkpoint
+
+    variant = variant or str(cfg.pada.variant)
+    args = pada_arguments(cfg, variant)
+    model_dir = Path(str(cfg.pada.model))
+    info = read_run_info(model_dir)
+    chat = bool(info.get("chat_format", cfg.model.chat_format))
+    records = load_records(str(cfg.pada.anchors))
+    if not records:
+        raise ValueError(f"no records in anchor file {cfg.pada.anchors!r}")
+    if args.anchor_alpha > 0 and not any(r.get(args.anchor_column) for r in records):
+        raise ValueError(f"{cfg.pada.anchors}: no record has a non-empty {args.anchor_column!r} "
+                         f"(variant {variant})")
+    dataset = training_dataset(records, chat_format=chat, columns=("anchor", "anchor_raw"))
+    dtype = str(cfg.model.dtype) if __import__("torch").cuda.is_available() else "float32"
+    # Absolute path: PEFT records it as the adapter's base model, read back by generate().
+    model = load_model(model_dir.resolve(), dtype=dtype, freeze_vision=bool(cfg.model.freeze_vision))
+    tokenizer = load_tokenizer(model_dir)
+    state = PartialState()
+    trainer = PADATrainer(
+        model=model,
+        reward_funcs=[PhysicsRewardFunction(state.device, reward_fn=reward_fn)],
+        args=args,
+        train_dataset=dataset,
+        processing_class=tokenizer,
+        peft_config=lora_config(cfg.pada.lora),
+    )
+    kl = cfg.pada.adaptive_kl
+    if kl is not None and args.beta > 0:
+        trainer.add_callback(AdaptiveKLCallback(trainer, target=float(kl.target), horizon=int(kl.horizon),
+                                                min_beta=float(kl.min_beta), max_beta=float(kl.max_beta)))
+    out = Path(args.output_dir)
+    trainer.train(resume_from_checkpoint=get_last_checkpoint(str(out)) if out.is_dir() else None)
+    trainer.save_model(str(out))
+    if trainer.is_world_process_zero():
+        tokenizer.save_pretrained(str(out))
+        write_run_info(out, stage="pada", variant=variant, chat_format=chat, alpha=args.anchor_alpha,
+                       base_model=str(model_dir.resolve()), n_records=len(records))
+    return out

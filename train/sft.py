@@ -1,0 +1,118 @@
+"""Stage 1: supervised fine-tuning on CTRC prompt/completion pairs with TRL's ``SFTTrainer``.
+
+The loss covers the completion only (``completion_only_loss=True``: TRL masks the prompt tokens of
+prompt/completion datasets). Full fine-tuning by default; ``sft.lora`` switches to LoRA adapters.
+The global batch is ``per_device_batch_size x world_size x gradient_accumulation_steps``; the
+accumulation steps are derived from ``global_batch_size`` for the world size the run sees, so one
+config serves 1 GPU, N GPUs and the CPU test. A run resumes from the last ``checkpoint-*`` in its
+output directory.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+from omegaconf import DictConfig, OmegaConf
+from peft import LoraConfig
+from physcene.train.models import TrainingSetupError, prepare_model_and_tokenizer, write_run_info
+from physcene.train.records import load_records, training_dataset
+from transformers.trainer_utils import get_last_checkpoint
+from trl import SFTConfig, SFTTrainer
+
+__all__ = ["accumulation_steps", "lora_config", "run_sft"]
+
+
+def world_size() -> int:
+    """Processes of this run (accelerate/torchrun set WORLD_SIZE; 1 otherwise)."""
+    import os
+
+    return int(os.environ.get("WORLD_SIZE", "1"))
+
+
+def accumulation_steps(global_batch: int, per_device: int, world: int) -> int:
+    """Gradient accumulation steps that make ``per_device x world x steps == global_batch``."""
+    per_step = per_device * world
+    steps = max(1, math.ceil(global_batch / per_step))
+    if steps * per_step != global_batch:
+        raise TrainingSetupError(
+            f"global_batch_size={global_batch} is not a multiple of per_device_batch_size={per_device} x "
+            f"world_size={world}")
+    return steps
+
+
+def lora_config(lora: DictConfig | None) -> LoraConfig | None:
+    """A peft ``LoraConfig`` from ``{r, alpha, dropout, target_modules}``, or None for full fine-tuning."""
+    if lora is None:
+        return None
+    return LoraConfig(r=int(lora.r), lora_alpha=int(lora.alpha), lora_dropout=float(lora.get("dropout", 0.0)),
+                      target_modules=list(lora.target_modules), task_type="CAUSAL_LM")
+
+
+def _precision(cfg: DictConfig) -> dict:
+    import torch
+
+    # Mixed precision only where the hardware does it; CPU tests train in fp32.
+    if not torch.cuda.is_available():
+        return {"bf16": False, "fp16": False, "use_cpu": True}
+    return {"bf16": torch.cuda.is_bf16_supported(), "fp16": not torch.cuda.is_bf16_supported()}
+
+
+def sft_arguments(cfg: DictConfig) -> SFTConfig:
+    """The ``SFTConfig`` of ``cfg.sft`` (paper stage 1 for ``qwen3_vl_8b``)."""
+    s = cfg.sft
+    deepspeed = OmegaConf.to_container(s.deepspeed, resolve=True) if s.deepspeed is not None else None
+    return SFTConfig(
+        output_dir=str(s.output_dir),
+        num_train_epochs=float(s.epochs),
+        max_steps=int(s.max_steps),
+        learning_rate=float(s.learning_rate),
+        lr_scheduler_type=str(s.lr_scheduler_type),
+        warmup_steps=float(s.warmup_steps),
+        adam_beta1=float(s.adam_beta1),
+        adam_beta2=float(s.adam_beta2),
+        weight_decay=float(s.weight_decay),
+        per_device_train_batch_size=int(s.per_device_batch_size),
+        gradient_accumulation_steps=accumulation_steps(int(s.global_batch_size), int(s.per_device_batch_size),
+                                                       world_size()),
+        max_length=int(s.max_length),
+        completion_only_loss=True,
+        packing=False,
+        save_steps=int(s.save_steps),
+        save_total_limit=2,
+        logging_steps=int(s.logging_steps),
+        report_to="none",
+        seed=int(cfg.seed),
+        deepspeed=deepspeed,
+        dataloader_num_workers=0,
+        **_precision(cfg),
+    )
+
+
+def run_sft(cfg: DictConfig) -> Path:
+    """Train stage 1 per ``cfg`` and save the model, tokenizer and run info to ``cfg.sft.output_dir``."""
+    out = Path(cfg.sft.output_dir)
+    records = load_records(str(cfg.data.train), seed=int(cfg.seed), max_level=cfg.data.get("max_level"))
+    if not records:
+        raise TrainingSetupError(f"no training records in {cfg.data.train!r} "
+                                 f"(max_level={cfg.data.get('max_level')})")
+    texts = [t for r in records for t in (r["prompt"], r["completion"])]
+    model, tokenizer = prepare_model_and_tokenizer(cfg, texts=texts, out_dir=out)
+    chat = bool(cfg.model.chat_format)
+    trainer = SFTTrainer(
+        model=model,
+        args=sft_arguments(cfg),
+        train_dataset=training_dataset(records, chat_format=chat),
+        processing_class=tokenizer,
+        peft_config=lora_config(cfg.sft.lora),
+    )
+    trainer.train(resume_from_checkpoint=get_last_checkpoint(str(out)) if out.is_dir() else None)
+    if cfg.sft.lora is not None:
+        # Later stages load one plain checkpoint: fold the adapters into the weights.
+        trainer.model = trainer.model.merge_and_unload()
+    trainer.save_model(str(out))
+    if trainer.is_world_process_zero():
+        tokenizer.save_pretrained(str(out))
+        write_run_info(out, stage="sft", chat_format=chat, config=str(cfg.name), n_records=len(records),
+                       base_model=str(cfg.model.path) if cfg.model.source == "pretrained" else "scratch")
+    return out
