@@ -364,7 +364,7 @@ def build_prompt(instruction: str, scene_type: str, zone, objects=None) -> str:
     """
     zone_vals = [round(v, 2) + 0.0 for v in _zone_list(zone)]
     lines = [
-        f"Arrange a {scene_type or 'table'} tabletop.",
+        f"Generate a physically plausible tabletop layout for a {scene_type or 'table'}.",
         f"**Instruction**: {instruction}",
         f"**Table type**: {scene_type}",
         f"**item_placement_zone**: {_json_line(zone_vals)} (cm; origin at the near-left corner, "

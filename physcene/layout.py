@@ -36,6 +36,7 @@ from physcene.scene import Scene, SceneError, SceneObject, Zone
 __all__ = [
     "PRIMITIVE_CATEGORIES",
     "category_from_instance",
+    "dumps_layout",
     "iter_layout_tree",
     "layout_to_dict",
     "load_layout",
@@ -275,11 +276,22 @@ def layout_to_dict(scene: Scene) -> dict:
     return out
 
 
+def dumps_layout(scene: Scene) -> str:
+    """``scene`` as MesaTask layout.json text: top-level keys indented, one object per line."""
+    data = layout_to_dict(scene)
+    objects = data.pop("objects")
+    dump = lambda v: json.dumps(v, ensure_ascii=False, allow_nan=False)  # noqa: E731
+    lines = [f"  {dump(k)}: {dump(v)}," for k, v in data.items()]
+    rows = ",\n".join(f"    {dump(o)}" for o in objects)
+    body = '  "objects": [\n' + rows + "\n  ]" if objects else '  "objects": []'
+    return "{\n" + "\n".join(lines + [body]) + "\n}\n"
+
+
 def write_layout(scene: Scene, path) -> Path:
     """Write ``scene`` as a MesaTask ``layout.json`` atomically (temp file, then rename)."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    text = json.dumps(layout_to_dict(scene), indent=2, allow_nan=False) + "\n"
+    text = dumps_layout(scene)
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
     try:
         with os.fdopen(fd, "w", encoding="utf-8") as fh:
