@@ -59,7 +59,7 @@ def _scene(rng: np.random.Generator, index: int, n_objects: int, noise_cm: float
         groups.append(g)
         total += len(g)
     cols = max(1, math.ceil(math.sqrt(len(groups) * zone.width / zone.depth)))
-    rows = math.ceil(len(groups) / cols)
+    rows = max(1, math.ceil(len(groups) / cols))
     cw, cd = zone.width / cols, zone.depth / rows
     cells = rng.permutation(rows * cols)[: len(groups)]
     objects = []

@@ -454,34 +454,43 @@ def _empty_report(scene: Scene) -> dict:
             "steps": 0, "kept_input": True, "relations": None, "unsatisfied": []}
 
 
+def _free_energy(engine, problem: TTOProblem, poses: torch.Tensor) -> np.ndarray:
+    """(S,) float64 cm: Σ pair energies over pairs outside any rigid in-body (exact, for reports)."""
+    out = engine.evaluate(problem.batch, poses)
+    slots = problem.batch.pair_slots()
+    if len(slots) == 0:
+        return np.zeros(problem.n_scene)
+    free = problem.group[slots[:, 0], slots[:, 1]] != problem.group[slots[:, 0], slots[:, 2]]
+    energy = out["pair_energy"].detach().cpu().numpy().astype(np.float64)
+    return np.bincount(slots[free, 0], weights=energy[free], minlength=problem.n_scene)
+
+
 def _results(problem: TTOProblem, solution: TTOSolution, inputs: list[Scene], hier: list[Scene],
              engine, config: TTOConfig) -> list[TTOResult]:
     """Host side: choose best-or-input per scene, score both, and write the reports."""
-    energy = solution.energy.cpu().numpy().astype(float)
-    energy_in = solution.energy_input.cpu().numpy().astype(float)
-    poses = solution.poses.detach().cpu().numpy().astype(np.float64)
+    e_before = _free_energy(engine, problem, problem.raw_poses)
+    e_best = _free_energy(engine, problem, solution.poses)
+    kept = ~(e_best <= e_before)  # NaN or worse: keep the input
+    keep = torch.as_tensor(kept, device=solution.poses.device)[:, None, None]
+    final = torch.where(keep, problem.raw_poses, solution.poses.detach())
+    before_score = engine.score(problem.batch, problem.raw_poses)
+    after_score = engine.score(problem.batch, final)
+    poses = final.cpu().numpy().astype(np.float64)
     steps = solution.steps.cpu().numpy()
-    outs = []
-    for s, scene in enumerate(inputs):
-        n = len(scene)
-        kept_input = not energy[s] <= energy_in[s]  # NaN or worse: keep the input
-        after = scene if kept_input else scene.with_poses(poses[s, :n])
-        outs.append((after, kept_input))
-    before_score = engine.score(inputs)
-    after_score = engine.score([a for a, _ in outs])
     results = []
-    for s, (after, kept_input) in enumerate(outs):
-        disp = np.linalg.norm(after.poses()[:, :3] - inputs[s].poses()[:, :3], axis=1)
-        e_after = energy_in[s] if kept_input else energy[s]
+    for s, scene in enumerate(inputs):
+        after = scene if kept[s] else scene.with_poses(poses[s, :len(scene)])
+        disp = np.linalg.norm(after.poses()[:, :3] - scene.poses()[:, :3], axis=1)
+        e_after = float(e_before[s] if kept[s] else e_best[s])
         report = _describe(hier[s], after, problem.group[s, :len(after)], before_score, after_score,
                            s, config)
-        report.update(energy_before=float(energy_in[s]), energy_after=float(e_after),
+        report.update(energy_before=float(e_before[s]), energy_after=e_after,
                       max_displacement_cm=float(disp.max()), mean_displacement_cm=float(disp.mean()),
-                      steps=int(steps[s]), kept_input=bool(kept_input))
-        if kept_input:
+                      steps=int(steps[s]), kept_input=bool(kept[s]))
+        if kept[s]:
             report["unsatisfied"].append("no iterate had less penetration energy than the input: "
                                          "input returned unchanged")
-        results.append(TTOResult(after, float(energy_in[s]), float(e_after), float(disp.max()), report))
+        results.append(TTOResult(after, float(e_before[s]), e_after, float(disp.max()), report))
     return results
 
 
