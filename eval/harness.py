@@ -23,7 +23,7 @@ from tqdm.auto import tqdm
 from physcene.scene import Scene
 
 __all__ = ["BenchmarkItem", "EvalError", "evaluate_method", "generate", "load_benchmark", "make_judge",
-           "method_report", "score_scenes"]
+           "method_name", "method_report", "repair_outputs", "run_evaluation", "score_scenes", "write_json"]
 
 GENERATOR_KINDS = ("reference", "tto", "heuristic", "file:", "model:", "endpoint:")
 
@@ -260,3 +260,67 @@ def write_json(path: Path, data) -> None:
 
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(json.dumps(clean(data), indent=1))
+
+
+def method_name(generator: str, repair: bool = False) -> str:
+    """A table row label: ``Reference``, ``Reference + TTO``, ``Heuristic placer`` ..."""
+    if generator == "tto":
+        return "Reference + TTO"
+    base = {"reference": "Reference", "heuristic": "Heuristic placer"}.get(generator)
+    if base is None:
+        kind, _, arg = generator.partition(":")
+        base = {"file": "Layouts", "model": "Model", "endpoint": "Zero-shot LLM"}.get(kind, kind)
+        base = f"{base} ({Path(arg.rstrip('/')).name or arg})"
+    return base + (" + TTO" if repair else "")
+
+
+def run_evaluation(cfg, *, command: str = "", title: str = "physcene evaluation",
+                   progress: bool = True) -> tuple[dict, Path]:
+    """The whole ``physcene eval`` job for a config (configs/eval.yaml): benchmark, every
+    generator in ``cfg.generator`` (comma-separated), scoring, renders, results.json and
+    report.md under ``cfg.out``. Returns (the methods' reports, the report path)."""
+    from physcene.eval.render import render_views
+    from physcene.eval.report import write_report
+
+    from physcene.physics import PhysicsEngine
+
+    generators = [g.strip() for g in str(cfg.generator).split(",") if g.strip()]
+    if not generators:
+        raise EvalError("no generator given")
+    for g in generators:
+        if not (g in GENERATOR_KINDS or g.startswith(GENERATOR_KINDS[3:])):
+            raise EvalError(f"unknown generator {g!r}; expected reference, tto, heuristic, file:DIR, "
+                            "model:PATH or endpoint:URL")
+    if cfg.split not in ("train", "test", "ood"):
+        raise EvalError(f"unknown split {cfg.split!r}; expected test, ood or train")
+    out = Path(cfg.out)
+    items = load_benchmark(cfg.split, n=cfg.n, seed=cfg.seed, progress=progress)
+    if not items:
+        raise EvalError(f"split {cfg.split!r} gave no scenes")
+    judge = make_judge(cfg.judge, [it.reference for it in items], url=cfg.judge_url,
+                       model=cfg.judge_model, cache_dir=cfg.judge_cache or str(out / "judge_cache"))
+    engine = PhysicsEngine()
+    methods: dict[str, dict] = {}
+    renders: dict[str, dict[str, str]] = {}
+    n_render = min(int(cfg.render), len(items))
+    for gen in generators:
+        name = method_name(gen, bool(cfg.repair))
+        report, outputs = evaluate_method(items, gen, judge, engine=engine, repair=bool(cfg.repair),
+                                          tto_overrides=list(cfg.tto), settle=bool(cfg.settle),
+                                          seed=cfg.seed, progress=progress, model=cfg.generator_model)
+        methods[name] = report
+        slug = name.lower().replace(" + ", "_").replace(" ", "_").replace("(", "").replace(")", "")
+        todo = list(zip(items, outputs))[:n_render]
+        for it, scene in tqdm(todo, desc=f"render {name}", disable=not progress, unit="scene"):
+            if not isinstance(scene, Scene) or not len(scene):
+                continue
+            paths = render_views(scene, out / "renders" / slug, prefix=f"{it.id}_",
+                                 size=tuple(cfg.render_size))
+            for view, p in paths.items():
+                renders.setdefault(it.id, {})[f"{name} {view}"] = str(p.relative_to(out))
+    write_json(out / "results.json", {"split": cfg.split, "n": len(items), "judge": cfg.judge,
+                                      "generators": generators, "repair": bool(cfg.repair),
+                                      "methods": methods})
+    tables = {k: {kk: vv for kk, vv in v.items() if kk != "scenes"} for k, v in methods.items()}
+    path = write_report(out, tables, title=title, command=command, renders=renders)
+    return tables, path

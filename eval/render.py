@@ -266,7 +266,8 @@ def render_image(scene: Scene, view: str | tuple = "perspective", size: tuple[in
         ray = (((px + 0.5 - 0.5 * width) / fpx)[:, None] * right
                - ((py + 0.5 - 0.5 * height) / fpx)[:, None] * up)
         world = eye + zbuf[hit][:, None] * (ray + forward)
-        k = np.where(_shadow_mask(world, V, F, key), 0.0, k)
+        shadow_res = int(np.clip(max(width, height), 256, 1024))  # about one texel per pixel
+        k = np.where(_shadow_mask(world, V, F, key, resolution=shadow_res), 0.0, k)
     light = _AMBIENT + 0.62 * k + 0.22 * np.clip(normal @ fill, 0.0, None)
     img[hit] = np.clip(C[f] * light[:, None], 0.0, 1.0)
     img = (img * 255.0 + 0.5).astype(np.uint8)
