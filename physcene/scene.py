@@ -51,6 +51,13 @@ def wrap_angle(angle: float) -> float:
 
 
 def _finite_vector(value, n: int, *, obj: str | None, name: str) -> tuple[float, ...]:
+    if isinstance(value, (tuple, list)) and len(value) == n and all(
+            isinstance(v, (float, int)) and not isinstance(v, bool) for v in value):
+        # Fast path for plain Python numbers (the common case: parsing thousands of completions).
+        vals = tuple(float(v) for v in value)
+        if not all(math.isfinite(v) for v in vals):
+            raise SceneError(f"non-finite value in {list(vals)}", obj=obj, field=name)
+        return vals
     try:
         arr = np.asarray(value, dtype=np.float64).reshape(-1)
     except (TypeError, ValueError) as exc:
