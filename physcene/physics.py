@@ -1,0 +1,321 @@
+"""The differentiable SDF physics engine (PADA, paper eq. 3): penetration, support, pose gradients.
+
+``PhysicsEngine(library, device)`` packs scenes into a padded batch of torch tensors on the
+device and scores them with the Warp kernels of :mod:`physcene.kernels.penetration`:
+
+>>> engine = PhysicsEngine(device="cpu")
+>>> score = engine.score([scene])           # per-pair depths, energies, floating objects
+>>> batch = engine.pack([scene])
+>>> energy = engine.penetration_energy(batch, batch.poses.requires_grad_())   # (S,) cm
+>>> energy.sum().backward()                 # hand-written pose gradients
+
+Units: cm and radians; energies are sums over surface points of penetration depths (cm).
+The maths and its choices are in docs/physics.md; the float64 oracle is
+:mod:`physcene.physics_reference`.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+
+from physcene.config import load_config
+from physcene.kernels.penetration import launch_penetration, launch_support
+from physcene.scene import Scene
+
+__all__ = ["PhysicsConfig", "PhysicsEngine", "SceneBatch", "Score", "axis_ray_distances", "pack_assets"]
+
+
+@dataclass(frozen=True, kw_only=True)
+class PhysicsConfig:
+    """Engine settings (``configs/physics.yaml``)."""
+
+    margin_cm: float = 0.1
+    """Broadphase inflation of every box: pairs closer than this are checked point by point."""
+    floating_tolerance_cm: float = 1.0
+    """An object whose bottom is more than this above every support under it is floating."""
+    footprint_overlap_cm: float = 0.01
+    """Two footprints must overlap by more than this to count as one standing on the other."""
+
+    @classmethod
+    def load(cls, overrides: Sequence[str] = ()) -> PhysicsConfig:
+        cfg = load_config("physics", overrides)
+        return cls(**{k: float(v) for k, v in cfg.items()})
+
+
+@dataclass
+class SceneBatch:
+    """Scenes packed for the engine: S scenes padded to N object slots, on one device."""
+
+    poses: torch.Tensor
+    """(S, N, 4) float32: x, y, z (cm), yaw (rad); padded slots are 0."""
+    sizes: torch.Tensor
+    """(S, N, 3) float32 w, d, h (cm); padded slots are 1."""
+    mask: torch.Tensor
+    """(S, N) bool, True on real objects."""
+    ids: list[list[str]]
+    """Instance ids per scene, in slot order."""
+    asset_index: torch.Tensor
+    """(S, N) int32 index into the engine's packed assets."""
+    count: torch.Tensor
+    """(S,) int32 objects per scene."""
+    pair_start: torch.Tensor
+    """(S+1,) int32 CSR offsets of each scene's count*(count-1)/2 pairs (i < j, row-major)."""
+    n_pairs: int
+    """Total pairs T (host int: sizes the launches without a device sync)."""
+    asset_ids: list[list[str]] = field(default_factory=list)
+    """Asset used for each object; ``fallbacks`` says where the library fell back."""
+    fallbacks: list[list[str | None]] = field(default_factory=list)
+
+    @property
+    def n_scene(self) -> int:
+        return self.poses.shape[0]
+
+    def pair_slots(self) -> np.ndarray:
+        """(T, 3) int64 (scene, i, j) of every pair in CSR order (host)."""
+        count = self.count.cpu().numpy().astype(np.int64)
+        rows = []
+        for n in np.unique(count):  # one vectorised block per distinct object count
+            scenes = np.nonzero(count == n)[0]
+            iu, ju = np.triu_indices(int(n), 1)
+            rows.append(np.stack([np.repeat(scenes, iu.size), np.tile(iu, scenes.size),
+                                  np.tile(ju, scenes.size)], -1))
+        table = np.concatenate(rows) if rows else np.zeros((0, 3), np.int64)
+        order = np.lexsort((table[:, 2], table[:, 1], table[:, 0]))
+        return table[order]
+
+
+@dataclass
+class Score:
+    """Per-scene physics verdicts (cm)."""
+
+    energy: torch.Tensor
+    """(S,) Σ over pairs of Σ ReLU(−φ) in both directions (cm summed over points)."""
+    max_depth: torch.Tensor
+    """(S,) deepest pair penetration pen(i, j)."""
+    pairs: list[list[tuple[int, int, float]]]
+    """Per scene, (i, j, depth_cm) for every pair with depth > 0 (object indices, i < j)."""
+    floating: list[list[int]]
+    """Per scene, indices of floating objects."""
+    table_penetration: torch.Tensor
+    """(S,) deepest surface point below the table top z = 0."""
+    depth_sum: torch.Tensor
+    """(S,) Σ pen(i, j) over pairs deeper than the tolerance score was called with."""
+    table_depth: torch.Tensor
+    """(S, N) per object, deepest point below z = 0."""
+    ids: list[list[str]]
+
+
+# Axis-ray value of outside nodes not next to a crossing: large enough never to be the minimum.
+_FAR = 8.0
+
+
+def axis_ray_distances(sdf: np.ndarray) -> np.ndarray:
+    """Distances to the surface along ±x, ±y, ±z at every grid node, (3, R, R, R) normalised.
+
+    Inside nodes (φ < 0): the distance along axis k to the nearest zero crossing of the grid
+    line (linear interpolation between nodes; the cube's faces count as crossings). Outside
+    nodes next to a crossing (within one voxel) get minus that distance, so trilinear
+    interpolation across a face perpendicular to k is exact; other outside nodes get ``_FAR``.
+    """
+    res = sdf.shape[0]
+    voxel = 2.0 / (res - 1)
+    nodes = np.arange(res, dtype=np.float64)
+    out = np.empty((3, res, res, res), np.float32)
+    for axis in range(3):
+        phi = np.moveaxis(np.asarray(sdf, np.float64), axis, -1)
+        inside = phi < 0
+        a, b = phi[..., :-1], phi[..., 1:]
+        cross = inside[..., :-1] != inside[..., 1:]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            pos = nodes[:-1] + np.where(cross, a / (a - b), 0.0)
+        left = np.full(phi.shape, -np.inf)
+        left[..., 1:] = np.where(cross, pos, -np.inf)
+        left[..., 0] = np.where(inside[..., 0], 0.0, -np.inf)
+        right = np.full(phi.shape, np.inf)
+        right[..., :-1] = np.where(cross, pos, np.inf)
+        right[..., -1] = np.where(inside[..., -1], res - 1.0, np.inf)
+        left = np.maximum.accumulate(left, axis=-1)
+        right = np.minimum.accumulate(right[..., ::-1], axis=-1)[..., ::-1]
+        dist = np.minimum(nodes - left, right - nodes)  # node units
+        value = np.where(inside, dist * voxel, np.where(dist <= 1.0, -dist * voxel, _FAR))
+        out[axis] = np.moveaxis(value, -1, axis)
+    return out
+
+
+def pack_assets(assets: Sequence, device: torch.device) -> dict[str, torch.Tensor]:
+    """Concatenate assets' SDF grids and points into the engine's flat arrays on ``device``."""
+    res = np.array([a.resolution for a in assets], dtype=np.int32)
+    n_pt = np.array([len(a.points) for a in assets], dtype=np.int32)
+    arrays = {
+        "sdf": np.concatenate([a.sdf.reshape(-1) for a in assets]).astype(np.float32),
+        # per asset its 3 axis-ray grids, at 3 * sdf_start (kernels/penetration.py world_phi)
+        "rays": np.concatenate([axis_ray_distances(a.sdf).reshape(-1) for a in assets]),
+        "sdf_start": np.concatenate([[0], np.cumsum(res.astype(np.int64) ** 3)[:-1]]).astype(np.int32),
+        "sdf_res": res,
+        "points": np.concatenate([a.points for a in assets]).astype(np.float32).reshape(-1, 3),
+        "pt_start": np.concatenate([[0], np.cumsum(n_pt)[:-1]]).astype(np.int32),
+        "pt_count": n_pt,
+    }
+    if arrays["sdf"].size >= 2**31:
+        raise ValueError(f"{len(assets)} assets exceed 2^31 SDF samples; use lower resolutions")
+    return {k: torch.from_numpy(np.ascontiguousarray(v)).to(device) for k, v in arrays.items()}
+
+
+class PhysicsEngine:
+    """Batched penetration, support and pose gradients for scenes of posed assets."""
+
+    def __init__(self, library=None, device: str | torch.device = "cpu", config: PhysicsConfig | None = None):
+        if library is None:
+            from physcene.assets import default_library
+
+            library = default_library()
+        self.library = library
+        self.device = torch.device(device)
+        if self.device.type == "cuda" and self.device.index is None:
+            self.device = torch.device("cuda", torch.cuda.current_device())
+        self.config = config or PhysicsConfig()
+        self._assets: list = []  # engine-local asset table, grows as new assets are seen
+        self._asset_slot: dict[str, int] = {}
+        self._resolved: dict[tuple[str, str | None], tuple[int, str, str | None]] = {}
+        self._packed: tuple[int, dict[str, torch.Tensor]] | None = None
+
+    # Assets ------------------------------------------------------------------------------------
+    def _resolve(self, category: str, asset_id: str | None) -> tuple[int, str, str | None]:
+        key = (category, asset_id)
+        hit = self._resolved.get(key)
+        if hit is None:
+            retrieval = self.library.resolve(category, asset_id)
+            asset = retrieval.asset
+            slot = self._asset_slot.get(asset.asset_id)
+            if slot is None:
+                slot = self._asset_slot[asset.asset_id] = len(self._assets)
+                self._assets.append(asset)
+            hit = self._resolved[key] = (slot, asset.asset_id, retrieval.fallback)
+        return hit
+
+    def packed_assets(self) -> dict[str, torch.Tensor]:
+        """The flat asset arrays on the engine's device (re-uploaded only when new assets appear)."""
+        if self._packed is None or self._packed[0] != len(self._assets):
+            self._packed = (len(self._assets), pack_assets(self._assets, self.device))
+        return self._packed[1]
+
+    # Packing -----------------------------------------------------------------------------------
+    def pack(self, scenes: Sequence[Scene] | Scene) -> SceneBatch:
+        """Scenes → a padded :class:`SceneBatch` on the engine's device."""
+        if isinstance(scenes, Scene):
+            scenes = [scenes]
+        scenes = list(scenes)
+        for k, scene in enumerate(scenes):
+            if not isinstance(scene, Scene):
+                raise TypeError(f"pack: item {k} is a {type(scene).__name__}, expected Scene")
+        counts = np.array([len(s.objects) for s in scenes], dtype=np.int64)
+        n_scene, n_slot = len(scenes), max(1, int(counts.max()) if len(scenes) else 1)
+        flat = [o for s in scenes for o in s.objects]
+        resolved = [self._resolve(o.category, o.asset_id) for o in flat]
+        slot_of = (np.repeat(np.arange(n_scene) * n_slot, counts)
+                   + np.arange(len(flat)) - np.repeat(np.cumsum(counts) - counts, counts))
+        poses = np.zeros((n_scene * n_slot, 4), np.float32)
+        sizes = np.ones((n_scene * n_slot, 3), np.float32)
+        asset = np.zeros(n_scene * n_slot, np.int32)
+        if flat:
+            poses[slot_of] = np.array([(*o.center, o.yaw) for o in flat], np.float32)
+            sizes[slot_of] = np.array([o.size for o in flat], np.float32)
+            asset[slot_of] = np.array([r[0] for r in resolved], np.int32)
+        mask = np.zeros(n_scene * n_slot, bool)
+        mask[slot_of] = True
+        pairs = counts * (counts - 1) // 2
+        pair_start = np.concatenate([[0], np.cumsum(pairs)])
+        if pair_start[-1] >= 2**31 // 64:
+            raise ValueError(f"batch has {pair_start[-1]} object pairs; split it into smaller batches")
+        dev = self.device
+        bounds = np.concatenate([[0], np.cumsum(counts)])
+        return SceneBatch(
+            poses=torch.from_numpy(poses).reshape(n_scene, n_slot, 4).to(dev),
+            sizes=torch.from_numpy(sizes).reshape(n_scene, n_slot, 3).to(dev),
+            mask=torch.from_numpy(mask).reshape(n_scene, n_slot).to(dev),
+            ids=[s.ids() for s in scenes],
+            asset_index=torch.from_numpy(asset).reshape(n_scene, n_slot).to(dev),
+            count=torch.from_numpy(counts.astype(np.int32)).to(dev),
+            pair_start=torch.from_numpy(pair_start.astype(np.int32)).to(dev),
+            n_pairs=int(pair_start[-1]),
+            asset_ids=[[r[1] for r in resolved[bounds[k]:bounds[k + 1]]] for k in range(n_scene)],
+            fallbacks=[[r[2] for r in resolved[bounds[k]:bounds[k + 1]]] for k in range(n_scene)],
+        )
+
+    # Evaluation --------------------------------------------------------------------------------
+    def _poses(self, batch: SceneBatch, poses: torch.Tensor | None) -> torch.Tensor:
+        if poses is None:
+            return batch.poses
+        if poses.shape != batch.poses.shape:
+            raise ValueError(f"poses must have shape {tuple(batch.poses.shape)}, got {tuple(poses.shape)}")
+        return poses.detach().to(device=self.device, dtype=torch.float32).contiguous()
+
+    def evaluate(self, batch: SceneBatch, poses: torch.Tensor | None = None, *, with_grad: bool = False,
+                 tolerance: float = 0.0) -> dict[str, torch.Tensor]:
+        """One pass of the kernels: the raw per-pair / per-scene tensors (see ``launch_penetration``)."""
+        return launch_penetration(
+            pair_start=batch.pair_start, count=batch.count, n_pairs=batch.n_pairs,
+            poses=self._poses(batch, poses), sizes=batch.sizes, obj_asset=batch.asset_index,
+            assets=self.packed_assets(), margin=self.config.margin_cm, tolerance=tolerance,
+            with_grad=with_grad)
+
+    def support_gap(self, batch: SceneBatch, poses: torch.Tensor | None = None) -> torch.Tensor:
+        """(S, N) cm: each object's bottom above the highest support under it (0 when contained)."""
+        return launch_support(count=batch.count, poses=self._poses(batch, poses), sizes=batch.sizes,
+                              overlap_eps=self.config.footprint_overlap_cm)
+
+    def score(self, scenes_or_batch, poses: torch.Tensor | None = None, *, tolerance: float = 0.0) -> Score:
+        """Per-pair depths, per-scene energy, floating objects and table penetration."""
+        batch = scenes_or_batch if isinstance(scenes_or_batch, SceneBatch) else self.pack(scenes_or_batch)
+        out = self.evaluate(batch, poses, tolerance=tolerance)
+        gap = self.support_gap(batch, poses)
+        floating_mask = ((gap > self.config.floating_tolerance_cm) & batch.mask).cpu().numpy()
+        depth = out["pair_depth"].cpu().numpy()
+        hot = np.nonzero(depth > 0)[0]
+        pairs: list[list[tuple[int, int, float]]] = [[] for _ in range(batch.n_scene)]
+        if hot.size:
+            slots = batch.pair_slots()[hot]
+            for (s, i, j), d in zip(slots.tolist(), depth[hot].tolist()):
+                pairs[s].append((i, j, d))
+        return Score(
+            energy=out["energy"], max_depth=out["max_depth"], pairs=pairs,
+            floating=[np.nonzero(row)[0].tolist() for row in floating_mask],
+            table_penetration=out["table_depth"].max(dim=1).values, depth_sum=out["depth_sum"],
+            table_depth=out["table_depth"], ids=batch.ids)
+
+    def energy_and_grad(self, batch: SceneBatch, poses: torch.Tensor | None = None):
+        """(energy (S,) cm, ∂energy/∂poses (S, N, 4)) in one pass, no autograd graph."""
+        out = self.evaluate(batch, poses, with_grad=True)
+        return out["energy"], out["grad"]
+
+    def penetration_energy(self, batch: SceneBatch, poses: torch.Tensor | None = None) -> torch.Tensor:
+        """(S,) pair penetration energy, differentiable in ``poses`` (S, N, 4) via autograd."""
+        poses = batch.poses if poses is None else poses
+        return PenetrationEnergy.apply(poses, self, batch)
+
+
+class PenetrationEnergy(torch.autograd.Function):
+    """E(poses) (S,) with the hand-written pose gradient of kernels/penetration.py.
+
+    dE/dposes does not depend on the incoming gradient (E is per scene), so the forward runs the
+    gradient kernels in the same pass when ``poses`` requires grad and saves the (S, N, 4)
+    result; backward only scales it. Repeated backward returns the same tensor.
+    """
+
+    @staticmethod
+    def forward(ctx, poses: torch.Tensor, engine: PhysicsEngine, batch: SceneBatch):
+        need = ctx.needs_input_grad[0]
+        out = engine.evaluate(batch, poses, with_grad=need)
+        if need:
+            ctx.save_for_backward(out["grad"])
+        return out["energy"].to(device=poses.device, dtype=poses.dtype)
+
+    @staticmethod
+    def backward(ctx, grad_energy: torch.Tensor):
+        (grad,) = ctx.saved_tensors
+        g = grad.to(device=grad_energy.device, dtype=grad_energy.dtype) * grad_energy[:, None, None]
+        return g, None, None
