@@ -24,6 +24,7 @@ SFT output did not parse) contribute no CE.
 
 from __future__ import annotations
 
+import json
 import re
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -271,19 +272,23 @@ def pada_arguments(cfg, variant: str) -> PADAConfig:
     )
 
 
-def run_pada(cfg, variant: str | None = None, reward_fn=None) -> Path:
+def run_pada(cfg, variant: str | None = None, reward_fn=None, callbacks=()) -> Path:
     """Train stage 2 (``variant`` or ``cfg.pada.variant``) from ``cfg.pada.model`` on ``cfg.pada.anchors``.
 
     Saves the LoRA adapter, tokenizer and run info to ``cfg.pada.output_dir``; resumes from its last
     checkpoint. ``reward_fn`` replaces ``physcene.reward.physics_reward`` (same signature) if given.
     """
     from accelerate import PartialState
+    from omegaconf import OmegaConf
     from physcene.train.models import load_model, load_tokenizer, read_run_info, write_run_info
     from physcene.train.records import load_records, training_dataset
     from physcene.train.sft import lora_config
     from transformers.trainer_utils import get_last_checkpoint
 
-    variant = variant or str(cfg.pada.variant)
+    if variant is not None and variant != cfg.pada.variant:
+        # pada.output_dir interpolates ${pada.variant}: set it, don't just pass it along.
+        cfg = OmegaConf.merge(cfg, {"pada": {"variant": variant}})
+    variant = str(cfg.pada.variant)
     args = pada_arguments(cfg, variant)
     model_dir = Path(str(cfg.pada.model))
     info = read_run_info(model_dir)
@@ -307,6 +312,7 @@ def run_pada(cfg, variant: str | None = None, reward_fn=None) -> Path:
         train_dataset=dataset,
         processing_class=tokenizer,
         peft_config=lora_config(cfg.pada.lora),
+        callbacks=list(callbacks),
     )
     kl = cfg.pada.adaptive_kl
     if kl is not None and args.beta > 0:
@@ -317,6 +323,7 @@ def run_pada(cfg, variant: str | None = None, reward_fn=None) -> Path:
     trainer.save_model(str(out))
     if trainer.is_world_process_zero():
         tokenizer.save_pretrained(str(out))
+        (out / "train_log.json").write_text(json.dumps(trainer.state.log_history, indent=1))
         write_run_info(out, stage="pada", variant=variant, chat_format=chat, alpha=args.anchor_alpha,
                        base_model=str(model_dir.resolve()), n_records=len(records))
     return out

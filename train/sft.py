@@ -10,6 +10,7 @@ output directory.
 
 from __future__ import annotations
 
+import json
 import math
 from pathlib import Path
 
@@ -89,7 +90,7 @@ def sft_arguments(cfg: DictConfig) -> SFTConfig:
     )
 
 
-def run_sft(cfg: DictConfig) -> Path:
+def run_sft(cfg: DictConfig, callbacks=()) -> Path:
     """Train stage 1 per ``cfg`` and save the model, tokenizer and run info to ``cfg.sft.output_dir``."""
     out = Path(cfg.sft.output_dir)
     records = load_records(str(cfg.data.train), seed=int(cfg.seed), max_level=cfg.data.get("max_level"))
@@ -105,6 +106,7 @@ def run_sft(cfg: DictConfig) -> Path:
         train_dataset=training_dataset(records, chat_format=chat),
         processing_class=tokenizer,
         peft_config=lora_config(cfg.sft.lora),
+        callbacks=list(callbacks),
     )
     trainer.train(resume_from_checkpoint=get_last_checkpoint(str(out)) if out.is_dir() else None)
     if cfg.sft.lora is not None:
@@ -113,6 +115,7 @@ def run_sft(cfg: DictConfig) -> Path:
     trainer.save_model(str(out))
     if trainer.is_world_process_zero():
         tokenizer.save_pretrained(str(out))
+        (out / "train_log.json").write_text(json.dumps(trainer.state.log_history, indent=1))
         write_run_info(out, stage="sft", chat_format=chat, config=str(cfg.name), n_records=len(records),
                        base_model=str(cfg.model.path) if cfg.model.source == "pretrained" else "scratch")
     return out

@@ -1,0 +1,63 @@
+"""``physcene train sft|anchors|pada|ablation --config NAME [key=value ...]`` (docs/training.md).
+
+``--config tiny`` reads ``configs/train_tiny.yaml`` (``small``, ``qwen3_vl_8b`` likewise; a YAML path
+is read as given). Every stage resumes: SFT and PADA from the last ``checkpoint-*`` in their output
+directory, anchors by keeping a complete anchor file. Multi-GPU: prefix with
+``accelerate launch --config_file configs/accelerate/multi_gpu.yaml -m physcene.cli``.
+"""
+
+from __future__ import annotations
+
+import json
+
+from physcene.config import load_config
+
+NAME = "train"
+HELP = "train the layout model: sft, anchors (SFT output + TTO), pada (grpo|pada_star|pada), ablation"
+
+STAGES = ("sft", "anchors", "pada", "ablation")
+
+
+def add_arguments(parser) -> None:
+    parser.add_argument("stage", choices=STAGES, help="which stage to run")
+    parser.add_argument("--config", default="tiny",
+                        help="tiny, small, qwen3_vl_8b (configs/train_<name>.yaml) or a YAML path")
+    parser.add_argument("--variant", choices=("pada", "pada_star", "grpo"),
+                        help="pada stage: which objective (default: the config's pada.variant)")
+    parser.add_argument("--budget-min", type=float, default=None,
+                        help="ablation: wall-clock budget in minutes for the whole pipeline")
+
+
+def training_config(name: str, overrides=()):
+    """``configs/train_<name>.yaml`` (or a YAML path) with ``key=value`` overrides."""
+    path_like = name.endswith((".yaml", ".yml")) or "/" in name
+    return load_config(name if path_like else f"train_{name}", list(overrides))
+
+
+def run(args) -> int:
+    overrides = list(args.overrides)
+    if args.variant:
+        overrides.append(f"pada.variant={args.variant}")
+    cfg = training_config(args.config, overrides)
+    if args.stage == "sft":
+        from physcene.train.sft import run_sft
+
+        print(f"sft model: {run_sft(cfg)}")
+    elif args.stage == "anchors":
+        from physcene.train.anchors import run_anchors
+
+        out = run_anchors(cfg)
+        summary = out.with_suffix(".summary.json")
+        print(f"anchors: {out}")
+        if summary.is_file():
+            print(summary.read_text())
+    elif args.stage == "pada":
+        from physcene.train.pada import run_pada
+
+        print(f"{cfg.pada.variant} adapter: {run_pada(cfg)}")
+    else:
+        from physcene.train.ablation import run_ablation
+
+        result = run_ablation(cfg, budget_min=args.budget_min)
+        print(json.dumps(result["rows"], indent=1))
+    return 0

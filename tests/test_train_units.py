@@ -1,0 +1,228 @@
+"""Unit tests of the training harness: tokenizer, PADA loss, PADA* mask, GRPO variant, adaptive KL, resume."""
+
+from __future__ import annotations
+
+import json
+from collections import defaultdict
+from types import SimpleNamespace
+
+import pytest
+import torch
+from datasets import Dataset
+from physcene.train.models import build_scratch_model, count_parameters
+from physcene.train.pada import (
+    AdaptiveKLCallback,
+    PADAConfig,
+    PADATrainer,
+    numeric_spans,
+    pada_arguments,
+    tokenize_anchor,
+)
+from physcene.train.sft import TrainingSetupError, accumulation_steps
+from physcene.train.tokenizer import build_tokenizer
+
+from physcene.config import load_config
+
+ANCHOR = ('**Sub-instruction:**\n1. Place pen_0 in holder_1.\n\n**Scene Layout:**\n{"objects": [\n'
+          '{"layer": 1, "instance_id": "holder_1", "parent_id": "root_zone", "relation_type": "near", '
+          '"relative_bbox": [12.5, 20.25, -3.0, 4.0, 0.0, 11.0], "relative_rotation_deg": -45.5},\n'
+          '{"layer": 2, "instance_id": "pen_0", "parent_id": "holder_1", "relation_type": "in", '
+          '"relative_bbox": [1.0, 2.0, 1.0, 2.0, 1.0, 14.0], "relative_rotation_deg": 0.0}],\n'
+          '"item_placement_zone": [0.0, 80.5, 0.0, 41.9]}\n')
+
+
+@pytest.fixture(autouse=True)
+def one_thread():
+    # Two busy shared cores: more torch threads than free cores makes tiny matmuls ~20x slower.
+    old = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(old)
+
+
+@pytest.fixture(scope="module")
+def tokenizer():
+    texts = [ANCHOR] * 20 + ["Instruction: place a pen in the holder.\nLayout:"] * 5
+    return build_tokenizer(texts, vocab_size=320)
+
+
+def test_tokenizer_splits_numbers_into_digits_and_signs(tokenizer):
+    ids = tokenizer("[-12.75, 3.5e2]", add_special_tokens=False)["input_ids"]
+    pieces = [tokenizer.decode([i]) for i in ids]
+    assert pieces[:7] == ["[", "-", "1", "2", ".", "7", "5"]
+    assert all(len(p.strip()) <= 1 for p in pieces if any(c.isdigit() for c in p))
+    text = "Über 1000 cm — ✓ 😀 {\"a\": -0.001}"
+    assert tokenizer.decode(tokenizer(text, add_special_tokens=False)["input_ids"]) == text
+
+
+def test_numeric_spans_cover_only_geometry_values():
+    spans = numeric_spans(ANCHOR)
+    values = [ANCHOR[a:b] for a, b in spans]
+    assert values == ["12.5", "20.25", "-3.0", "4.0", "0.0", "11.0", "-45.5",
+                      "1.0", "2.0", "1.0", "2.0", "1.0", "14.0", "0.0"]
+
+
+def test_pada_star_mask_drops_geometry_numbers_only(tokenizer):
+    ids, full = tokenize_anchor(tokenizer, ANCHOR, max_length=10_000)
+    ids_m, mask = tokenize_anchor(tokenizer, ANCHOR, max_length=10_000, numeric_mask=True)
+    assert ids == ids_m and all(full) and ids[-1] == tokenizer.eos_token_id and mask[-1] == 1
+    masked = "".join(tokenizer.decode([i]) for i, m in zip(ids, mask) if m == 0)
+    assert set(masked) <= set("0123456789.-") and masked.count(".") == 14
+    kept = tokenizer.decode([i for i, m in zip(ids, mask) if m == 1])
+    # Semantic numbers stay supervised: instance ids, layers, the zone.
+    assert "pen_0" in kept and '"layer": 2' in kept and "[0.0, 80.5, 0.0, 41.9]" in kept
+    assert "12.5" not in kept and "-45.5" not in kept
+    assert tokenize_anchor(tokenizer, "", max_length=8) == ([], [])
+
+
+def _trainer(tokenizer, tmp_path, alpha: float, beta: float = 0.0) -> PADATrainer:
+    torch.manual_seed(0)
+    arch = dict(hidden_size=32, intermediate_size=64, num_hidden_layers=1, num_attention_heads=2,
+                num_key_value_heads=1, head_dim=16, max_position_embeddings=512)
+    model = build_scratch_model(arch, tokenizer)
+    args = PADAConfig(output_dir=str(tmp_path), anchor_alpha=alpha, beta=beta, num_generations=2,
+                      per_device_train_batch_size=4, max_completion_length=16, use_cpu=True, report_to="none",
+                      logging_steps=1)
+    dataset = Dataset.from_list([{"prompt": "Instruction: place a pen.", "anchor": ANCHOR}] * 4)
+    return PADATrainer(model, reward_funcs=[lambda prompts, completions, **kw: [0.0] * len(prompts)],
+                       args=args, train_dataset=dataset, processing_class=tokenizer)
+
+
+def _controlled_batch(tokenizer, numeric_mask: bool = False) -> dict:
+    g = torch.Generator().manual_seed(1)
+    vocab = len(tokenizer)
+    pad = tokenizer.pad_token_id
+    prompt_ids = torch.randint(2, vocab, (4, 6), generator=g)
+    prompt_mask = torch.ones(4, 6, dtype=torch.long)
+    prompt_ids[0, :2], prompt_mask[0, :2] = pad, 0  # left padding
+    completion_ids = torch.randint(2, vocab, (4, 5), generator=g)
+    completion_mask = torch.ones(4, 5, dtype=torch.long)
+    completion_mask[1, 3:] = 0
+    rows = [tokenize_anchor(tokenizer, ANCHOR[:80 + 30 * k], max_length=40, numeric_mask=numeric_mask)
+            for k in range(4)]
+    width = max(len(i) for i, _ in rows)
+    return {
+        "prompt_ids": prompt_ids, "prompt_mask": prompt_mask,
+        "completion_ids": completion_ids, "completion_mask": completion_mask,
+        "advantages": torch.tensor([1.0, -1.0, 0.5, -0.5]),
+        "num_items_in_batch": completion_mask.sum(),
+        "anchor_ids": torch.tensor([i + [pad] * (width - len(i)) for i, _ in rows]),
+        "anchor_attention_mask": torch.tensor([[1] * len(i) + [0] * (width - len(i)) for i, _ in rows]),
+        "anchor_loss_mask": torch.tensor([m + [0] * (width - len(m)) for _, m in rows]),
+    }
+
+
+def _manual_ce(model, batch) -> torch.Tensor:
+    """Token NLL of the anchors from plain logits (independent of TRL's fused log-prob path)."""
+    ids = torch.cat([batch["prompt_ids"], batch["anchor_ids"]], 1)
+    attn = torch.cat([batch["prompt_mask"], batch["anchor_attention_mask"]], 1)
+    logits = model(input_ids=ids, attention_mask=attn).logits[:, :-1]
+    logp = torch.log_softmax(logits.float(), -1).gather(-1, ids[:, 1:, None])[..., 0]
+    t = batch["anchor_ids"].shape[1]
+    logp, mask = logp[:, -t:], batch["anchor_loss_mask"].float()
+    return -(logp * mask).sum() / mask.sum()
+
+
+@pytest.mark.parametrize("numeric_mask", [False, True])
+def test_pada_loss_is_grpo_loss_plus_alpha_ce(tokenizer, tmp_path, numeric_mask):
+    trainer = _trainer(tokenizer, tmp_path, alpha=0.1)
+    model = trainer.model.eval()  # eval mode: no dropout, accumulation normaliser 1
+    batch = _controlled_batch(tokenizer, numeric_mask)
+    with torch.no_grad():
+        pada = trainer._compute_loss(model, batch)
+        grpo = super(PADATrainer, trainer)._compute_loss(model, batch)
+        ce = _manual_ce(model, batch)
+    assert ce.item() > 1.0  # an untrained model: the anchor term is far from zero
+    assert pada.item() == pytest.approx(grpo.item() + 0.1 * ce.item(), rel=1e-5, abs=1e-6)
+    assert trainer._metrics["eval"]["anchor_ce"][-1] == pytest.approx(ce.item(), rel=1e-5)
+
+
+def test_pada_anchor_term_has_gradient(tokenizer, tmp_path):
+    trainer = _trainer(tokenizer, tmp_path, alpha=0.1)
+    model = trainer.model.eval()
+    batch = _controlled_batch(tokenizer)
+    batch["advantages"] = torch.zeros(4)  # GRPO term has no gradient: all of it is the anchor's
+    trainer._compute_loss(model, batch).backward()
+    grad = model.get_input_embeddings().weight.grad
+    assert grad is not None and grad.abs().sum() > 0
+
+
+def test_grpo_variant_has_alpha_zero_and_ignores_anchors(tokenizer, tmp_path):
+    cfg = load_config("train_tiny")
+    assert pada_arguments(cfg, "grpo").anchor_alpha == 0.0
+    assert pada_arguments(cfg, "pada").anchor_alpha == pytest.approx(0.1)
+    star = pada_arguments(cfg, "pada_star")
+    assert star.anchor_column == "anchor_raw" and star.anchor_numeric_mask
+    with pytest.raises(ValueError, match="unknown PADA variant"):
+        pada_arguments(cfg, "ppo")
+    trainer = _trainer(tokenizer, tmp_path, alpha=0.0)
+    model = trainer.model.eval()
+    batch = _controlled_batch(tokenizer)
+    with torch.no_grad():
+        assert trainer._compute_loss(model, batch).item() == super(PADATrainer, trainer)._compute_loss(
+            model, batch).item()
+    assert "anchor_ce" not in trainer._metrics["eval"]
+
+
+def test_adaptive_kl_moves_beta_toward_target():
+    # The callback reads and writes only the trainer's beta and its metrics buffer.
+    trainer = SimpleNamespace(beta=0.04, _metrics=defaultdict(lambda: defaultdict(list)))
+    kl = AdaptiveKLCallback(trainer, target=0.05, horizon=10, min_beta=0.01, max_beta=0.05)
+    assert kl.update(1.0, 1) == pytest.approx(0.04 * 1.02)  # error clipped at +0.2, n/horizon = 0.1
+    assert kl.update(0.0, 6) == pytest.approx(0.04 * 1.02 * 0.9)  # -0.2 over 5 steps
+    for step in range(7, 200):
+        kl.update(0.0, step)
+    assert trainer.beta == pytest.approx(0.01)  # clamped at min_beta (> 0 keeps the reference model)
+    assert trainer._metrics["train"]["beta"][-1] == trainer.beta
+    with pytest.raises(ValueError, match="initial beta > 0"):
+        AdaptiveKLCallback(SimpleNamespace(beta=0.0))
+
+
+def test_accumulation_steps_make_the_global_batch():
+    assert accumulation_steps(64, 2, 8) == 4
+    assert accumulation_steps(128, 16, 8) == 1
+    with pytest.raises(TrainingSetupError, match="not a multiple"):
+        accumulation_steps(64, 3, 2)
+
+
+def test_small_config_is_20_to_60m_params_and_fits_64mb():
+    cfg = load_config("train_small")
+    tok = build_tokenizer(["abc 123"] * 4, vocab_size=300)
+    arch = dict(cfg.model.arch)
+    model = build_scratch_model(arch, tok)
+    # The trained tokenizer fills its vocab_size; count with the configured vocabulary.
+    n = count_parameters(model) + (int(cfg.model.tokenizer.vocab_size) - len(tok)) * arch["hidden_size"]
+    assert 20e6 <= n <= 60e6 and n * 2 < 64e6
+    assert n == 27_272_704
+
+
+def test_sft_resumes_from_last_checkpoint(tmp_path):
+    from physcene.train.sft import run_sft
+    from transformers import TrainerCallback
+
+    records = [{"id": f"r{i}", "prompt": f"Instruction {i}: place a pen.\nLayout:", "completion": ANCHOR}
+               for i in range(4)]
+    data = tmp_path / "train.jsonl"
+    data.write_text("".join(json.dumps(r) + "\n" for r in records))
+    base = [f"data.train={data}", f"output_dir={tmp_path / 'run'}", "sft.global_batch_size=2",
+            "sft.per_device_batch_size=2", "sft.save_steps=1", "sft.max_length=256"]
+
+    class Steps(TrainerCallback):
+        def __init__(self):
+            self.begin, self.steps = None, 0
+
+        def on_train_begin(self, args, state, control, **kw):
+            self.begin = state.global_step
+
+        def on_step_end(self, args, state, control, **kw):
+            self.steps += 1
+
+    first, second = Steps(), Steps()
+    out = run_sft(load_config("train_tiny", [*base, "sft.max_steps=2"]), callbacks=[first])
+    assert (first.begin, first.steps) == (0, 2) and (out / "checkpoint-2").is_dir()
+    run_sft(load_config("train_tiny", [*base, "sft.max_steps=3"]), callbacks=[second])
+    assert second.steps == 1  # resumed at step 2: only step 3 ran
+    state = json.loads((out / "checkpoint-3" / "trainer_state.json").read_text())
+    assert state["global_step"] == 3
+    info = json.loads((out / "physcene_run.json").read_text())
+    assert info["stage"] == "sft" and info["chat_format"] is False
