@@ -225,9 +225,9 @@ def render_image(scene: Scene, view: str | tuple = "perspective", size: tuple[in
                  library=None, shadows: bool = True, supersample: int = 2) -> np.ndarray:
     """One view of ``scene`` as an (H, W, 3) uint8 image. ``view`` is a name of :data:`VIEWS` or a
     direction (x, y, z) from the scene toward the camera; ``size`` is (width, height) px."""
-    direction = VIEWS[view] if isinstance(view, str) else view
     if isinstance(view, str) and view not in VIEWS:
         raise ValueError(f"unknown view {view!r}; known: {sorted(VIEWS)}")
+    direction = VIEWS[view] if isinstance(view, str) else view
     width, height = int(size[0]) * supersample, int(size[1]) * supersample
     parts = scene_meshes(scene, library)
     verts, faces, colors, offset = [], [], [], 0
