@@ -6,7 +6,7 @@ indexed [ix, iy, iz], float32, negative inside -- the contract of :class:`physce
 Distances are exact (closest point on the mesh through Warp's BVH); the sign comes from one of two
 Warp queries, picked per mesh by the caller:
 
-- ``"parity"``: ray-crossing parity (``wp.mesh_query_point_sign_parity``, 5 rays, majority vote).
+- ``"parity"``: ray-crossing parity (``wp.mesh_query_point_sign_parity``, 3 rays, majority vote).
   Right for watertight meshes, cheap.
 - ``"winding"``: the generalised winding number (``wp.mesh_query_point_sign_winding_number``,
   ``support_winding_number=True``). Smooth and robust on open or badly stitched meshes.
@@ -32,7 +32,7 @@ wp.set_module_options({"enable_backward": False})
 
 SIGN_METHODS = ("parity", "winding")
 _PARITY, _WINDING = 0, 1
-_PARITY_RAYS = wp.constant(5)  # odd: a tie cannot happen
+_PARITY_RAYS = wp.constant(3)  # odd: a tie cannot happen
 _MAX_DIST = 1.0e6  # any mesh is closer than this; the query must always find a face
 
 
