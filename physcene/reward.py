@@ -1,0 +1,173 @@
+"""The paper's physics reward as a TRL reward function (PADA's GRPO signal).
+
+R = −100 if the completion does not parse; −min(0.01·E_pen, 50) if E_pen > 0; +50 if E_pen = 0,
+with E_pen = Σ_{i<j} pen(i, j) in MILLIMETRES over pairs deeper than the tolerance (default 0).
+
+>>> reward = PhysicsReward(RewardConfig(device="cuda"))
+>>> trainer = GRPOTrainer(..., reward_funcs=[reward])        # reward.last_metrics after each call
+
+Each completion is parsed once (:func:`physcene.ctrc.parse`), every parsed scene of the batch is
+scored in ONE engine call, and unparsable completions never touch the engine. The zone of the
+task is not needed: penetration does not change when a whole layout is translated.
+"""
+
+from __future__ import annotations
+
+import functools
+from collections.abc import Sequence
+from dataclasses import asdict, dataclass, replace
+
+import numpy as np
+
+from physcene.config import load_config
+from physcene.ctrc import ParseError, parse
+from physcene.scene import Scene
+
+__all__ = ["PhysicsReward", "RewardConfig", "completion_text_of", "physics_reward", "reward_from_energy"]
+
+
+@dataclass(frozen=True, kw_only=True)
+class RewardConfig:
+    """Reward settings (``configs/reward.yaml``); lengths in mm as in the paper."""
+
+    unparsable: float = -100.0
+    """Reward of a completion that does not parse."""
+    collision_free: float = 50.0
+    """Reward when E_pen = 0."""
+    per_mm: float = 0.01
+    """Penalty per millimetre of summed pair depth."""
+    max_penalty: float = 50.0
+    """The penalty is capped here: R ≥ −max_penalty for any parsed layout."""
+    tolerance_mm: float = 0.0
+    """Only pairs deeper than this count in E_pen."""
+    table_term: bool = False
+    """Also add each object's depth below the table top (mm, deeper than the tolerance) to E_pen."""
+    device: str = "cpu"
+    """Engine device, ``cpu`` or ``cuda[:N]``."""
+
+    @classmethod
+    def load(cls, overrides: Sequence[str] = ()) -> RewardConfig:
+        cfg = load_config("reward", overrides)
+        fields = {k: v for k, v in cfg.items()}
+        unknown = set(fields) - set(cls.__dataclass_fields__)
+        if unknown:
+            raise ValueError(f"configs/reward.yaml: unknown keys {sorted(unknown)}")
+        return cls(**fields)
+
+
+def completion_text_of(completion) -> str:
+    """The text of a TRL completion: a string, or a chat list whose assistant turns are joined."""
+    if isinstance(completion, str):
+        return completion
+    if isinstance(completion, dict):
+        completion = [completion]
+    parts = []
+    for message in completion or []:
+        if not isinstance(message, dict) or message.get("role", "assistant") != "assistant":
+            continue
+        content = message.get("content", "")
+        if isinstance(content, list):  # multimodal parts: keep the text ones
+            content = "".join(p.get("text", "") for p in content if isinstance(p, dict))
+        parts.append(str(content))
+    return "\n".join(parts)
+
+
+def reward_from_energy(e_pen_mm: np.ndarray, config: RewardConfig) -> np.ndarray:
+    """The paper's piecewise reward of E_pen (mm) for parsed layouts, (S,) float64."""
+    e = np.asarray(e_pen_mm, dtype=np.float64)
+    return np.where(e > 0, -np.minimum(config.per_mm * e, config.max_penalty), config.collision_free)
+
+
+class PhysicsReward:
+    """A TRL reward function ``f(prompts, completions, **columns) -> list[float]``.
+
+    After every call ``last_metrics`` holds the batch's ``parse_failure_rate``,
+    ``mean_energy_mm`` (over parsed layouts), ``collision_free_rate`` (over parsed layouts),
+    ``mean_reward`` and ``mean_max_depth_mm``, for the trainer's log.
+    """
+
+    __name__ = "physics_reward"  # TRL names reward columns after the function
+
+    def __init__(self, config: RewardConfig | None = None, engine=None):
+        self.config = config or RewardConfig()
+        self._engine = engine
+        self.last_metrics: dict[str, float] = {}
+        self.last_parse_errors: list[str | None] = []
+
+    @property
+    def engine(self):
+        if self._engine is None:
+            from physcene.physics import PhysicsEngine
+
+            self._engine = PhysicsEngine(device=self.config.device)
+        return self._engine
+
+    def __call__(self, prompts=None, completions=None, **columns) -> list[float]:
+        if completions is None:
+            raise ValueError("physics_reward needs completions")
+        return self.score_texts([completion_text_of(c) for c in completions])
+
+    def score_texts(self, texts: Sequence[str]) -> list[float]:
+        """Rewards for completion texts, in order (one parse each, one engine call)."""
+        parsed = [parse(t) for t in texts]
+        return self.score_parsed(parsed)
+
+    def score_parsed(self, parsed: Sequence[Scene | ParseError]) -> list[float]:
+        """Rewards for already parsed completions (a Scene or a ParseError each)."""
+        cfg = self.config
+        rewards = np.full(len(parsed), cfg.unparsable, dtype=np.float64)
+        ok = [k for k, p in enumerate(parsed) if isinstance(p, Scene)]
+        e_mm = np.zeros(0)
+        depth_mm = np.zeros(0)
+        if ok:
+            scenes = [parsed[k] for k in ok]
+            engine = self.engine
+            batch = engine.pack(scenes)
+            out = engine.evaluate(batch, tolerance=cfg.tolerance_mm / 10.0)
+            e = out["depth_sum"]
+            if cfg.table_term:
+                table = out["table_depth"]
+                e = e + (table * (table > cfg.tolerance_mm / 10.0)).sum(dim=1)
+            both = np.stack([(e * 10.0).cpu().numpy(), (out["max_depth"] * 10.0).cpu().numpy()])
+            e_mm, depth_mm = both[0].astype(np.float64), both[1].astype(np.float64)
+            rewards[ok] = reward_from_energy(e_mm, cfg)
+        n = max(len(parsed), 1)
+        self.last_parse_errors = [p.reason if isinstance(p, ParseError) else None for p in parsed]
+        self.last_metrics = {
+            "parse_failure_rate": (len(parsed) - len(ok)) / n,
+            "mean_energy_mm": float(e_mm.mean()) if ok else 0.0,
+            "collision_free_rate": float((e_mm == 0).mean()) if ok else 0.0,
+            "mean_max_depth_mm": float(depth_mm.mean()) if ok else 0.0,
+            "mean_reward": float(rewards.mean()) if len(parsed) else 0.0,
+        }
+        return rewards.tolist()
+
+    def describe(self) -> dict:
+        return asdict(self.config)
+
+
+_BY_DEVICE: dict[str, PhysicsReward] = {}
+
+
+@functools.lru_cache(maxsize=1)
+def _default_config() -> RewardConfig:
+    return RewardConfig.load()
+
+
+def physics_reward(prompts=None, completions=None, *, device=None, **columns) -> list[float]:
+    """The reward with ``configs/reward.yaml`` defaults; see the module doc.
+
+    ``device`` (e.g. this rank's ``cuda:N``) overrides the config's; one engine per device and
+    process. The last batch's metrics are in ``physics_reward.last_metrics``.
+    """
+    config = _default_config()
+    key = str(device) if device is not None else config.device
+    reward = _BY_DEVICE.get(key)
+    if reward is None:
+        reward = _BY_DEVICE[key] = PhysicsReward(replace(config, device=key))
+    rewards = reward(prompts, completions, **columns)
+    physics_reward.last_metrics = reward.last_metrics
+    return rewards
+
+
+physics_reward.last_metrics = {}
