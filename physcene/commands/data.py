@@ -1,0 +1,157 @@
+"""``physcene data``: build the benchmark (synthetic splits, or MesaTask-CTRC from real layouts).
+
+    physcene data synth --out DIR [--split train|test|ood] [--n N] [--seed S] [key=value ...]
+    physcene data import-mesatask LAYOUT_INFO_DIR --out DIR [--seed S]
+
+``key=value`` overrides go to ``configs/data.yaml`` (e.g. ``noise.pair_rate=0.3``,
+``record.workers=4``). Each run writes ``<split>.jsonl``, ``<split>_stats.json`` and
+``<split>_stats.md`` in DIR.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+NAME = "data"
+HELP = "Build benchmark data: synthetic MesaTask-style splits or MesaTask-CTRC from real layouts"
+
+
+def add_arguments(parser) -> None:
+    sub = parser.add_subparsers(dest="data_command", metavar="ACTION")
+    sub.required = True
+    synth = sub.add_parser("synth", help="Generate a synthetic split (JSONL + stats)")
+    synth.add_argument("--out", required=True, help="Output folder")
+    synth.add_argument(
+        "--split", default="test", choices=["train", "test", "ood"], help="Which split (default: test)"
+    )
+    synth.add_argument(
+        "--n", type=int, default=None, help="Number of scenes (default: train 9429, test 866, ood 200)"
+    )
+    synth.add_argument("--seed", type=int, default=0, help="Seed (same seed -> byte-identical files)")
+    synth.add_argument("--workers", type=int, default=None, help="Worker processes (default: config)")
+    synth.add_argument(
+        "--measure",
+        choices=["auto", "yes", "no"],
+        default=None,
+        help="Score every scene with the engine for the reference SCR/ACR (auto: test and ood only)",
+    )
+    synth.add_argument("--no-progress", action="store_true", help="No progress bar")
+    imp = sub.add_parser(
+        "import-mesatask", help="Build MesaTask-CTRC records from a MesaTask-10k Layout_info tree"
+    )
+    imp.add_argument("layout_info", help="Layout_info folder (or the MesaTask-10K folder containing it)")
+    imp.add_argument("--out", required=True, help="Output folder")
+    imp.add_argument("--seed", type=int, default=0, help="Seed of the instruction grammar and the split")
+    imp.add_argument(
+        "--test-size",
+        type=int,
+        default=866,
+        help="Scenes held out as test, stratified like Table 5 where the data allows (0: none)",
+    )
+    imp.add_argument("--skip-errors", action="store_true", help="Skip unreadable layout files")
+    imp.add_argument("--measure", action="store_true", help="Measure the reference SCR/ACR with the engine")
+
+
+def _config(args):
+    from physcene.data.benchmark import DataConfig
+
+    config = DataConfig.load(args.overrides)
+    if getattr(args, "workers", None):
+        from dataclasses import replace
+
+        config = replace(config, workers=int(args.workers))
+    if config.measure not in ("auto", "true", "false", "yes", "no", "1", "0"):
+        raise ValueError(f"record.measure must be auto/true/false, got {config.measure!r}")
+    return config
+
+
+def _instructor(args):
+    from physcene.config import load_config
+    from physcene.data.instructions import EndpointInstructor
+
+    endpoint = load_config("data", args.overrides).record.endpoint
+    if endpoint.base_url and endpoint.model:
+        return EndpointInstructor(
+            base_url=str(endpoint.base_url), model=str(endpoint.model), api_key_env=str(endpoint.api_key_env)
+        )
+    return None
+
+
+def _run_synth(args) -> int:
+    from physcene.data.benchmark import write_split
+
+    if args.n is not None and args.n < 1:
+        raise ValueError(f"--n must be at least 1, got {args.n}")
+    config = _config(args)
+    measure = None if args.measure in (None, "auto") else args.measure == "yes"
+    if args.measure == "auto":
+        measure = args.split in ("test", "ood")
+    stats = write_split(
+        args.out, args.split, args.n, args.seed, config, progress=not args.no_progress, measure=measure
+    )
+    out = Path(args.out)
+    print(
+        f"wrote {out / (args.split + '.jsonl')} ({stats['n']} scenes, "
+        f"{stats['distinct_instructions']} distinct instructions) in {stats['generation_seconds']:.1f} s"
+    )
+    ref = stats.get("reference")
+    if ref:
+        c = ref["collision"]["0cm"]
+        print(f"reference: SCR(0cm) {100 * c['SCR']:.1f} %  ACR(0cm) {100 * c['ACR']:.2f} %")
+    print(f"stats: {out / (args.split + '_stats.md')}")
+    return 0
+
+
+def _run_import(args) -> int:
+    from tqdm import tqdm
+
+    from physcene.data.benchmark import split_stats, stats_markdown, write_records
+    from physcene.data.mesatask_ctrc import dumps_record, import_layout_tree
+    from physcene.data.splits import select_test
+
+    root = Path(args.layout_info)
+    if not root.is_dir():
+        raise FileNotFoundError(f"{str(root)!r} is not a directory (expected MesaTask's Layout_info)")
+    config = _config(args)
+    records = [
+        r
+        for _, r in tqdm(
+            import_layout_tree(
+                root,
+                seed=args.seed,
+                instructor=_instructor(args),
+                prompt_objects=config.prompt_objects,
+                skip_errors=args.skip_errors,
+            ),
+            desc="import",
+            unit="scene",
+            file=sys.stderr,
+        )
+    ]
+    if not records:
+        raise ValueError(
+            f"no layout.json files under {str(root)!r} (expected <table_type>/<scene>/layout.json)"
+        )
+    test_idx = set(select_test([(r["scene_type"], r["level"]) for r in records], args.test_size, args.seed))
+    out = Path(args.out)
+    for split, chosen in (
+        ("train", [r for k, r in enumerate(records) if k not in test_idx]),
+        ("test", [r for k, r in enumerate(records) if k in test_idx]),
+    ):
+        for r in chosen:
+            r["split"] = split
+        write_records((dumps_record(r) for r in chosen), out / f"{split}.jsonl")
+        stats = split_stats(chosen, measure=args.measure and bool(chosen))
+        stats.update(split=split, seed=args.seed, file=f"{split}.jsonl", source=str(root))
+        (out / f"{split}_stats.json").write_text(json.dumps(stats, indent=2, sort_keys=True) + "\n")
+        (out / f"{split}_stats.md").write_text(stats_markdown(stats))
+        print(f"wrote {out / (split + '.jsonl')} ({len(chosen)} scenes)")
+    return 0
+
+
+def run(args) -> int:
+    if args.data_command == "synth":
+        return _run_synth(args)
+    return _run_import(args)
