@@ -23,6 +23,8 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
+from physcene.assets.categories import CATEGORY_ALIASES, CATEGORY_PRIORS
+
 __all__ = [
     "MESH_SUFFIXES",
     "AssetFileError",
@@ -53,12 +55,39 @@ class MeshFile:
     unit_cm: float
 
 
+# nouns with no singular in everyday use: kept as they are
+_PLURAL_ONLY = {
+    "headphones",
+    "earphones",
+    "glasses",
+    "eyeglasses",
+    "sunglasses",
+    "scissors",
+    "chopsticks",
+    "keys",
+    "notes",
+    "tongs",
+    "tweezers",
+    "pliers",
+    "earbuds",
+    "clothes",
+    "jeans",
+    "shorts",
+}
+
+
 def normalise_category(name: str) -> str:
-    """``"Coffee Mugs"`` -> ``"coffee_mug"``: lower_snake_case, last word singular."""
+    """``"Coffee Mugs"`` -> ``"coffee_mug"``: lower_snake_case, last word singular.
+
+    Known categories and plural-only nouns (``headphones``, ``glasses``, ``sticky_notes``) are kept.
+    """
     words = re.findall(r"[a-z0-9]+", name.lower())
     if not words:
         return ""
+    joined = "_".join(words)
     last = words[-1]
+    if joined in CATEGORY_PRIORS or joined in CATEGORY_ALIASES or last in _PLURAL_ONLY:
+        return joined
     if last.endswith("ies") and len(last) > 4:
         last = last[:-3] + "y"
     elif last.endswith(("ches", "shes", "sses", "xes")):
