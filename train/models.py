@@ -150,7 +150,8 @@ def prepare_model_and_tokenizer(cfg: DictConfig, texts: Iterable[str] | None = N
         else:
             from physcene.train.tokenizer import build_tokenizer
             tokenizer = build_tokenizer(texts, vocab_size=int(m.tokenizer.vocab_size))
-        model = build_scratch_model(m.arch, tokenizer, seed=int(cfg.seed), dtype=str(m.dtype))
+        # Train from scratch in fp32 (bf16 autocast on GPU); model.dtype is the dtype it is saved in.
+        model = build_scratch_model(m.arch, tokenizer, seed=int(cfg.seed), dtype="float32")
         return model, tokenizer
     if m.source == "pretrained":
         if not m.path:

@@ -268,6 +268,8 @@ def pada_arguments(cfg, variant: str) -> PADAConfig:
         seed=int(cfg.seed),
         deepspeed=deepspeed,
         dataloader_num_workers=0,
+        # TRL turns it on by default; the tiny/small models have memory to spare and run faster without.
+        gradient_checkpointing=bool(p.get("gradient_checkpointing", False)),
         **_precision(cfg),
     )
 

@@ -16,7 +16,7 @@ from pathlib import Path
 
 from omegaconf import DictConfig, OmegaConf
 from peft import LoraConfig
-from physcene.train.models import TrainingSetupError, prepare_model_and_tokenizer, write_run_info
+from physcene.train.models import TrainingSetupError, prepare_model_and_tokenizer, torch_dtype, write_run_info
 from physcene.train.records import load_records, training_dataset
 from transformers.trainer_utils import get_last_checkpoint
 from trl import SFTConfig, SFTTrainer
@@ -86,6 +86,7 @@ def sft_arguments(cfg: DictConfig) -> SFTConfig:
         seed=int(cfg.seed),
         deepspeed=deepspeed,
         dataloader_num_workers=0,
+        gradient_checkpointing=bool(s.get("gradient_checkpointing", False)),
         **_precision(cfg),
     )
 
@@ -112,6 +113,8 @@ def run_sft(cfg: DictConfig, callbacks=()) -> Path:
     if cfg.sft.lora is not None:
         # Later stages load one plain checkpoint: fold the adapters into the weights.
         trainer.model = trainer.model.merge_and_unload()
+    if cfg.model.source == "scratch":
+        trainer.model.to(torch_dtype(str(cfg.model.dtype)))  # small: a 52 MiB bf16 checkpoint
     trainer.save_model(str(out))
     if trainer.is_world_process_zero():
         tokenizer.save_pretrained(str(out))

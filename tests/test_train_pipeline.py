@@ -1,0 +1,130 @@
+"""The tiny training pipeline end to end on CPU: SFT steps -> anchors (generation + TTO) -> GRPO,
+PADA* and PADA steps -> generation and evaluation of the trained policy (parse rate, reward).
+
+Kept small (12 two-object scenes, a 0.2 M-parameter model, 1-3 optimizer steps per stage) so it runs
+in well under a minute on two busy cores. A 3-step SFT model cannot write layouts yet, so the PADA
+stages train on anchors made from the noisy reference completions (TTO-repaired, like anchors made
+from SFT output); the anchors stage itself still runs on the model's own generations.
+"""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+import torch
+from omegaconf import OmegaConf
+from physcene.train.anchors import anchor_records, anchor_summary, run_anchors
+from physcene.train.generate import generate
+from physcene.train.pada import reward_statistics, run_pada
+from physcene.train.records import load_records, write_records
+from physcene.train.sft import run_sft
+
+from physcene.config import load_config
+from physcene.ctrc import ParseError, build_prompt, completion_text, parse
+from physcene.layout import layout_to_dict
+from physcene.noisy_scenes import noisy_scenes
+from physcene.tto import TTOConfig
+
+TTO_FAST = ["steps=20", "report_relations=false"]
+
+
+def _records(n: int, seed: int) -> list[dict]:
+    scenes = noisy_scenes(n, n_objects=2, seed=seed, noise_cm=3.0)
+    return [{"id": f"s{seed}_{k}", "scene_type": "office", "level": 1,
+             "instruction": "Place the objects on the desk.",
+             "prompt": build_prompt("Place the objects on the desk.", "office", s.zone, s.objects),
+             "completion": completion_text(s), "layout": layout_to_dict(s)} for k, s in enumerate(scenes)]
+
+
+def _reward(engine):
+    """The DESIGN reward (-100 unparsable; +50 collision-free; -min(0.01 E_mm, 50)) via parse + engine."""
+    def physics_reward(prompts, completions, device="cpu", **columns):
+        parsed = [parse(c) for c in completions]
+        scenes = [p for p in parsed if not isinstance(p, ParseError)]
+        score = engine.score(scenes) if scenes else None
+        out, k = [], 0
+        for p in parsed:
+            if isinstance(p, ParseError):
+                out.append(-100.0)
+                continue
+            e_mm = 10.0 * sum(d for _, _, d in score.pairs[k])
+            out.append(50.0 if e_mm == 0 else -min(0.01 * e_mm, 50.0))
+            k += 1
+        return out
+    return physics_reward
+
+
+@pytest.fixture
+def one_thread():
+    old = torch.get_num_threads()
+    torch.set_num_threads(1)  # tiny matmuls on two shared cores: threads only contend
+    yield
+    torch.set_num_threads(old)
+
+
+def test_tiny_pipeline_end_to_end(tmp_path, one_thread):
+    from physcene.physics import PhysicsEngine
+
+    engine = PhysicsEngine()
+    train = _records(12, seed=0)
+    write_records(train, tmp_path / "train.jsonl")
+    cfg = load_config("train_tiny", [
+        f"data.train={tmp_path / 'train.jsonl'}", f"output_dir={tmp_path / 'run'}", "sft.max_steps=3",
+        "sft.max_length=1024", "anchors.max_new_tokens=32", f"anchors.tto=[{','.join(TTO_FAST)}]",
+        "pada.max_steps=1", "pada.max_completion_length=32", "pada.logging_steps=1"])
+
+    # Stage 1: SFT.
+    sft_dir = run_sft(cfg)
+    assert (sft_dir / "model.safetensors").is_file() and (sft_dir / "tokenizer.json").is_file()
+    log = json.loads((sft_dir / "train_log.json").read_text())
+    assert [e["step"] for e in log if "loss" in e] == [1, 2, 3]
+
+    # Anchors from the SFT model's own generations: one row per record, summary written.
+    anchors_path = run_anchors(cfg)
+    rows = load_records(str(anchors_path))
+    assert [r["id"] for r in rows] == [r["id"] for r in train]
+    assert all({"anchor", "anchor_raw", "anchor_parse_error"} <= set(r) for r in rows)
+    summary = json.loads(anchors_path.with_suffix(".summary.json").read_text())
+    assert summary["n"] == 12 and 0.0 <= summary["parse_rate"] <= 1.0
+
+    # Anchors through the same TTO path from the noisy reference completions (SFT-like, colliding).
+    rows = anchor_records(train, [r["completion"] for r in train], tto_config=TTOConfig.from_config(TTO_FAST),
+                          engine=engine)
+    stats = anchor_summary(rows)
+    assert stats["parse_rate"] == 1.0
+    assert stats["energy_before_mean_cm"] > 0
+    assert stats["energy_after_mean_cm"] < stats["energy_before_mean_cm"]
+    assert all(not isinstance(parse(r["anchor"]), ParseError) for r in rows)
+    write_records(rows, tmp_path / "anchors_ref.jsonl")
+
+    # Stage 2: one optimizer step of each variant, reward from parse + engine on this rank's device.
+    reward = _reward(engine)
+    outs = {}
+    vcfg = OmegaConf.merge(cfg, {"pada": {"anchors": str(tmp_path / "anchors_ref.jsonl")}})
+    for variant in ("grpo", "pada_star", "pada"):
+        outs[variant] = run_pada(vcfg, variant=variant, reward_fn=reward)
+        assert outs[variant].name == variant and (outs[variant] / "adapter_model.safetensors").is_file()
+        step = [e for e in json.loads((outs[variant] / "train_log.json").read_text()) if "reward" in e][0]
+        assert {"parse_rate", "collision_free_rate", "kl", "rewards/physics/mean"} <= set(step)
+        assert ("anchor_ce" in step) == (variant != "grpo")
+        if variant != "grpo":
+            assert step["anchor_ce"] > 0
+
+    # Evaluate the PADA policy on held-out prompts: parse rate and reward of its layouts.
+    test = _records(4, seed=1)
+    texts = generate(outs["pada"], [r["prompt"] for r in test], max_new_tokens=32, batch_size=4)
+    assert len(texts) == 4 and all(isinstance(t, str) for t in texts)
+    rewards = reward([r["prompt"] for r in test], texts)
+    assert all(r == -100.0 or r == 50.0 or -50.0 <= r < 0.0 for r in rewards)
+    assert 0.0 <= reward_statistics(rewards)["parse_rate"] <= 1.0
+    # The reference completions themselves score through the same path (they parse).
+    assert reward_statistics(reward([], [r["completion"] for r in test]))["parse_rate"] == 1.0
+
+
+def test_train_cli_reports_bad_config_in_one_line(capsys):
+    from physcene.cli import main
+
+    assert main(["train", "sft", "--config", "no_such_config"]) == 2
+    err = capsys.readouterr().err
+    assert "unknown config 'train_no_such_config'" in err and "Traceback" not in err
