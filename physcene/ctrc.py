@@ -154,10 +154,11 @@ def encode(scene: Scene, *, decimals: int | None = None) -> list[dict]:
     for iid in anchor_order(scene):
         o = by_id[iid]
         frame = _Frame.of_zone(scene.zone) if o.parent == TABLE else _Frame.of_object(decoded[o.parent])
-        box, rot = _relative(o, frame, o.relation)
+        relation = "near" if o.parent == TABLE else o.relation  # "on the table" is the table level
+        box, rot = _relative(o, frame, relation)
         box = [_rounded(v, decimals) for v in box]
         rot = _rounded(rot, decimals)
-        center, size, yaw = _absolute(box, rot, frame, o.relation)
+        center, size, yaw = _absolute(box, rot, frame, relation)
         decoded[iid] = o.moved(center=center, size=size, yaw=yaw) if decimals is not None else o
         layer[iid] = layer[o.parent] + 1
         entries.append({
@@ -165,7 +166,7 @@ def encode(scene: Scene, *, decimals: int | None = None) -> list[dict]:
             "instance_id": iid,
             "category": o.category,
             "parent_id": o.parent,
-            "relation_type": o.relation,
+            "relation_type": relation,
             "description": o.description,
             "relative_bbox": box,
             "relative_rotation_deg": rot,

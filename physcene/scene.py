@@ -151,6 +151,13 @@ class SceneObject:
                              field="parent")
         if self.parent == oid:
             raise SceneError("an object cannot be its own parent", obj=oid, field="parent")
+        # "near" is the table-level relation (DESIGN.md): it never hangs under an object, and
+        # nothing is "in" the table.
+        if self.relation == "near" and self.parent not in (None, TABLE):
+            raise SceneError(f"relation 'near' needs parent {TABLE!r}, got {self.parent!r}", obj=oid,
+                             field="relation")
+        if self.relation == "in" and self.parent == TABLE:
+            raise SceneError(f"nothing can be 'in' {TABLE!r}", obj=oid, field="relation")
 
     # Box geometry ---------------------------------------------------------------------------
     @property

@@ -26,6 +26,8 @@ def _obj(iid="cup_0", **kw):
     (dict(category=""), "category"),
     (dict(relation="under"), "relation"),
     (dict(parent="cup_0"), "parent"),
+    (dict(parent="plate_0", relation="near"), "relation"),
+    (dict(parent="root_zone", relation="in"), "relation"),
 ])
 def test_object_validation_names_object_and_field(kw, field):
     with pytest.raises(SceneError) as info:
