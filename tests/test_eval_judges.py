@@ -7,7 +7,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
 from physcene.eval.judges import EvalCase, LayoutStats, RuleJudge, layout_features
 from physcene.eval.metrics import (
     ScenePhysics,
@@ -20,6 +19,7 @@ from physcene.eval.metrics import (
     qpr,
     summarize,
 )
+
 from physcene.layout import read_layout
 from physcene.scene import TABLE, SceneObject
 
@@ -140,8 +140,9 @@ def test_collision_rates_follow_the_paper_formulas():
 
 
 def test_summary_breakdown_and_diversity(scene):
+    judge = {"CwT": 8, "OSR": 9, "PPI": 9, "LCR": 8, "OV": 9, "avg": 8.6}
     results = [SceneResult(f"s{k}", t, level_of(n), ScenePhysics(n, ((0, 1, 0.2),) if k % 2 else ()),
-                           {"CwT": 8, "OSR": 9, "PPI": 9, "LCR": 8, "OV": 9, "avg": 8.6}, {"stable": k % 3 == 0})
+                           judge, {"stable": k % 3 == 0})
                for k, (t, n) in enumerate([("office", 3), ("office", 10), ("dining", 17), ("dining", 6)])]
     row = summarize(results)
     assert row["QPR"][7.0] == 0.5 and row["QPR"][9.0] == 0.0
