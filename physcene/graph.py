@@ -75,8 +75,12 @@ def _axis_aligned(o: SceneObject) -> bool:
     return abs(math.sin(2.0 * o.yaw)) < 1e-12  # yaw a multiple of 90 degrees
 
 
-def _overlap(a: SceneObject, b: SceneObject, pa: Polygon | None = None, pb: Polygon | None = None) -> float:
-    ba, bb = a.aabb(), b.aabb()
+def _overlap(a: SceneObject, b: SceneObject, ba=None, bb=None, pa: Polygon | None = None,
+             pb: Polygon | None = None) -> float:
+    """|A∩B|xy / |A|xy; ``ba``/``bb`` are the objects' aabb() and ``pa``/``pb`` their footprint
+    polygons when the caller has them cached."""
+    ba = a.aabb() if ba is None else ba
+    bb = b.aabb() if bb is None else bb
     ix = min(ba[1], bb[1]) - max(ba[0], bb[0])
     iy = min(ba[3], bb[3]) - max(ba[2], bb[2])
     if ix <= 0.0 or iy <= 0.0:
@@ -96,6 +100,8 @@ def relation_candidates(scene: Scene, config: GraphConfig | None = None) -> dict
     """
     config = config or GraphConfig()
     objs = list(scene.objects)
+    boxes = [o.aabb().tolist() for o in objs]
+    volumes = [o.volume() for o in objs]
     polys: dict[int, Polygon] = {}
 
     def poly(k: int) -> Polygon:
@@ -106,22 +112,25 @@ def relation_candidates(scene: Scene, config: GraphConfig | None = None) -> dict
     out: dict[str, list[tuple[str, str]]] = {}
     for i, a in enumerate(objs):
         ins, ons = [], []
+        a_zmin, a_zmax, a_h = boxes[i][4], boxes[i][5], a.size[2]
         for j, b in enumerate(objs):
             if i == j:
                 continue
             # The z tests are cheap; the footprint overlap is computed only when one of them holds.
-            inside_z = min(a.zmax, b.zmax) - max(a.zmin, b.zmin)
-            could_in = (b.volume() >= config.in_volume_ratio * a.volume()
-                        and inside_z >= config.in_height_fraction * a.size[2])
-            could_on = abs(a.zmin - b.zmax) < config.on_gap_cm
+            b_zmin, b_zmax = boxes[j][4], boxes[j][5]
+            inside_z = min(a_zmax, b_zmax) - max(a_zmin, b_zmin)
+            could_in = (volumes[j] >= config.in_volume_ratio * volumes[i]
+                        and inside_z >= config.in_height_fraction * a_h)
+            could_on = abs(a_zmin - b_zmax) < config.on_gap_cm
             if not (could_in or could_on):
                 continue
-            overlap = _overlap(a, b, None if _axis_aligned(a) and _axis_aligned(b) else poly(i),
-                               None if _axis_aligned(a) and _axis_aligned(b) else poly(j))
+            exact = _axis_aligned(a) and _axis_aligned(b)
+            overlap = _overlap(a, b, boxes[i], boxes[j], None if exact else poly(i),
+                               None if exact else poly(j))
             if could_in and overlap >= config.in_footprint_overlap:
-                ins.append((b.volume(), b.instance_id))
+                ins.append((volumes[j], b.instance_id))
             if could_on and overlap > config.on_footprint_overlap:
-                ons.append((-b.zmax, -overlap, b.instance_id))
+                ons.append((-b_zmax, -overlap, b.instance_id))
         out[a.instance_id] = ([(iid, "in") for _, iid in sorted(ins)]
                               + [(iid, "on") for *_, iid in sorted(ons)])
     return out
