@@ -16,7 +16,7 @@ import torch
 from omegaconf import OmegaConf
 from physcene.train.anchors import anchor_records, anchor_summary, run_anchors
 from physcene.train.generate import generate
-from physcene.train.pada import reward_statistics, run_pada
+from physcene.train.pada import run_pada
 from physcene.train.records import load_records, write_records
 from physcene.train.sft import run_sft
 
@@ -24,6 +24,7 @@ from physcene.config import load_config
 from physcene.ctrc import ParseError, build_prompt, completion_text, parse
 from physcene.layout import layout_to_dict
 from physcene.noisy_scenes import noisy_scenes
+from physcene.reward import PhysicsReward, RewardConfig
 from physcene.tto import TTOConfig
 
 TTO_FAST = ["steps=20", "report_relations=false"]
@@ -35,24 +36,6 @@ def _records(n: int, seed: int) -> list[dict]:
              "instruction": "Place the objects on the desk.",
              "prompt": build_prompt("Place the objects on the desk.", "office", s.zone, s.objects),
              "completion": completion_text(s), "layout": layout_to_dict(s)} for k, s in enumerate(scenes)]
-
-
-def _reward(engine):
-    """The DESIGN reward (-100 unparsable; +50 collision-free; -min(0.01 E_mm, 50)) via parse + engine."""
-    def physics_reward(prompts, completions, device="cpu", **columns):
-        parsed = [parse(c) for c in completions]
-        scenes = [p for p in parsed if not isinstance(p, ParseError)]
-        score = engine.score(scenes) if scenes else None
-        out, k = [], 0
-        for p in parsed:
-            if isinstance(p, ParseError):
-                out.append(-100.0)
-                continue
-            e_mm = 10.0 * sum(d for _, _, d in score.pairs[k])
-            out.append(50.0 if e_mm == 0 else -min(0.01 * e_mm, 50.0))
-            k += 1
-        return out
-    return physics_reward
 
 
 @pytest.fixture
@@ -98,15 +81,15 @@ def test_tiny_pipeline_end_to_end(tmp_path, one_thread):
     assert all(not isinstance(parse(r["anchor"]), ParseError) for r in rows)
     write_records(rows, tmp_path / "anchors_ref.jsonl")
 
-    # Stage 2: one optimizer step of each variant, reward from parse + engine on this rank's device.
-    reward = _reward(engine)
+    # Stage 2: one optimizer step of each variant; the paper's reward, sharing this test's engine.
+    reward = PhysicsReward(RewardConfig(device="cpu"), engine=engine)
     outs = {}
     vcfg = OmegaConf.merge(cfg, {"pada": {"anchors": str(tmp_path / "anchors_ref.jsonl")}})
     for variant in ("grpo", "pada_star", "pada"):
-        outs[variant] = run_pada(vcfg, variant=variant, reward_fn=reward)
+        outs[variant] = run_pada(vcfg, variant=variant, reward=reward)
         assert outs[variant].name == variant and (outs[variant] / "adapter_model.safetensors").is_file()
         step = [e for e in json.loads((outs[variant] / "train_log.json").read_text()) if "reward" in e][0]
-        assert {"parse_rate", "collision_free_rate", "kl", "rewards/physics/mean"} <= set(step)
+        assert {"parse_rate", "kl", "rewards/physics/mean"} <= set(step)
         assert ("anchor_ce" in step) == (variant != "grpo")
         if variant != "grpo":
             assert step["anchor_ce"] > 0
@@ -117,9 +100,10 @@ def test_tiny_pipeline_end_to_end(tmp_path, one_thread):
     assert len(texts) == 4 and all(isinstance(t, str) for t in texts)
     rewards = reward([r["prompt"] for r in test], texts)
     assert all(r == -100.0 or r == 50.0 or -50.0 <= r < 0.0 for r in rewards)
-    assert 0.0 <= reward_statistics(rewards)["parse_rate"] <= 1.0
-    # The reference completions themselves score through the same path (they parse).
-    assert reward_statistics(reward([], [r["completion"] for r in test]))["parse_rate"] == 1.0
+    assert 0.0 <= reward.last_metrics["parse_failure_rate"] <= 1.0
+    # The reference completions score through the same path, and all parse.
+    rewards = reward([r["prompt"] for r in test], [r["completion"] for r in test])
+    assert reward.last_metrics["parse_failure_rate"] == 0.0 and -100.0 not in rewards
 
 
 def test_train_cli_reports_bad_config_in_one_line(capsys):

@@ -38,7 +38,10 @@ __all__ = [
     "AdaptiveKLCallback",
     "PADAConfig",
     "PADATrainer",
+    "PhysicsRewardFunction",
     "numeric_spans",
+    "pada_arguments",
+    "run_pada",
     "tokenize_anchor",
 ]
 
@@ -196,43 +199,35 @@ class AdaptiveKLCallback(TrainerCallback):
 
 
 class PhysicsRewardFunction:
-    """TRL reward function around ``physcene.reward.physics_reward``, scoring on this rank's device.
+    """TRL reward function: ``physcene.reward.PhysicsReward`` with its engine on this rank's device.
 
     Each rank scores only its own completions (TRL gathers the rewards afterwards), so on N GPUs the
-    engine runs N-way parallel. Also logs, through the trainer's ``log_metric``: ``parse_rate``
-    (reward ≠ −100), ``collision_free_rate`` (reward = +50) and ``penetration_mm``: the mean E_pen of
-    the parsed completions, recovered from the reward (E = −100·R mm for −50 < R < 0; clipped rewards
-    count as 5000 mm, so it is a lower bound when any completion hit the −50 clip).
+    engine runs N-way parallel. After each batch it logs, through the trainer's ``log_metric``:
+    ``parse_rate``, and over the parsed layouts ``penetration_mm`` (mean E_pen, mm),
+    ``max_depth_mm`` and ``collision_free_rate``.
     """
 
     __name__ = "physics"
 
-    def __init__(self, device: str | torch.device = "cpu", reward_fn=None):
-        if reward_fn is None:
-            from physcene.reward import physics_reward as reward_fn
-        self.device = str(device)
-        self.reward_fn = reward_fn
+    def __init__(self, device: str | torch.device = "cpu", reward=None, overrides=()):
+        if reward is None:
+            from dataclasses import replace
+
+            from physcene.reward import PhysicsReward, RewardConfig
+
+            reward = PhysicsReward(replace(RewardConfig.load(list(overrides)), device=str(device)))
+        self.reward = reward
 
     def __call__(self, prompts, completions, log_metric=None, **columns) -> list[float]:
-        # Conversational completions arrive as [{"role": "assistant", "content": ...}].
-        texts = [c if isinstance(c, str) else c[-1]["content"] for c in completions]
-        columns = {k: v for k, v in columns.items()
-                   if k not in ("trainer_state", "log_extra", "completion_ids")}
-        rewards = [float(r) for r in self.reward_fn(prompts, texts, device=self.device, **columns)]
+        rewards = self.reward(prompts, completions)
+        m = self.reward.last_metrics
         if log_metric is not None:
-            for name, value in reward_statistics(rewards).items():
-                log_metric(name, value)
+            log_metric("parse_rate", 1.0 - m["parse_failure_rate"])
+            if m["parse_failure_rate"] < 1.0:  # energy figures exist only for parsed layouts
+                log_metric("penetration_mm", m["mean_energy_mm"])
+                log_metric("max_depth_mm", m["mean_max_depth_mm"])
+                log_metric("collision_free_rate", m["collision_free_rate"])
         return rewards
-
-
-def reward_statistics(rewards: list[float]) -> dict[str, float]:
-    """parse_rate, collision_free_rate and penetration_mm (see :class:`PhysicsRewardFunction`)."""
-    parsed = [r for r in rewards if r != -100.0]
-    stats = {"parse_rate": len(parsed) / max(len(rewards), 1),
-             "collision_free_rate": sum(r == 50.0 for r in rewards) / max(len(rewards), 1)}
-    if parsed:
-        stats["penetration_mm"] = sum(0.0 if r == 50.0 else -100.0 * r for r in parsed) / len(parsed)
-    return stats
 
 
 def pada_arguments(cfg, variant: str) -> PADAConfig:
@@ -274,11 +269,12 @@ def pada_arguments(cfg, variant: str) -> PADAConfig:
     )
 
 
-def run_pada(cfg, variant: str | None = None, reward_fn=None, callbacks=()) -> Path:
+def run_pada(cfg, variant: str | None = None, reward=None, callbacks=()) -> Path:
     """Train stage 2 (``variant`` or ``cfg.pada.variant``) from ``cfg.pada.model`` on ``cfg.pada.anchors``.
 
     Saves the LoRA adapter, tokenizer and run info to ``cfg.pada.output_dir``; resumes from its last
-    checkpoint. ``reward_fn`` replaces ``physcene.reward.physics_reward`` (same signature) if given.
+    checkpoint. ``reward`` (a ``physcene.reward.PhysicsReward``) replaces the default one on this rank's
+    device, e.g. to share an engine.
     """
     from accelerate import PartialState
     from omegaconf import OmegaConf
@@ -307,9 +303,10 @@ def run_pada(cfg, variant: str | None = None, reward_fn=None, callbacks=()) -> P
     model = load_model(model_dir.resolve(), dtype=dtype, freeze_vision=bool(cfg.model.freeze_vision))
     tokenizer = load_tokenizer(model_dir)
     state = PartialState()
+    reward_fn = PhysicsRewardFunction(state.device, reward=reward, overrides=list(cfg.pada.get("reward", [])))
     trainer = PADATrainer(
         model=model,
-        reward_funcs=[PhysicsRewardFunction(state.device, reward_fn=reward_fn)],
+        reward_funcs=[reward_fn],
         args=args,
         train_dataset=dataset,
         processing_class=tokenizer,
