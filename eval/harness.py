@@ -53,8 +53,11 @@ def load_benchmark(split: str, n: int | None = None, seed: int = 0,
     from physcene.layout import load_layout
 
     items = []
+    from physcene.data.splits import DEFAULT_SIZES
+
     records = synthesize(split, n=n, seed=seed)
-    for rec in tqdm(records, total=n, desc=f"synthesise {split}", disable=not progress, unit="scene"):
+    total = n if n is not None else DEFAULT_SIZES.get(split)
+    for rec in tqdm(records, total=total, desc=f"synthesise {split}", disable=not progress, unit="scene"):
         scene = load_layout(rec["layout"], source=f"{split}:{rec['id']}")
         if not scene.scene_type:
             scene = scene.__class__(scene.zone, scene.objects, rec["scene_type"], rec["instruction"],

@@ -62,3 +62,27 @@ def test_eval_command_rejects_bad_input(tmp_path, capsys):
     assert "not a directory" in capsys.readouterr().err
     assert method_name("tto") == "Reference + TTO"
     assert method_name("model:runs/pada/", True) == "Model (pada) + TTO"
+
+
+def test_model_generator_feeds_ctrc_prompts_and_parses_completions(items, monkeypatch):
+    """``model:PATH`` calls physcene.train.generate.generate on the benchmark's CTRC prompts; here
+    the 'model' answers with the reference completions (and one garbage answer)."""
+    import physcene.train.generate as train_generate
+    from physcene.data import synthesize
+
+    completions = {r["prompt"]: r["completion"] for r in synthesize("test", n=len(items))}
+    seen = {}
+
+    def fake_generate(path, prompts, **kw):
+        seen["path"], seen["prompts"] = path, list(prompts)
+        return [completions[p] for p in prompts[:-1]] + ["not a layout"]
+
+    monkeypatch.setattr(train_generate, "generate", fake_generate)
+    outs = generate(items, "model:runs/tiny", progress=False)
+    assert seen["path"] == "runs/tiny" and seen["prompts"] == [it.prompt for it in items]
+    for it, out in zip(items[:-1], outs[:-1]):
+        assert sorted(o.instance_id for o in out.objects) == sorted(it.reference.ids())
+    assert hasattr(outs[-1], "reason")
+    judge = make_judge("rule", [it.reference for it in items])
+    res = score_scenes(items, outs, judge, progress=False)
+    assert res[-1].extra["parse_error"] and res[-1].judge["error"].startswith("unparsable output")
