@@ -367,3 +367,18 @@ def test_cli_bake_into_a_cache_dir(tmp_path, capsys):
 def test_primitive_asset_contract():
     a = primitive_asset("cylinder", resolution=16, n_points=100)
     assert a.sdf.shape == (16, 16, 16) and a.points.shape[1] == 3 and a.source == "primitive"
+
+
+def test_malformed_annotation_names_the_file(tmp_path):
+    trimesh.creation.box().export(tmp_path / "abc.glb")
+    (tmp_path / "Asset_annotation.json").write_text("{not json")
+    with pytest.raises(AssetFileError, match="Asset_annotation.json"):
+        AssetLibrary().add_folder(tmp_path)
+
+
+def test_default_library_is_built_once_and_lists_every_category():
+    from physcene.assets import default_library
+
+    lib = default_library()
+    assert lib is default_library()
+    assert set(CATEGORY_PRIORS) | {"box", "cylinder", "sphere"} <= set(lib.categories())
