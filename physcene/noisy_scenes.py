@@ -6,8 +6,8 @@ perturbed the way a generator errs: whole groups pushed into their neighbours, s
 little over their support. Groups:
 
 - ``stack``: a box with a book on it, sometimes a cup on the book (``on`` edges);
-- ``container``: a bowl with a fruit or cup in it (an ``in`` edge; the content rests on the bowl's
-  1 cm floor);
+- ``container``: a pot with a fruit or cup in it (an ``in`` edge; the content rests on the pot's
+  floor, 0.7 cm up);
 - ``single``: one object standing on the table.
 
 Sizes are in cm; every scene has exactly ``n_objects`` objects (the last group is cut short).
@@ -42,10 +42,11 @@ def _group(rng: np.random.Generator, k: int, budget: int) -> list[tuple[str, tup
             out.append(("cup", _box(rng, (6, 6, 7), (8, 8, 10)), base[2] + book[2], (0.0, 0.0)))
         return out
     if kind == "container":
-        bowl = _box(rng, (16, 16, 7), (20, 20, 9))
+        diameter = float(rng.uniform(16, 20))
+        pot = (diameter, diameter, float(rng.uniform(8, 10)))
         content = _box(rng, (6, 6, 6), (8, 8, 8))
-        return [("bowl", bowl, 0.0, (0.0, 0.0)), (str(rng.choice(["apple", "cup"])), content, 1.0,
-                                                  tuple(rng.uniform(-2, 2, 2)))]
+        return [("pot", pot, 0.0, (0.0, 0.0)), (str(rng.choice(["apple", "cup"])), content, 0.7,
+                                                tuple(rng.uniform(-1.5, 1.5, 2)))]
     return [(str(rng.choice(_SINGLES)), _box(rng, (5, 5, 3), (16, 14, 15)), 0.0, (0.0, 0.0))]
 
 
@@ -80,10 +81,12 @@ def _scene(rng: np.random.Generator, index: int, n_objects: int, noise_cm: float
         x, y = x + shift[0], y + shift[1]
         cy, sy = math.cos(yaw), math.sin(yaw)
         base = f"{index}"
+        top = 0.0  # the actual top of the object below (stacks are bottom-up)
         for k, (cat, size, z0, (ox, oy)) in enumerate(g):
             z = z0 + size[2] / 2
-            if k > 0 and cat != "apple" and g[0][0] != "bowl":
-                z += float(rng.uniform(-sink_cm, sink_cm))  # on children sunk in or floating
+            if k > 0 and g[0][0] != "pot":  # on children sunk into or floating above their support
+                z = top + size[2] / 2 + float(rng.uniform(-sink_cm, sink_cm))
+            top = z + size[2] / 2
             objects.append(SceneObject(
                 instance_id=f"{k}_{cat}_{len(objects)}_{base}", category=cat,
                 center=(x + cy * ox - sy * oy, y + sy * ox + cy * oy, z), size=size,
