@@ -19,11 +19,12 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from physcene.data.splits import level_of  # one definition of the levels, shared with the data
 from physcene.scene import Scene
 
 __all__ = ["CRITERIA", "DIFFICULTY_LEVELS", "THRESHOLDS_CM", "ScenePhysics", "SceneResult", "breakdown",
            "collision_rates", "diversity", "floating_rate", "level_of", "out_of_zone",
-           "out_of_zone_rate", "physics_from_score", "qpr", "summarize"]
+           "out_of_zone_rate", "physics_from_score", "qpr", "relation_preservation_rate", "summarize"]
 
 # The paper's GPT-score criteria, in table order.
 CRITERIA = ("CwT", "OSR", "PPI", "LCR", "OV")
@@ -36,13 +37,6 @@ DIFFICULTY_LEVELS = (1, 2, 3, 4, 5)
 # A footprint may poke this far (cm) past the zone before the object counts as out of zone: the
 # MesaTask annotations place objects flush with the zone edge.
 ZONE_TOLERANCE_CM = 0.5
-
-
-def level_of(n_objects: int) -> int:
-    """Difficulty level 1..5 of a scene with ``n_objects`` objects (1-4, 5-8, 9-12, 13-16, 17+)."""
-    if n_objects <= 4:
-        return 1
-    return min(5, (n_objects - 1) // 4 + 1)
 
 
 @dataclass(frozen=True)
@@ -142,6 +136,18 @@ def qpr(judge_averages: Sequence[float], scenes: Sequence[ScenePhysics], taus: I
     free = np.array([s.collision_free(threshold_cm) for s in scenes], dtype=bool)
     with np.errstate(invalid="ignore"):
         return {float(t): float(np.mean((avg >= t) & free)) if len(avg) else float("nan") for t in taus}
+
+
+def relation_preservation_rate(before: Sequence[Scene], after: Sequence[Scene]) -> dict:
+    """Mean share of ``in``/``on`` (and ``near``) relations of each ``before`` layout that still hold
+    in the matching ``after`` layout (:func:`physcene.tto.relation_preservation`, per pair)."""
+    from physcene.tto import relation_preservation
+
+    if len(before) != len(after):
+        raise ValueError(f"relation_preservation_rate: {len(before)} layouts before, {len(after)} after")
+    kept = [relation_preservation(b, a) for b, a in zip(before, after)]
+    return {"in_on_kept": float(np.mean([k["in_on_kept"] for k in kept])) if kept else float("nan"),
+            "near_kept": float(np.mean([k["near_kept"] for k in kept])) if kept else float("nan")}
 
 
 def diversity(scenes: Sequence[Scene]) -> dict:

@@ -153,3 +153,14 @@ def test_summary_breakdown_and_diversity(scene):
     assert d["asset_types"] == len({o.category for o in scene.objects})
     assert d["pos_std_x"] == pytest.approx(np.std([o.center[0] for o in scene.objects]))
     assert SceneResult.from_dict(results[1].to_dict()).to_dict() == results[1].to_dict()
+
+
+def test_relation_preservation_rate(scene):
+    from physcene.eval.metrics import relation_preservation_rate
+
+    same = relation_preservation_rate([scene], [scene])
+    assert same["in_on_kept"] == 1.0
+    pen = scene.get("5_pen_0")
+    out = scene.with_objects(o.moved(center=(60.0, 55.0, 0.6), size=(14.0, 1.2, 1.2)) if o is pen else o
+                             for o in scene.objects)
+    assert relation_preservation_rate([scene], [out])["in_on_kept"] < 1.0
