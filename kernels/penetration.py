@@ -51,21 +51,24 @@ def rotate_z(c: float, s: float, v: wp.vec3):
 
 
 @wp.func
-def trilinear(grid: wp.array(dtype=float), base: int, res: int, t: wp.vec3, inv_h: float):
+def trilinear(grid: wp.array(dtype=float), base: int, elem: int, res: int, t: wp.vec3, inv_h: float):
     """Value and gradient (per normalised unit) of the cell at ``base`` with fractions t.
 
-    Returns vec4(value, ∂/∂q). Interpolates along z, then y, then x, like the torch reference.
+    ``elem`` is the distance between consecutive nodes in ``grid`` (1 for φ, 3 for the
+    interleaved axis rays). Returns vec4(value, ∂/∂q). Interpolates along z, then y, then x,
+    like the torch reference.
     """
-    sy = res
-    sx = res * res
+    sz = elem
+    sy = res * elem
+    sx = res * res * elem
     c000 = grid[base]
-    c001 = grid[base + 1]
+    c001 = grid[base + sz]
     c010 = grid[base + sy]
-    c011 = grid[base + sy + 1]
+    c011 = grid[base + sy + sz]
     c100 = grid[base + sx]
-    c101 = grid[base + sx + 1]
+    c101 = grid[base + sx + sz]
     c110 = grid[base + sx + sy]
-    c111 = grid[base + sx + sy + 1]
+    c111 = grid[base + sx + sy + sz]
     tx = t[0]
     ty = t[1]
     tz = t[2]
@@ -106,7 +109,7 @@ def sdf_sample(sdf: wp.array(dtype=float), start: int, res: int, q: wp.vec3):
     Returns vec4(φ, ∂φ/∂q).
     """
     qc, node, t = grid_cell(q, res)
-    sample = trilinear(sdf, start + node, res, t, float(res - 1) * 0.5)
+    sample = trilinear(sdf, start + node, 1, res, t, float(res - 1) * 0.5)
     out = q - qc
     dist = wp.length(out)
     if dist > 0.0:
@@ -140,7 +143,8 @@ def world_phi(sdf: wp.array(dtype=float), rays: wp.array(dtype=float), start: in
     """World φ (cm) of a point inside the field's shape and ∂φ/∂q, else φ ≥ 0 (docs/physics.md).
 
     φ_world = max(φ_n / |S⁻¹ n̂|, −h_k r_k(q)): the first-order anisotropic estimate, capped by
-    the distances r_k to the surface along the three axes (exact for axis-aligned faces).
+    the distances r_k to the surface along the three axes (exact for axis-aligned faces). Under
+    a uniform scale the first term is exact already and the rays are not read.
     """
     sample = sdf_sample(sdf, start, res, q)
     phi = sample[0]
@@ -150,10 +154,11 @@ def world_phi(sdf: wp.array(dtype=float), rays: wp.array(dtype=float), start: in
     scale = world_scale(g, half)  # held constant in the gradient
     phi = phi * scale
     g = g * scale
+    if wp.max(half[0], wp.max(half[1], half[2])) <= wp.min(half[0], wp.min(half[1], half[2])) * 1.000001:
+        return phi, g
     qc, node, t = grid_cell(q, res)
-    n3 = res * res * res
     for k in range(3):
-        r = trilinear(rays, 3 * start + k * n3 + node, res, t, float(res - 1) * 0.5)
+        r = trilinear(rays, 3 * (start + node) + k, 3, res, t, float(res - 1) * 0.5)
         if -half[k] * r[0] > phi:
             phi = -half[k] * r[0]
             g = wp.vec3(-half[k] * r[1], -half[k] * r[2], -half[k] * r[3])
@@ -256,7 +261,7 @@ def narrowphase(
     sizes: wp.array(dtype=wp.vec3),
     obj_asset: wp.array(dtype=wp.int32),  # (S*N,)
     sdf: wp.array(dtype=float),  # all grids, flat
-    rays: wp.array(dtype=float),  # (3 * len(sdf),) axis ray distances, 3 grids per asset
+    rays: wp.array(dtype=float),  # (3 * len(sdf),) axis ray distances, 3 per node, interleaved
     sdf_start: wp.array(dtype=wp.int32),  # (A,)
     sdf_res: wp.array(dtype=wp.int32),  # (A,)
     points: wp.array(dtype=wp.vec3),  # all surface points, normalised frames
@@ -307,6 +312,9 @@ def narrowphase(
         v = rotate_z(cr, sr, wp.cw_mul(pl, ho))  # owner point, field frame, relative to owner
         u = v + t_rel  # field-local cm
         q = wp.cw_div(u, hf)
+        # a point outside the field's box cannot be inside its shape: skip the grid (most points)
+        if wp.max(wp.abs(q[0]), wp.max(wp.abs(q[1]), wp.abs(q[2]))) > 1.0:
+            continue
         phi, gq = world_phi(sdf, rays, grid0, res, q, hf)
         if phi < 0.0:
             energy += -phi

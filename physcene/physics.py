@@ -43,6 +43,9 @@ class PhysicsConfig:
     @classmethod
     def load(cls, overrides: Sequence[str] = ()) -> PhysicsConfig:
         cfg = load_config("physics", overrides)
+        unknown = set(cfg) - set(cls.__dataclass_fields__)
+        if unknown:
+            raise ValueError(f"configs/physics.yaml: unknown keys {sorted(unknown)}")
         return cls(**{k: float(v) for k, v in cfg.items()})
 
 
@@ -152,8 +155,8 @@ def pack_assets(assets: Sequence, device: torch.device) -> dict[str, torch.Tenso
     n_pt = np.array([len(a.points) for a in assets], dtype=np.int32)
     arrays = {
         "sdf": np.concatenate([a.sdf.reshape(-1) for a in assets]).astype(np.float32),
-        # per asset its 3 axis-ray grids, at 3 * sdf_start (kernels/penetration.py world_phi)
-        "rays": np.concatenate([axis_ray_distances(a.sdf).reshape(-1) for a in assets]),
+        # per node its 3 axis-ray distances, interleaved, at 3 * sdf_start (penetration.world_phi)
+        "rays": np.concatenate([np.moveaxis(axis_ray_distances(a.sdf), 0, -1).reshape(-1) for a in assets]),
         "sdf_start": np.concatenate([[0], np.cumsum(res.astype(np.int64) ** 3)[:-1]]).astype(np.int32),
         "sdf_res": res,
         "points": np.concatenate([a.points for a in assets]).astype(np.float32).reshape(-1, 3),

@@ -32,12 +32,16 @@ def _cell(q: torch.Tensor, res: torch.Tensor):
     return qc, node, f - idx.to(q.dtype), inv_h
 
 
-def _trilinear(grid: torch.Tensor, base: torch.Tensor, res: torch.Tensor, t: torch.Tensor,
+def _trilinear(grid: torch.Tensor, base: torch.Tensor, elem: int, res: torch.Tensor, t: torch.Tensor,
                inv_h: torch.Tensor):
-    """Value (K,) with autograd to t, and its detached analytic gradient per normalised unit (K, 3)."""
-    sy, sx = res, res * res
+    """Value (K,) with autograd to t, and its detached analytic gradient per normalised unit (K, 3).
+
+    ``elem``: distance between consecutive nodes in ``grid`` (1 for φ, 3 for interleaved rays).
+    """
+    sz, sy, sx = elem, res * elem, res * res * elem
     c000, c001, c010, c011, c100, c101, c110, c111 = (
-        grid[base + ox * sx + oy * sy + oz].to(t.dtype) for ox in (0, 1) for oy in (0, 1) for oz in (0, 1))
+        grid[base + ox * sx + oy * sy + oz * sz].to(t.dtype)
+        for ox in (0, 1) for oy in (0, 1) for oz in (0, 1))
     tx, ty, tz = t[:, 0], t[:, 1], t[:, 2]
     c00 = c000 + (c001 - c000) * tz
     c01 = c010 + (c011 - c010) * tz
@@ -62,7 +66,7 @@ def sdf_sample(sdf: torch.Tensor, start: torch.Tensor, res: torch.Tensor, q: tor
     Returns (φ (K,), ∂φ/∂q (K, 3) detached analytic gradient). φ carries autograd to q.
     """
     qc, node, t, inv_h = _cell(q, res)
-    phi, grad = _trilinear(sdf, start + node, res, t, inv_h)
+    phi, grad = _trilinear(sdf, start + node, 1, res, t, inv_h)
     out = q - qc
     sq = (out * out).sum(-1)
     outside = sq > 0
@@ -83,12 +87,14 @@ def world_phi(sdf, rays, start, res, q, half):
     phi_n, g = sdf_sample(sdf, start, res, q)
     scale = _world_scale(g, half).detach()
     _, node, t, inv_h = _cell(q, res)
-    n3 = res * res * res
     terms = [phi_n * scale]
     for k in range(3):
-        r, _ = _trilinear(rays, 3 * start + k * n3 + node, res, t, inv_h)
+        r, _ = _trilinear(rays, 3 * (start + node) + k, 3, res, t, inv_h)
         terms.append(-half[:, k] * r)
     capped = torch.stack(terms, -1).max(-1).values
+    # under a uniform scale the first-order term is exact and the rays are not consulted
+    uniform = half.max(-1).values <= half.min(-1).values * 1.000001
+    capped = torch.where(uniform, terms[0], capped)
     return torch.where(phi_n < 0, capped, phi_n)
 
 
@@ -173,7 +179,8 @@ def reference_penetration(*, poses: torch.Tensor, sizes: torch.Tensor, count: to
         rep = lambda x: x[:, None].expand(-1, p_max).reshape(-1)  # noqa: E731
         phi = world_phi(sdf, assets["rays"], rep(sdf_start[af]), rep(sdf_res[af]), q,
                         hf[:, None, :].expand(-1, p_max, -1).reshape(-1, 3))
-        inside = (phi < 0) & valid.reshape(-1)
+        in_box = (q.abs() <= 1.0).all(-1)  # outside the field's box nothing penetrates
+        inside = (phi < 0) & valid.reshape(-1) & in_box
         depth = torch.where(inside, -phi, torch.zeros_like(phi)).reshape(k, p_max)
         e = depth.sum(-1)
         combo_energy[lo:lo + step] = e.detach()

@@ -1,0 +1,214 @@
+"""``physcene bench TARGET``: throughput benchmarks with the numbers the issues ask for.
+
+    physcene bench reward --device cuda                      # 512 scenes x 16 objects x 1024 points
+    physcene bench reward --device cpu --scenes 256 --objects 12 --json
+
+Targets live in ``TARGETS`` (name -> :class:`BenchTarget`); a new one is one more entry with its
+own ``add_arguments`` and ``run(args) -> dict``. Every target takes ``--device``, ``--json`` and
+``--repeat``; it warms up first and synchronises the device around every timed call.
+"""
+
+from __future__ import annotations
+
+import json
+import statistics
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+NAME = "bench"
+HELP = "Throughput benchmarks (targets: reward, tto)"
+
+__all__ = ["TARGETS", "BenchTarget", "bench_scenes", "timed"]
+
+
+@dataclass(frozen=True)
+class BenchTarget:
+    help: str
+    add_arguments: Callable
+    run: Callable[..., dict]
+    """run(args) -> a JSON-able dict of figures."""
+    summary: Callable[[dict], str]
+    """Human-readable lines of the figures."""
+
+
+def timed(fn: Callable[[], object], device: torch.device, repeat: int, warmup: int = 2) -> float:
+    """Median wall seconds of ``fn()`` with the device synchronised before and after each call."""
+
+    def sync():
+        if device.type == "cuda":
+            torch.cuda.synchronize(device)
+
+    for _ in range(warmup):
+        fn()
+    sync()
+    times = []
+    for _ in range(max(1, repeat)):
+        sync()
+        start = time.perf_counter()
+        fn()
+        sync()
+        times.append(time.perf_counter() - start)
+    return statistics.median(times)
+
+
+def bench_scenes(n_scene: int, n_obj: int, seed: int = 0):
+    """Random tabletop scenes: n_obj yawed boxes/cylinders/spheres resting on a 120 x 60 cm table.
+
+    Sizes 4-18 cm wide, 2-20 cm tall, uniform positions: an untrained generator's density, with
+    many (not all) pairs in contact.
+    """
+    from physcene.scene import Scene, SceneObject, Zone
+
+    rng = np.random.default_rng(seed)
+    zone = Zone(0.0, 120.0, 0.0, 60.0)
+    kinds = ("box", "cylinder", "sphere")
+    scenes = []
+    for s in range(n_scene):
+        size = np.concatenate([rng.uniform(4.0, 18.0, (n_obj, 2)), rng.uniform(2.0, 20.0, (n_obj, 1))], 1)
+        xy = rng.uniform([5.0, 5.0], [115.0, 55.0], (n_obj, 2))
+        yaw = rng.uniform(-np.pi, np.pi, n_obj)
+        kind = rng.integers(0, 3, n_obj)
+        scenes.append(Scene(zone, [
+            SceneObject(f"{k + 1}_{kinds[kind[k]]}_{k}", kinds[kind[k]], (xy[k, 0], xy[k, 1], size[k, 2] / 2),
+                        tuple(size[k]), float(yaw[k]))
+            for k in range(n_obj)], scene_type="bench", instruction=f"bench scene {s}"))
+    return scenes
+
+
+# reward ------------------------------------------------------------------------------------------
+def _reward_arguments(parser) -> None:
+    parser.add_argument("--scenes", type=int, default=512)
+    parser.add_argument("--objects", type=int, default=16)
+    parser.add_argument("--points", type=int, default=1024, help="surface points per asset")
+    parser.add_argument("--resolution", type=int, default=64, help="SDF grid nodes per axis")
+    parser.add_argument("--no-reference", action="store_true", help="skip the torch reference")
+
+
+def bench_reward(args) -> dict:
+    """Warp engine vs torch reference (forward, forward+gradient) and the whole reward."""
+    from physcene.assets import AssetLibrary
+    from physcene.ctrc import completion_text
+    from physcene.physics import PhysicsEngine
+    from physcene.physics_reference import reference_penetration
+    from physcene.reward import PhysicsReward, RewardConfig
+
+    device = torch.device(args.device)
+    library = AssetLibrary(resolution=args.resolution, n_points=args.points)
+    library.add_primitives()
+    engine = PhysicsEngine(library, device)
+    scenes = bench_scenes(args.scenes, args.objects)
+    batch = engine.pack(scenes)
+    assets = engine.packed_assets()
+    out = engine.evaluate(batch)
+    # query counts (host, outside the timings)
+    pt = assets["pt_count"].cpu().numpy()[batch.asset_index.cpu().numpy().reshape(-1)]
+    hit = out["pair_hit"].cpu().numpy().astype(bool)
+    a, b = out["pair_a"].cpu().numpy()[hit], out["pair_b"].cpu().numpy()[hit]
+    evaluated = int(pt[a].sum() + pt[b].sum())
+    n = batch.count.cpu().numpy()
+    nominal = int((n * (n - 1)).sum() * pt.mean())  # every ordered pair, no broadphase
+    result = {
+        "target": "reward", "device": _device_name(device), "scenes": args.scenes, "objects": args.objects,
+        "points": float(pt.mean()), "resolution": args.resolution, "pairs": batch.n_pairs,
+        "candidate_pairs": int(hit.sum()), "queries_evaluated": evaluated, "queries_all_pairs": nominal,
+    }
+
+    def figures(seconds: float) -> dict:
+        return {"seconds": seconds, "scenes_per_s": args.scenes / seconds,
+                "gq_per_s": evaluated / seconds / 1e9, "all_pairs_gq_per_s": nominal / seconds / 1e9}
+
+    repeat = args.repeat
+    result["warp_forward"] = figures(timed(lambda: engine.evaluate(batch), device, repeat))
+    result["warp_grad"] = figures(timed(lambda: engine.evaluate(batch, with_grad=True), device, repeat))
+    if not args.no_reference:
+        kw = dict(poses=batch.poses, sizes=batch.sizes, count=batch.count, obj_asset=batch.asset_index,
+                  assets=assets, margin=engine.config.margin_cm)
+        ref_repeat = max(1, repeat // 5)
+        result["reference_forward"] = figures(
+            timed(lambda: reference_penetration(**kw), device, ref_repeat, 1))
+        result["reference_grad"] = figures(
+            timed(lambda: reference_penetration(**kw, with_grad=True), device, ref_repeat, 1))
+        result["speedup_forward"] = result["reference_forward"]["seconds"] / result["warp_forward"]["seconds"]
+        result["speedup_grad"] = result["reference_grad"]["seconds"] / result["warp_grad"]["seconds"]
+    reward = PhysicsReward(RewardConfig(device=str(device)), engine=engine)
+    texts = [completion_text(s) for s in scenes]
+    parsed = [s for s in scenes]
+    whole = timed(lambda: reward.score_texts(texts), device, max(1, repeat // 2), 1)
+    from_scenes = timed(lambda: reward.score_parsed(parsed), device, repeat)
+    result["reward_from_text"] = {"seconds": whole, "scenes_per_s": args.scenes / whole}
+    result["reward_from_scenes"] = {"seconds": from_scenes, "scenes_per_s": args.scenes / from_scenes}
+    return result
+
+
+def _reward_summary(r: dict) -> str:
+    lines = [f"device {r['device']}: {r['scenes']} scenes x {r['objects']} objects x "
+             f"{r['points']:.0f} points, "
+             f"{r['candidate_pairs']}/{r['pairs']} pairs pass the broadphase, "
+             f"{r['queries_evaluated'] / 1e6:.1f} M point queries evaluated "
+             f"({r['queries_all_pairs'] / 1e6:.1f} M for all ordered pairs)"]
+    for key, label in (("warp_forward", "warp forward"), ("warp_grad", "warp forward+grad"),
+                       ("reference_forward", "torch reference forward"),
+                       ("reference_grad", "torch reference forward+grad")):
+        if key in r:
+            f = r[key]
+            lines.append(f"{label:30s} {f['seconds'] * 1e3:9.3f} ms  {f['scenes_per_s']:12.1f} scenes/s  "
+                         f"{f['gq_per_s']:8.3f} Gq/s evaluated  "
+                         f"{f['all_pairs_gq_per_s']:8.3f} Gq/s all-pairs")
+    if "speedup_forward" in r:
+        lines.append(f"warp / reference: forward {r['speedup_forward']:.1f}x, "
+                     f"forward+grad {r['speedup_grad']:.1f}x")
+    for key, label in (("reward_from_text", "whole reward (text -> rewards)"),
+                       ("reward_from_scenes", "reward from parsed scenes")):
+        f = r[key]
+        lines.append(f"{label:30s} {f['seconds'] * 1e3:9.3f} ms  {f['scenes_per_s']:12.1f} scenes/s")
+    return "\n".join(lines)
+
+
+def _device_name(device: torch.device) -> str:
+    if device.type == "cuda":
+        return f"{device} ({torch.cuda.get_device_name(device)})"
+    return f"cpu ({torch.get_num_threads()} torch threads)"
+
+
+TARGETS: dict[str, BenchTarget] = {
+    "reward": BenchTarget("Warp engine vs torch reference, and the whole physics reward",
+                          _reward_arguments, bench_reward, _reward_summary),
+}
+
+
+def _tto_target() -> BenchTarget:
+    from physcene.commands import _bench_tto  # owned by the tto helper (issue 5)
+
+    return BenchTarget("Batched hierarchy-constrained TTO (512 scenes x 16 objects x 100 steps)",
+                       _bench_tto.add_arguments, _bench_tto.run, _bench_tto.summary)
+
+
+TARGETS["tto"] = _tto_target()
+
+
+def add_arguments(parser) -> None:
+    sub = parser.add_subparsers(dest="target", metavar="TARGET")
+    sub.required = True
+    for name, target in TARGETS.items():
+        p = sub.add_parser(name, help=target.help, description=target.help)
+        p.add_argument("--device", default="cpu", help="cpu (default), cuda, cuda:N")
+        p.add_argument("--json", action="store_true", help="print the figures as one JSON object")
+        p.add_argument("--repeat", type=int, default=None,
+                       help="timed calls per figure (median); default 20 on CUDA, 3 on CPU")
+        target.add_arguments(p)
+
+
+def run(args) -> int:
+    device = torch.device(args.device)
+    if device.type == "cuda" and not torch.cuda.is_available():
+        raise ValueError(f"--device {args.device}: CUDA is not available on this machine")
+    if args.repeat is None:
+        args.repeat = 20 if device.type == "cuda" else 3
+    target = TARGETS[args.target]
+    result = target.run(args)
+    print(json.dumps(result, indent=1) if args.json else target.summary(result))
+    return 0
