@@ -490,7 +490,8 @@ def _reject_constant(name: str):
     raise _Reject(f"non-finite number {name} in the JSON")
 
 
-_DECODER = json.JSONDecoder(parse_constant=_reject_constant)
+# strict=False: a raw newline or tab inside a string (a wrapped description) is not worth a -100.
+_DECODER = json.JSONDecoder(parse_constant=_reject_constant, strict=False)
 _TRAILING_COMMA = re.compile(r",\s*([}\]])")
 _FENCE = re.compile(r"```[a-zA-Z]*\s*\n?(.*?)(?:```|$)", re.S)
 _JSON_TOKEN = re.compile(r"</?json>", re.I)
