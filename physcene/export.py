@@ -123,7 +123,7 @@ class ObjectModel:
 def _cache_dir(setting) -> Path:
     if setting:
         return Path(setting)
-    base = os.environ.get("PHYSCENE_CACHE_DIR") or os.path.join(Path.home(), ".cache", "physcene")
+    base = os.environ.get("PHYSCENE_CACHE") or os.path.join(Path.home(), ".cache", "physcene")
     return Path(base) / "coacd"
 
 
