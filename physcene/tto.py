@@ -372,7 +372,7 @@ def optimise(problem: TTOProblem, engine, config: TTOConfig) -> TTOSolution:
     """Batched Adam over ξ; host syncs only every ``check_every`` steps (all-stopped test)."""
     xi0, trainable = problem.xi0, problem.trainable.unsqueeze(-1)
     xi = xi0.clone().requires_grad_(True)
-    opt = torch.optim.Adam([xi], lr=config.lr)
+    opt = torch.optim.Adam([xi], lr=config.lr, fused=xi.device.type == "cuda")  # one kernel per step
     n = problem.n_scene
     dev = xi0.device
     inf = torch.full((n,), math.inf, device=dev)

@@ -1,0 +1,88 @@
+"""``physcene repair``: layout.json, directory trees and JSONL datasets in, the same structure out."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import replace
+
+import pytest
+
+from physcene.cli import main
+from physcene.layout import layout_to_dict, read_layout, write_layout
+from physcene.noisy_scenes import noisy_scenes
+
+
+@pytest.fixture(scope="module")
+def scenes():
+    return noisy_scenes(3, 6, seed=21, push_cm=10.0)
+
+
+def _check_report(entry: dict) -> None:
+    for key in ("energy_before", "energy_after", "max_displacement_cm", "relations", "unsatisfied",
+                "max_depth_before_cm", "max_depth_after_cm"):
+        assert key in entry
+    assert entry["energy_after"] <= entry["energy_before"]
+    assert entry["relations"]["in_on_kept"] == 1.0
+
+
+def test_repair_one_layout(tmp_path, scenes, capsys):
+    src = write_layout(scenes[0], tmp_path / "in" / "layout.json")
+    out = tmp_path / "out" / "layout.json"
+    assert main(["repair", str(src), "-o", str(out), "steps=60"]) == 0
+    repaired = read_layout(out)
+    assert repaired.ids() == scenes[0].ids()
+    [entry] = json.loads((tmp_path / "out" / "layout.report.json").read_text())
+    _check_report(entry)
+    assert "repaired 1 scene(s)" in capsys.readouterr().out
+
+
+def test_repair_tree_mirrors_structure(tmp_path, scenes):
+    root = tmp_path / "Layout_info"
+    for k, scene in enumerate(scenes[:2]):
+        write_layout(replace(scene, scene_type=""), root / "office_table" / f"scene_{k}" / "layout.json")
+    out = tmp_path / "fixed"
+    assert main(["repair", str(tmp_path), "-o", str(out), "steps=40"]) == 0
+    written = sorted(p.relative_to(out).as_posix() for p in out.rglob("layout.json"))
+    assert written == [f"Layout_info/office_table/scene_{k}/layout.json" for k in range(2)]
+    report = json.loads((out / "repair_report.json").read_text())
+    assert [r["layout"] for r in report] == written
+    for entry in report:
+        _check_report(entry)
+    assert read_layout(out / written[0]).scene_type == "office table"
+
+
+def test_repair_jsonl_keeps_records(tmp_path, scenes):
+    src = tmp_path / "data.jsonl"
+    records = [{"id": f"s{k}", "instruction": "tidy desk", "layout": layout_to_dict(s)}
+               for k, s in enumerate(scenes)]
+    src.write_text("".join(json.dumps(r) + "\n" for r in records))
+    out = tmp_path / "fixed.jsonl"
+    assert main(["repair", str(src), "-o", str(out), "--device", "cpu", "steps=40"]) == 0
+    records = [json.loads(line) for line in out.read_text().splitlines()]
+    assert [r["id"] for r in records] == ["s0", "s1", "s2"]
+    assert all(r["instruction"] == "tidy desk" and r["layout"]["objects"] for r in records)
+    report = json.loads((tmp_path / "fixed.report.json").read_text())
+    assert [r["id"] for r in report] == ["s0", "s1", "s2"]
+    for entry in report:
+        _check_report(entry)
+
+
+@pytest.mark.parametrize("content, message", [
+    ('{"id": 1}\n', "expected a record with a 'layout' object"),
+    ("not json\n", "invalid JSON"),
+])
+def test_bad_jsonl_exits_2_naming_the_line(tmp_path, capsys, content, message):
+    src = tmp_path / "bad.jsonl"
+    src.write_text(content)
+    assert main(["repair", str(src), "-o", str(tmp_path / "o.jsonl")]) == 2
+    err = capsys.readouterr().err
+    assert message in err and f"{src}:1" in err and "Traceback" not in err
+
+
+def test_bad_override_and_missing_input_exit_2(tmp_path, scenes, capsys):
+    src = write_layout(scenes[0], tmp_path / "layout.json")
+    assert main(["repair", str(src), "-o", str(tmp_path / "o.json"), "stepz=3"]) == 2
+    assert "unknown tto option" in capsys.readouterr().err
+    assert main(["repair", str(tmp_path / "missing.json"), "-o", str(tmp_path / "o.json")]) == 2
+    assert "does not exist" in capsys.readouterr().err
+    assert not (tmp_path / "o.json").exists()
