@@ -50,7 +50,7 @@ __all__ = [
 PRIMITIVE_CATEGORIES = ("box", "cylinder", "sphere")
 # Keys of a layout object that the reader understands; anything else is kept in Scene.meta.
 _OBJECT_KEYS = {"instance", "position", "size", "rotation", "z_rotation", "retrieved_uid",
-                "description", "category", "parent", "relation"}
+                "selected_uid", "description", "category", "parent", "relation"}
 _SCENE_KEYS = {"item_placement_zone", "restricted_zone", "sink_zone", "scene_type", "instruction",
                "objects"}
 _LEADING_INDEX = re.compile(r"^\d+_")
@@ -177,7 +177,9 @@ def _load_object(name: str, entry: dict, source: str) -> SceneObject:
             size=tuple(size),
             yaw=float(yaw or 0.0),
             description=_optional_str(entry, "description", obj=name, source=source) or "",
-            asset_id=_optional_str(entry, "retrieved_uid", obj=name, source=source),
+            # MesaTask's retrieval step writes the chosen asset as selected_uid.
+            asset_id=(_optional_str(entry, "retrieved_uid", obj=name, source=source)
+                      or _optional_str(entry, "selected_uid", obj=name, source=source)),
             parent=_optional_str(entry, "parent", obj=name, source=source),
             relation=_optional_str(entry, "relation", obj=name, source=source),
         )
@@ -201,11 +203,15 @@ def load_layout(data: dict, *, source: str = "<dict>", scene_type: str | None = 
     restricted += _rects(data.get("sink_zone"), field="sink_zone", source=source)
     items = _object_items(data.get("objects", []), source)
     objects = [_load_object(name, entry, source) for name, entry in items]
+    extras = {name: {k: v for k, v in entry.items() if k not in _OBJECT_KEYS} for name, entry in items}
     for key in ("scene_type", "instruction"):
         if data.get(key) is not None and not isinstance(data[key], str):
             raise SceneError(f"expected a string, got {data[key]!r:.40}", field=key, source=source)
     meta = {k: v for k, v in data.items() if k not in _SCENE_KEYS}
     meta["source"] = source
+    extras = {name: e for name, e in extras.items() if e}
+    if extras:
+        meta["object_extras"] = extras  # unknown per-object keys, written back by layout_to_dict
     try:
         return Scene(zone=zone, objects=tuple(objects), scene_type=data.get("scene_type") or scene_type or "",
                      instruction=data.get("instruction") or "", restricted_zones=tuple(restricted), meta=meta)
@@ -245,8 +251,11 @@ def layout_to_dict(scene: Scene) -> dict:
     ``rotation`` [x, y, z, w], ``z_rotation``, ``retrieved_uid``, ``description`` per object.
 
     ``category`` is written only where it differs from what the instance name implies;
-    ``parent``/``relation`` only where the scene carries them.
+    ``parent``/``relation`` only where the scene carries them; per-object keys the reader did not
+    know (``Scene.meta["object_extras"]``) are written back; top-level keys the reader kept in
+    ``meta`` are not (they may describe a layout that has since changed).
     """
+    extras = scene.meta.get("object_extras", {}) if isinstance(scene.meta, dict) else {}
     objects = []
     for o in scene.objects:
         entry = {
@@ -264,6 +273,8 @@ def layout_to_dict(scene: Scene) -> dict:
             entry["parent"] = o.parent
         if o.relation is not None:
             entry["relation"] = o.relation
+        for k, v in extras.get(o.instance_id, {}).items():
+            entry.setdefault(k, v)
         objects.append(entry)
     out: dict = {}
     if scene.scene_type:

@@ -52,6 +52,20 @@ def test_reads_fields_and_asset_id():
     assert scene.zone.to_list() == [0.0, 100.0, 0.0, 50.0]
 
 
+def test_selected_uid_is_an_asset_id_fallback():
+    data = _layout()
+    data["objects"][0].pop("retrieved_uid")
+    data["objects"][0]["selected_uid"] = "glb42"
+    assert load_layout(data).objects[0].asset_id == "glb42"
+
+
+def test_unknown_object_keys_survive_a_round_trip():
+    data = _layout()
+    data["objects"][0]["material"] = "ceramic"
+    back = layout_to_dict(load_layout(data))
+    assert back["objects"][0]["material"] == "ceramic"
+
+
 def test_quaternion_is_authoritative_over_z_rotation():
     q = yaw_to_quaternion(0.7)
     data = _layout()
