@@ -357,11 +357,12 @@ def _zone_list(zone) -> list[float]:
     return (zone if isinstance(zone, Zone) else Zone.from_list(zone)).to_list()
 
 
-def build_prompt(instruction: str, scene_type: str, zone, objects=None) -> str:
+def build_prompt(instruction: str, scene_type: str, zone, objects=None, *, restricted_zones=()) -> str:
     """The CTRC generation prompt: instruction, table type, placement zone, optional object list.
 
     ``zone``: a :class:`Zone` or [xmin, xmax, ymin, ymax] cm; ``objects``: SceneObjects,
-    categories or instance ids (counted per category), or None to let the model choose.
+    categories or instance ids (counted per category), or None to let the model choose;
+    ``restricted_zones``: Zones or rects (sinks) where nothing may stand, listed when given.
     """
     zone_vals = [round(v, 2) + 0.0 for v in _zone_list(zone)]
     lines = [
@@ -371,6 +372,9 @@ def build_prompt(instruction: str, scene_type: str, zone, objects=None) -> str:
         f"**item_placement_zone**: {_json_line(zone_vals)} (cm; origin at the near-left corner, "
         "+x right, +y away from the viewer, +z up; the table top is z = 0)",
     ]
+    if restricted_zones:
+        rects = [[round(v, 2) + 0.0 for v in _zone_list(z)] for z in restricted_zones]
+        lines.append(f"**restricted_zone**: {_json_line(rects)} (nothing may stand there)")
     if objects:
         lines.append(f"**Object List**: {_object_list(objects)}")
     lines += [

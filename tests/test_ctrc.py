@@ -146,6 +146,9 @@ def test_prompts():
     assert "Set up a desk." in p and "office table" in p and "[0.0, 120.0, 0.0, 60.0]" in p
     assert "book (2)" in p and "pen holder (1)" in p
     assert "Object List" not in build_prompt("x", "office table", [0, 120, 0, 60])
+    assert "restricted_zone" not in p
+    sink = build_prompt("x", "kitchen counter", [0, 120, 0, 60], restricted_zones=[Zone(10, 40, 20, 50)])
+    assert "**restricted_zone**: [[10.0, 40.0, 20.0, 50.0]]" in sink
     z = zero_shot_prompt("Tidy up.", [0, 80.5, 0, 41.9], ["woven_basket_0", "1_lotion_bottle_1"])
     assert "**item_placement_zone**: [0.0, 80.5, 0.0, 41.9]" in z
     assert "woven basket (1), lotion bottle (1)" in z

@@ -88,7 +88,8 @@ def run(args) -> int:
     else:
         scene = read_layout(args.input)
     if args.prompt:
-        text = build_prompt(scene.instruction, scene.scene_type, scene.zone, scene.objects) + "\n"
+        text = build_prompt(scene.instruction, scene.scene_type, scene.zone, scene.objects,
+                            restricted_zones=scene.restricted_zones) + "\n"
     else:
         if not scene.has_hierarchy:
             scene = build_hierarchy(scene, GraphConfig.from_config(args.overrides))
