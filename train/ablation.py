@@ -49,8 +49,12 @@ def ablation_row(name: str, report: dict) -> dict:
     collision = s["collision"].get(0.0, s["collision"].get("0.0", {}))
     qpr = s["QPR"].get(7.0, s["QPR"].get("7.0"))
     n = int(s["n"])
-    return {"name": name, "scr": collision.get("SCR"), "acr": collision.get("ACR"), "qpr7": qpr,
-            "judge_avg": s["judge"]["avg"], "parse_rate": (n - int(s.get("parse_errors", 0))) / max(n, 1),
+
+    def finite(x):  # NaN (no parsed layout to measure) -> null in JSON, "—" in the table
+        return None if x is None or x != x else float(x)
+
+    return {"name": name, "scr": finite(collision.get("SCR")), "acr": finite(collision.get("ACR")),
+            "qpr7": finite(qpr), "judge_avg": finite(s["judge"]["avg"]), "parse_rate": (n - int(s.get("parse_errors", 0))) / max(n, 1),
             "n": n}
 
 
@@ -81,7 +85,7 @@ def _evaluate(cfg: DictConfig, models: dict[str, Path], budget_s: float) -> list
     engine = PhysicsEngine(device="cuda" if __import__("torch").cuda.is_available() else "cpu")
     rows, start = [], time.monotonic()
     for name in ROW_NAMES:
-        if name == "sft+tto":
+        if name == "sft+tto" or name not in models:
             continue
         outputs = generate(items, f"model:{models[name]}", max_new_tokens=int(cfg.eval.max_new_tokens),
                            progress=False)
@@ -103,6 +107,9 @@ def markdown_table(rows: list[dict]) -> str:
     num = (lambda x: "—" if x is None else f"{x:.2f}")  # noqa: E731
     lines = ["| method | SCR | ACR | QPR(7) | judge avg | parse rate | n |", "|---|---|---|---|---|---|---|"]
     for r in rows:
+        if "skipped" in r:
+            lines.append(f"| {r['name']} | skipped: {r['skipped']} | | | | | |")
+            continue
         lines.append(f"| {r['name']} | {pct(r['scr'])} | {pct(r['acr'])} | {pct(r['qpr7'])} | "
                      f"{num(r['judge_avg'])} | {pct(r['parse_rate'])} | {r['n']} |")
     return "\n".join(lines) + "\n"
@@ -111,7 +118,7 @@ def markdown_table(rows: list[dict]) -> str:
 def run_ablation(cfg: DictConfig, budget_min: float | None = None) -> dict:
     """Run the whole ablation per ``cfg`` (see the module docstring); returns the ablation.json dict."""
     from physcene.train.anchors import run_anchors
-    from physcene.train.pada import run_pada
+    from physcene.train.pada import NoAnchorsError, run_pada
     from physcene.train.sft import run_sft
 
     a = cfg.ablation
@@ -130,11 +137,16 @@ def run_ablation(cfg: DictConfig, budget_min: float | None = None) -> dict:
     stages["sft"]["stopped_by_budget"] = budget.stopped_early
     timed("anchors", run_anchors, cfg)
     models = {"sft": sft_dir}
+    skipped = []
     for variant, name in (("grpo", "grpo"), ("pada_star", "pada*"), ("pada", "pada")):
         budget = TimeBudget(shares[variant] * budget_s)
-        models[name] = timed(variant, run_pada, cfg, variant=variant, callbacks=[budget])
+        try:
+            models[name] = timed(variant, run_pada, cfg, variant=variant, callbacks=[budget])
+        except NoAnchorsError as exc:  # an SFT model that writes no parsable layout: say so in the table
+            skipped.append({"name": name, "skipped": str(exc)})
+            continue
         stages[variant]["stopped_by_budget"] = budget.stopped_early
-    rows = timed("eval", _evaluate, cfg, models, shares["eval"] * budget_s)
+    rows = timed("eval", _evaluate, cfg, models, shares["eval"] * budget_s) + skipped
     anchors_summary = Path(str(cfg.anchors.output)).with_suffix(".summary.json")
     result = {
         "rows": rows,

@@ -104,6 +104,8 @@ def run_anchors(cfg: DictConfig) -> Path:
     a = cfg.anchors
     out = Path(str(a.output))
     records = load_records(str(cfg.data.train), seed=int(cfg.seed), max_level=cfg.data.get("max_level"))
+    if a.get("n_records") is not None:
+        records = records[:int(a.n_records)]
     if out.is_file() and not a.get("overwrite", False) and len(load_records(str(out))) == len(records):
         return out
     state = PartialState()

@@ -35,6 +35,7 @@ from trl import GRPOConfig, GRPOTrainer
 
 __all__ = [
     "VARIANTS",
+    "NoAnchorsError",
     "AdaptiveKLCallback",
     "PADAConfig",
     "PADATrainer",
@@ -51,6 +52,10 @@ VARIANTS = {"pada": ("anchor", False), "pada_star": ("anchor_raw", True), "grpo"
 # JSON keys whose numbers PADA* leaves to exploration: the geometry, not the semantics.
 GEOMETRY_KEYS = ("relative_bbox", "relative_rotation_deg")
 _NUMBER = re.compile(r"-?\d+(?:\.\d+)?(?:[eE][-+]?\d+)?")
+
+
+class NoAnchorsError(ValueError):
+    """An anchor file in which no SFT output parsed: PADA and PADA* have nothing to pull toward."""
 
 
 @dataclass
@@ -295,7 +300,7 @@ def run_pada(cfg, variant: str | None = None, reward=None, callbacks=()) -> Path
     if not records:
         raise ValueError(f"no records in anchor file {cfg.pada.anchors!r}")
     if args.anchor_alpha > 0 and not any(r.get(args.anchor_column) for r in records):
-        raise ValueError(f"{cfg.pada.anchors}: no record has a non-empty {args.anchor_column!r} "
+        raise NoAnchorsError(f"{cfg.pada.anchors}: no record has a non-empty {args.anchor_column!r} "
                          f"(variant {variant})")
     dataset = training_dataset(records, chat_format=chat, columns=("anchor", "anchor_raw"))
     dtype = str(cfg.model.dtype) if __import__("torch").cuda.is_available() else "float32"
