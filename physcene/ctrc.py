@@ -366,7 +366,8 @@ def build_prompt(instruction: str, scene_type: str, zone, objects=None, *, restr
     """
     zone_vals = [round(v, 2) + 0.0 for v in _zone_list(zone)]
     lines = [
-        f"Generate a physically plausible tabletop layout for a {scene_type or 'table'}.",
+        "Generate a physically plausible layout of objects on the tabletop: nothing may float or "
+        "interpenetrate.",
         f"**Instruction**: {instruction}",
         f"**Table type**: {scene_type}",
         f"**item_placement_zone**: {_json_line(zone_vals)} (cm; origin at the near-left corner, "
