@@ -226,3 +226,22 @@ def test_sft_resumes_from_last_checkpoint(tmp_path):
     assert state["global_step"] == 3
     info = json.loads((out / "physcene_run.json").read_text())
     assert info["stage"] == "sft" and info["chat_format"] is False
+
+
+def test_ablation_row_and_table_from_an_eval_report():
+    from physcene.train.ablation import ablation_row, markdown_table
+
+    report = {"summary": {"n": 4, "parse_errors": 1, "QPR": {7.0: 0.25, 8.0: 0.0},
+                          "collision": {0.0: {"SCR": 0.5, "ACR": 0.125}, 1.0: {"SCR": 0.0, "ACR": 0.0}},
+                          "judge": {"avg": 7.5}}}
+    row = ablation_row("pada", report)
+    assert row == {"name": "pada", "scr": 0.5, "acr": 0.125, "qpr7": 0.25, "judge_avg": 7.5,
+                   "parse_rate": 0.75, "n": 4}
+    nan = float("nan")
+    empty = ablation_row("sft", {"summary": {"n": 2, "parse_errors": 2, "QPR": {7.0: 0.0},
+                                             "collision": {0.0: {"SCR": nan, "ACR": nan}},
+                                             "judge": {"avg": nan}}})
+    assert empty["scr"] is None and empty["parse_rate"] == 0.0
+    table = markdown_table([row, empty, {"name": "pada*", "skipped": "no anchors"}])
+    assert "| pada | 50.0% | 12.5% | 25.0% | 7.50 | 75.0% | 4 |" in table and "| sft | — |" in table
+    assert "skipped: no anchors" in table

@@ -54,8 +54,8 @@ def ablation_row(name: str, report: dict) -> dict:
         return None if x is None or x != x else float(x)
 
     return {"name": name, "scr": finite(collision.get("SCR")), "acr": finite(collision.get("ACR")),
-            "qpr7": finite(qpr), "judge_avg": finite(s["judge"]["avg"]), "parse_rate": (n - int(s.get("parse_errors", 0))) / max(n, 1),
-            "n": n}
+            "qpr7": finite(qpr), "judge_avg": finite(s["judge"]["avg"]),
+            "parse_rate": (n - int(s.get("parse_errors", 0))) / max(n, 1), "n": n}
 
 
 def _gpu() -> str:
