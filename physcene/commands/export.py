@@ -33,7 +33,9 @@ def run(args) -> int:
     if len(items) != 1:
         raise ExportError(f"{args.layout!r} holds {len(items)} layouts; export takes one "
                           "(name a JSONL record as FILE.jsonl:LINE)")
-    (label, scene), = items
+    (label, scene, error), = items
+    if error is not None:
+        raise ExportError(error)
     config = ExportConfig.load(args.overrides)
     formats = FORMATS if "all" in args.formats else tuple(dict.fromkeys(args.formats))
     out = Path(args.output)
