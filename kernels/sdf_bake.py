@@ -10,6 +10,9 @@ Warp queries, picked per mesh by the caller:
   Right for watertight meshes, cheap.
 - ``"winding"``: the generalised winding number (``wp.mesh_query_point_sign_winding_number``,
   ``support_winding_number=True``). Smooth and robust on open or badly stitched meshes.
+- ``"shell"``: no sign; phi = d - shell_thickness. For single-sheet surfaces (a bowl modelled as
+  one layer) the winding number is fractional over whole regions and would fill the cavity; a
+  thin shell keeps the cavity outside. :func:`winding_ambiguity` tells such meshes apart.
 
 Two passes keep the CPU bake under a second at 64^3: a coarse grid (about R/3 per axis) is baked
 with the full signed query; then every fine node inside the ball that its nearest coarse node proves
@@ -26,12 +29,12 @@ import threading
 import numpy as np
 import warp as wp
 
-__all__ = ["SIGN_METHODS", "bake_sdf"]
+__all__ = ["SIGN_METHODS", "bake_sdf", "winding_ambiguity"]
 
 wp.set_module_options({"enable_backward": False})
 
-SIGN_METHODS = ("parity", "winding")
-_PARITY, _WINDING = 0, 1
+SIGN_METHODS = ("parity", "winding", "shell")
+_PARITY, _WINDING, _UNSIGNED = 0, 1, 2
 _PARITY_RAYS = wp.constant(3)  # odd: a tie cannot happen
 _MAX_DIST = 1.0e6  # any mesh is closer than this; the query must always find a face
 
@@ -43,12 +46,17 @@ def _node(i: int, j: int, k: int, h: float):
 
 @wp.func
 def _signed_distance(mesh: wp.uint64, p: wp.vec3, max_dist: float, method: int):
+    d = max_dist
+    s = 1.0
+    if method == 2:  # unsigned (shell)
+        q = wp.mesh_query_point_no_sign(mesh, p, max_dist)
+        if q.result:
+            d = wp.length(p - wp.mesh_eval_position(mesh, q.face, q.u, q.v))
+        return d
     if method == 0:
         q = wp.mesh_query_point_sign_parity(mesh, p, max_dist, _PARITY_RAYS, 0.1)
     else:
         q = wp.mesh_query_point_sign_winding_number(mesh, p, max_dist, 2.0, 0.5)
-    d = max_dist
-    s = 1.0
     if q.result:
         d = wp.length(p - wp.mesh_eval_position(mesh, q.face, q.u, q.v))
         s = q.sign
@@ -99,6 +107,71 @@ def bake_fine_kernel(
         sdf_out[i, j, k] = _signed_distance(mesh, p, bound, method)
 
 
+@wp.kernel
+def winding_ambiguity_kernel(
+    mesh: wp.uint64,
+    min_dist: float,
+    flags_out: wp.array3d(dtype=wp.int32),  # (Rp, Rp, Rp): 0 near the surface, 1 clear, 2 ambiguous
+):
+    i, j, k = wp.tid()
+    p = _node(i, j, k, 2.0 / float(flags_out.shape[0] - 1))
+    lo = wp.mesh_query_point_sign_winding_number(mesh, p, 1.0e6, 2.0, 0.25)
+    hi = wp.mesh_query_point_sign_winding_number(mesh, p, 1.0e6, 2.0, 0.75)
+    d = 0.0
+    if lo.result:
+        d = wp.length(p - wp.mesh_eval_position(mesh, lo.face, lo.u, lo.v))
+    flag = 0
+    if d > min_dist:
+        flag = 1
+        if lo.sign != hi.sign:  # winding number in [0.25, 0.75): neither clearly in nor out
+            flag = 2
+    flags_out[i, j, k] = flag
+
+
+def winding_ambiguity(
+    vertices: np.ndarray, faces: np.ndarray, *, resolution: int = 16, device: str = "cpu"
+) -> float:
+    """Share of probe nodes (R^3 over [-1, 1]^3, > 2 probe voxels from the surface) whose
+    generalised winding number lies in [0.25, 0.75).
+
+    Near 0 for closed meshes and for closed meshes with small holes; large (0.1+) for
+    single-sheet surfaces, whose winding number is fractional over whole regions.
+    """
+    vertices, faces = _check_mesh(vertices, faces)
+    with wp.ScopedDevice(device):
+        mesh = wp.Mesh(
+            points=wp.array(vertices, dtype=wp.vec3),
+            indices=wp.array(faces.ravel(), dtype=wp.int32),
+            support_winding_number=True,
+        )
+        flags = wp.empty((resolution,) * 3, dtype=wp.int32)
+        wp.launch(
+            winding_ambiguity_kernel,
+            dim=flags.shape,
+            inputs=[mesh.id, 4.0 / (resolution - 1)],
+            outputs=[flags],
+        )
+        f = flags.numpy()
+    considered = np.count_nonzero(f)
+    return float(np.count_nonzero(f == 2) / considered) if considered else 0.0
+
+
+def _check_mesh(vertices, faces) -> tuple[np.ndarray, np.ndarray]:
+    vertices = np.ascontiguousarray(vertices, dtype=np.float32)
+    faces = np.ascontiguousarray(faces, dtype=np.int32)
+    if (
+        vertices.ndim != 2
+        or vertices.shape[1] != 3
+        or faces.ndim != 2
+        or faces.shape[1] != 3
+        or len(faces) == 0
+    ):
+        raise ValueError(f"need (V, 3) vertices and (F>0, 3) faces, got {vertices.shape} and {faces.shape}")
+    if faces.min() < 0 or faces.max() >= len(vertices):
+        raise ValueError(f"face indices out of range [0, {len(vertices)})")
+    return vertices, faces
+
+
 def _cpu_threads() -> int:
     env = os.environ.get("PHYSCENE_BAKE_THREADS")
     if env:
@@ -114,6 +187,7 @@ def bake_sdf(
     sign_method: str = "parity",
     device: str = "cpu",
     coarse_resolution: int | None = None,
+    shell_thickness: float | None = None,
 ) -> np.ndarray:
     """Signed distance grid of a triangle mesh over [-1, 1]^3.
 
@@ -121,9 +195,12 @@ def bake_sdf(
         vertices: (V, 3) vertex positions, already in the normalised frame.
         faces: (F, 3) vertex indices, counter-clockwise seen from outside.
         resolution: R, nodes per axis (>= 2).
-        sign_method: ``"parity"`` (watertight meshes) or ``"winding"`` (open meshes).
+        sign_method: ``"parity"`` (watertight meshes), ``"winding"`` (open meshes) or ``"shell"``
+            (single-sheet surfaces).
         device: a Warp device, ``"cpu"`` or ``"cuda:N"``.
         coarse_resolution: nodes per axis of the first pass (default max(4, R // 3)).
+        shell_thickness: for ``"shell"``, the half-thickness subtracted from the unsigned
+            distance (normalised units; default one voxel, 2 / (R - 1)).
 
     Returns:
         (R, R, R) float32 signed distances in normalised units, negative inside, indexed [ix, iy, iz].
@@ -132,20 +209,9 @@ def bake_sdf(
         raise ValueError(f"sign_method must be one of {SIGN_METHODS}, got {sign_method!r}")
     if resolution < 2:
         raise ValueError(f"SDF resolution must be >= 2, got {resolution}")
-    vertices = np.ascontiguousarray(vertices, dtype=np.float32)
-    faces = np.ascontiguousarray(faces, dtype=np.int32)
-    if (
-        vertices.ndim != 2
-        or vertices.shape[1] != 3
-        or faces.ndim != 2
-        or faces.shape[1] != 3
-        or len(faces) == 0
-    ):
-        raise ValueError(f"need (V, 3) vertices and (F>0, 3) faces, got {vertices.shape} and {faces.shape}")
-    if faces.min() < 0 or faces.max() >= len(vertices):
-        raise ValueError(f"face indices out of range [0, {len(vertices)})")
+    vertices, faces = _check_mesh(vertices, faces)
     rc = coarse_resolution or max(4, resolution // 3)
-    method = _PARITY if sign_method == "parity" else _WINDING
+    method = {"parity": _PARITY, "winding": _WINDING, "shell": _UNSIGNED}[sign_method]
     with wp.ScopedDevice(device):
         mesh = wp.Mesh(
             points=wp.array(vertices, dtype=wp.vec3),
@@ -187,4 +253,6 @@ def bake_sdf(
             if errors:
                 raise errors[0]
         out = sdf.numpy()
+    if sign_method == "shell":
+        out -= np.float32(2.0 / (resolution - 1) if shell_thickness is None else shell_thickness)
     return out

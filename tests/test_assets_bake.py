@@ -100,6 +100,32 @@ def test_open_bowl_gets_a_consistent_inside():
     assert sample_sdf(grid, np.array([0.0, 0.0, 0.3])) > 0  # the cavity
 
 
+def _sheet_bowl():
+    """A hemisphere surface stretched to fill the cube: one layer, no thickness."""
+    sphere = trimesh.creation.icosphere(subdivisions=3)
+    keep = sphere.triangles_center[:, 2] < 0.0
+    sheet = trimesh.Trimesh(sphere.vertices, sphere.faces[keep])
+    sheet.remove_unreferenced_vertices()
+    return normalise_mesh(sheet)[0]
+
+
+def test_single_layer_bowl_is_a_thin_shell_with_an_empty_cavity():
+    sheet = _sheet_bowl()
+    assert sign_method_for(sheet) == "shell"
+    res = 32
+    voxel = 2.0 / (res - 1)
+    grid = bake_sdf(sheet.vertices, sheet.faces, res, sign_method="shell")
+    # the winding number alone would fill the cavity
+    assert sample_sdf(bake_sdf(sheet.vertices, sheet.faces, res, sign_method="winding"), [0.0, 0.0, 0.0]) < 0
+    q = _random_points(2000, seed=1)
+    distance = sample_sdf(grid, q) + voxel  # back to the unsigned distance
+    inside_cavity = (np.linalg.norm(q[:, :2], axis=1) < 0.5) & (q[:, 2] > 0.0)
+    assert np.all(sample_sdf(grid, q[inside_cavity]) > 0)  # the cavity is empty
+    assert np.all(distance > -0.5 * voxel)
+    bottom = sheet.vertices[np.argmin(sheet.vertices[:, 2])]
+    assert sample_sdf(grid, bottom) < 0  # the sheet itself is solid, one voxel each side
+
+
 # Where each container's cavity is, in cm, measured from its builder in physcene.assets.procedural:
 # (x of the body axis relative to the bounding-box centre, floor height above the base, cube side).
 _CAVITIES = {
@@ -156,6 +182,7 @@ def test_cpu_and_cuda_bakes_agree():
         trimesh.creation.torus(TORUS_R, TORUS_r, major_sections=128, minor_sections=64),
         normalise_mesh(procedural_mesh("mug"))[0],
         _open_bowl()[1],
+        _sheet_bowl(),
     ]
     worst = 0.0
     for mesh in meshes:

@@ -3,7 +3,8 @@
 Normalisation (the Asset contract): the mesh is moved so its bounding-box centre is the origin and
 each axis is scaled by 2 / extent, so the mesh fills [-1, 1]^3 exactly; z stays up. The real
 extents (cm) are kept on the asset. The sign method is picked per mesh: ray parity when the mesh is
-watertight, the generalised winding number otherwise (an open bowl, a mesh with a seam).
+watertight, the generalised winding number for open meshes (an open bowl, a mesh with a seam), an
+unsigned thin shell for single-layer sheets (see :func:`sign_method_for`).
 """
 
 from __future__ import annotations
@@ -36,9 +37,24 @@ def normalise_mesh(mesh: trimesh.Trimesh, *, name: str = "mesh") -> tuple[trimes
     return out, extents
 
 
-def sign_method_for(mesh: trimesh.Trimesh) -> str:
-    """``"parity"`` for a watertight, consistently wound mesh, else ``"winding"``."""
-    return "parity" if mesh.is_watertight and mesh.is_winding_consistent else "winding"
+SHEET_AMBIGUITY = 0.05
+"""Share of probe nodes with a fractional winding number above which an open mesh is a sheet."""
+
+
+def sign_method_for(mesh: trimesh.Trimesh, *, device: str = "cpu") -> str:
+    """``"parity"`` for a watertight, consistently wound mesh; for an open one ``"winding"``,
+    or ``"shell"`` when its winding number is fractional over whole regions (a single-layer sheet:
+    the winding number would fill a one-layer bowl's cavity).
+    """
+    if mesh.is_watertight and mesh.is_winding_consistent:
+        return "parity"
+    from physcene.kernels.sdf_bake import winding_ambiguity
+
+    return (
+        "shell"
+        if winding_ambiguity(mesh.vertices, mesh.faces, device=device) > SHEET_AMBIGUITY
+        else "winding"
+    )
 
 
 def bake_mesh_asset(
@@ -62,7 +78,7 @@ def bake_mesh_asset(
     """
     normalised, extents = normalise_mesh(mesh, name=asset_id)
     extents_cm = tuple(float(e) for e in extents * unit_cm)
-    method = sign_method_for(normalised)
+    method = sign_method_for(normalised, device=device)
     key = BakeCache.key(
         normalised.vertices,
         normalised.faces,
