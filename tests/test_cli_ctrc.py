@@ -75,17 +75,29 @@ def test_decode_errors_one_line_nothing_written(tmp_path, capsys, content, needl
     (lambda d: d["objects"][0].update(position=[1, 2]), "object '1_laptop_0', field 'position'"),
     (lambda d: d.update(item_placement_zone="big"), "field 'item_placement_zone'"),
 ])
-def test_broken_layout_one_line(tmp_path, mutate, needle):
+def test_broken_layout_one_line(tmp_path, capsys, mutate, needle):
     data = json.loads(open(EXAMPLE).read())
     mutate(data)
     src = tmp_path / "layout.json"
     src.write_text(json.dumps(data))
     out = tmp_path / "completion.txt"
-    proc = subprocess.run([sys.executable, "-m", "physcene.cli", "ctrc", str(src), "-o", str(out)],
-                          capture_output=True, text=True, timeout=120)
-    assert proc.returncode == 2 and proc.stdout == "" and not out.exists()
-    err = proc.stderr.strip()
-    assert "\n" not in err and "Traceback" not in err and str(src) in err and needle in err, err
+    assert main(["ctrc", str(src), "-o", str(out)]) == 2
+    captured = capsys.readouterr()
+    assert captured.out == "" and not out.exists()
+    err = captured.err.strip()
+    assert "\n" not in err and str(src) in err and needle in err, err
+
+
+def test_console_exit_status_no_traceback(tmp_path):
+    """The real process: exit status 2, one stderr line, no traceback."""
+    src = tmp_path / "layout.json"
+    src.write_text('{"item_placement_zone": [0, 10, 0, 10], "objects": [{"instance": "cup_0", '
+                   '"position": [1, 1, 1], "size": [2, 2, 0]}]}')
+    proc = subprocess.run([sys.executable, "-m", "physcene.cli", "ctrc", str(src)],
+                          capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 2 and proc.stdout == ""
+    assert proc.stderr.strip().count("\n") == 0 and "Traceback" not in proc.stderr
+    assert f"{src}, object 'cup_0', field 'size'" in proc.stderr
 
 
 def test_invalid_json_layout_and_missing_file(tmp_path, capsys):

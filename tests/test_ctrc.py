@@ -395,7 +395,7 @@ def test_round_trip_layout_ctrc_text_parse(case):
     scene = load_layout(json.loads(json.dumps(data)))
     hierarchy = build_hierarchy(scene)
     assert {o.instance_id: (o.parent, o.relation) for o in hierarchy.objects} == intended
-    text = completion_text(scene)
+    text = completion_text(hierarchy)  # the same text completion_text(scene) builds, one graph pass saved
     parsed = parse(text)
     assert isinstance(parsed, Scene), (parsed, text)
     assert_scenes_close(parsed, scene, tol=1e-4)
