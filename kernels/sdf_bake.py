@@ -36,6 +36,10 @@ wp.set_module_options({"enable_backward": False})
 SIGN_METHODS = ("parity", "winding", "shell")
 _PARITY, _WINDING, _UNSIGNED = 0, 1, 2
 _PARITY_RAYS = wp.constant(3)  # odd: a tie cannot happen
+# the CPU SAH builder on every device: CUDA gets a copy of the same tree, so the winding number's
+# tree-dependent dipole approximation (and thus every sign) is the same on CPU and GPU
+_BVH_CONSTRUCTOR = "sah"
+_BVH_LEAF_SIZE = 4  # Warp suggests 4-8 for closest-point queries; 4 measured fastest here (+15 % vs 1)
 _MAX_DIST = 1.0e6  # any mesh is closer than this; the query must always find a face
 
 
@@ -143,6 +147,8 @@ def winding_ambiguity(
             points=wp.array(vertices, dtype=wp.vec3),
             indices=wp.array(faces.ravel(), dtype=wp.int32),
             support_winding_number=True,
+            bvh_constructor=_BVH_CONSTRUCTOR,
+            bvh_leaf_size=_BVH_LEAF_SIZE,
         )
         flags = wp.empty((resolution,) * 3, dtype=wp.int32)
         wp.launch(
@@ -217,6 +223,8 @@ def bake_sdf(
             points=wp.array(vertices, dtype=wp.vec3),
             indices=wp.array(faces.ravel(), dtype=wp.int32),
             support_winding_number=True,
+            bvh_constructor=_BVH_CONSTRUCTOR,
+            bvh_leaf_size=_BVH_LEAF_SIZE,
         )
         coarse = wp.empty((rc, rc, rc), dtype=wp.float32)
         wp.launch(bake_coarse_kernel, dim=coarse.shape, inputs=[mesh.id, _MAX_DIST, method], outputs=[coarse])
