@@ -2,7 +2,7 @@
 
 - ``scratch``: a ``transformers.Qwen3ForCausalLM`` built from ``Qwen3Config`` with the sizes in the
   config's ``model.arch`` and a tokenizer trained locally (:mod:`physcene.train.tokenizer`). The same
-  architecture as the paper's backbone family, small enough for CPU tests (``tiny``, ~0.2 M parameters)
+  architecture as the paper's backbone family, small enough for CPU tests (``tiny``, 0.24 M parameters)
   or one GPU (``small``, ~27 M parameters, a 55 MB bf16 checkpoint).
 - ``pretrained``: any local Hugging Face checkpoint, e.g. Qwen3-VL-8B-Instruct. Vision-language
   checkpoints load with ``AutoModelForImageTextToText`` and are fed text only; their vision tower is
