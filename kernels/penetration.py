@@ -26,8 +26,6 @@ float64 torch oracle is physcene/physics_reference.py and must stay the same mat
 
 from __future__ import annotations
 
-from contextlib import nullcontext
-
 import torch
 import warp as wp
 
@@ -501,8 +499,27 @@ def support_gap(
     gap_out[slot] = gap
 
 
-def _wp(t: torch.Tensor, dtype=None):
-    return wp.from_torch(t, dtype=dtype) if dtype is not None else wp.from_torch(t)
+def _ct(t: torch.Tensor, dtype=None):
+    """A zero-copy Warp view of a contiguous torch tensor, in launch's fast ctype form."""
+    return wp.from_torch(t, dtype=dtype, return_ctype=True)
+
+
+class _Launcher:
+    """Launches on one device and, on CUDA, on torch's current stream (no scoped sync)."""
+
+    _streams: dict = {}
+
+    def __init__(self, device: torch.device):
+        self.device = wp.device_from_torch(device)
+        self.stream = None
+        if device.type == "cuda":
+            key = (str(device), torch.cuda.current_stream(device).cuda_stream)
+            self.stream = self._streams.get(key)
+            if self.stream is None:
+                self.stream = self._streams[key] = wp.stream_from_torch(device)
+
+    def __call__(self, kernel, dim: int, inputs: list) -> None:
+        wp.launch(kernel, dim=dim, inputs=inputs, device=self.device, stream=self.stream)
 
 
 def launch_penetration(
@@ -522,94 +539,76 @@ def launch_penetration(
 
     Inputs: pair_start (S+1,) int32; count (S,) int32; poses (S, N, 4) float32 contiguous;
     sizes (S, N, 3) float32; obj_asset (S, N) int32; ``assets`` the packed arrays (``sdf``,
-    ``sdf_start``, ``sdf_res``, ``points`` (K, 3), ``pt_start``, ``pt_count``).
+    ``rays``, ``sdf_start``, ``sdf_res``, ``points`` (K, 3), ``pt_start``, ``pt_count``).
     Returns torch tensors: ``energy``, ``max_depth``, ``depth_sum`` (S,); ``pair_a``, ``pair_b``
     (T,) slots; ``pair_hit`` (T,); ``pair_energy``, ``pair_depth`` (T,); ``table_depth``,
     ``table_energy``, ``table_below`` (S, N); ``grad`` (S, N, 4) when ``with_grad``.
+    No host synchronisation: every size is known from the arguments.
     """
     device = poses.device
-    wdev = wp.device_from_torch(device)
+    launch = _Launcher(device)
     n_scene, n_slot = poses.shape[0], poses.shape[1]
     n_obj = n_scene * n_slot
-    f32 = dict(dtype=torch.float32, device=device)
-    i32 = dict(dtype=torch.int32, device=device)
-    n_part = max(n_pairs, 1) * 2 * LANES
-    out = {
-        "energy": torch.empty(n_scene, **f32),
-        "max_depth": torch.empty(n_scene, **f32),
-        "depth_sum": torch.empty(n_scene, **f32),
-        "pair_a": torch.empty(max(n_pairs, 1), **i32)[:n_pairs],
-        "pair_b": torch.empty(max(n_pairs, 1), **i32)[:n_pairs],
-        "pair_hit": torch.empty(max(n_pairs, 1), **i32)[:n_pairs],
-        "pair_energy": torch.empty(max(n_pairs, 1), **f32)[:n_pairs],
-        "pair_depth": torch.empty(max(n_pairs, 1), **f32)[:n_pairs],
-        "table_depth": torch.empty(n_scene, n_slot, **f32),
-        "table_energy": torch.empty(n_scene, n_slot, **f32),
-        "table_below": torch.empty(n_scene, n_slot, **f32),
-    }
-    w_poses = _wp(poses.reshape(n_obj, 4), wp.vec4)
-    w_sizes = _wp(sizes.reshape(n_obj, 3), wp.vec3)
-    w_asset = _wp(obj_asset.reshape(n_obj))
-    w_pair_start, w_count = _wp(pair_start), _wp(count)
-    w_points = _wp(assets["points"], wp.vec3)
-    stream = wp.stream_from_torch(device) if device.type == "cuda" else None
-    with wp.ScopedDevice(wdev), wp.ScopedStream(stream) if stream is not None else nullcontext():
-        wp.launch(table_contact, dim=n_obj,
-                  inputs=[w_count, n_slot, w_poses, w_sizes, w_asset, w_points,
-                          _wp(assets["pt_start"]), _wp(assets["pt_count"])],
-                  outputs=[_wp(out["table_depth"].reshape(-1)), _wp(out["table_energy"].reshape(-1)),
-                           _wp(out["table_below"].reshape(-1))])
-        if n_pairs == 0:
-            out["energy"].zero_()
-            out["max_depth"].zero_()
-            out["depth_sum"].zero_()
-            if with_grad:
-                out["grad"] = torch.zeros(n_scene, n_slot, 4, **f32)
-            return out
-        w_pair_a, w_pair_b, w_hit = _wp(out["pair_a"]), _wp(out["pair_b"]), _wp(out["pair_hit"])
-        wp.launch(broadphase, dim=n_pairs,
-                  inputs=[w_pair_start, w_count, n_slot, w_poses, w_sizes, float(margin)],
-                  outputs=[w_pair_a, w_pair_b, w_hit])
-        part_energy = torch.empty(n_part, **f32)
-        part_depth = torch.empty(n_part, **f32)
-        part_gu = torch.empty(n_part if with_grad else 1, 3, **f32)
-        part_yaw = torch.empty(n_part if with_grad else 1, 2, **f32)
-        w_part = [_wp(part_energy), _wp(part_depth), _wp(part_gu, wp.vec3), _wp(part_yaw, wp.vec2)]
-        wp.launch(narrowphase, dim=n_pairs * 2 * LANES,
-                  inputs=[w_pair_a, w_pair_b, w_hit, w_poses, w_sizes, w_asset,
-                          _wp(assets["sdf"]), _wp(assets["rays"]), _wp(assets["sdf_start"]),
-                          _wp(assets["sdf_res"]),
-                          w_points, _wp(assets["pt_start"]), _wp(assets["pt_count"]), int(with_grad)],
-                  outputs=w_part)
-        pair_grad = torch.empty(n_pairs if with_grad else 1, 2, 4, **f32)
-        w_pair_grad = _wp(pair_grad, wp.vec4)
-        w_pair_energy, w_pair_depth = _wp(out["pair_energy"]), _wp(out["pair_depth"])
-        wp.launch(reduce_pairs, dim=n_pairs,
-                  inputs=[w_pair_a, w_pair_b, w_hit, w_poses, *w_part, int(with_grad)],
-                  outputs=[w_pair_energy, w_pair_depth, w_pair_grad])
-        wp.launch(reduce_scenes, dim=n_scene,
-                  inputs=[w_pair_start, w_pair_energy, w_pair_depth, float(tolerance)],
-                  outputs=[_wp(out["energy"]), _wp(out["max_depth"]), _wp(out["depth_sum"])])
+    # one allocation for the float outputs, one for the int ones: views are cheap, allocations not
+    floats = torch.empty(3 * n_scene + 2 * n_pairs + 3 * n_obj + (4 * n_obj if with_grad else 0),
+                         dtype=torch.float32, device=device)
+    ints = torch.empty(3 * n_pairs, dtype=torch.int32, device=device)
+    sizes_f = [n_scene, n_scene, n_scene, n_pairs, n_pairs, n_obj, n_obj, n_obj]
+    views = list(torch.split(floats, sizes_f + ([4 * n_obj] if with_grad else [])))
+    out = dict(zip(("energy", "max_depth", "depth_sum", "pair_energy", "pair_depth"), views[:5]))
+    for key, view in zip(("table_depth", "table_energy", "table_below"), views[5:8]):
+        out[key] = view.view(n_scene, n_slot)
+    out["pair_a"], out["pair_b"], out["pair_hit"] = torch.split(ints, [n_pairs] * 3)
+    w_poses = _ct(poses.reshape(n_obj, 4), wp.vec4)
+    w_sizes = _ct(sizes.reshape(n_obj, 3), wp.vec3)
+    w_asset = _ct(obj_asset.reshape(n_obj))
+    w_pair_start, w_count = _ct(pair_start), _ct(count)
+    w_points = _ct(assets["points"], wp.vec3)
+    w_pt_start, w_pt_count = _ct(assets["pt_start"]), _ct(assets["pt_count"])
+    launch(table_contact, n_obj, [w_count, n_slot, w_poses, w_sizes, w_asset, w_points, w_pt_start,
+                                  w_pt_count, _ct(views[5]), _ct(views[6]), _ct(views[7])])
+    if with_grad:
+        out["grad"] = views[8].view(n_scene, n_slot, 4)
+    if n_pairs == 0:
+        floats[:3 * n_scene].zero_()
         if with_grad:
-            grad = torch.empty(n_scene, n_slot, 4, **f32)
-            wp.launch(reduce_objects, dim=n_obj,
-                      inputs=[w_pair_start, w_count, n_slot, w_pair_grad],
-                      outputs=[_wp(grad.reshape(n_obj, 4), wp.vec4)])
-            out["grad"] = grad
+            out["grad"].zero_()
+        return out
+    w_pair_a, w_pair_b, w_hit = _ct(out["pair_a"]), _ct(out["pair_b"]), _ct(out["pair_hit"])
+    launch(broadphase, n_pairs, [w_pair_start, w_count, n_slot, w_poses, w_sizes, float(margin),
+                                 w_pair_a, w_pair_b, w_hit])
+    n_part = n_pairs * 2 * LANES
+    if with_grad:
+        part = torch.empty(7 * n_part + 8 * n_pairs, dtype=torch.float32, device=device)
+        pe, pd, pg, py, pair_grad = torch.split(part, [n_part, n_part, 3 * n_part, 2 * n_part, 8 * n_pairs])
+        pg, py, pair_grad = pg.view(n_part, 3), py.view(n_part, 2), pair_grad.view(n_pairs, 2, 4)
+    else:  # the gradient buffers are never touched: one-element stand-ins
+        part = torch.empty(2 * n_part + 8, dtype=torch.float32, device=device)
+        pe, pd, spare = torch.split(part, [n_part, n_part, 8])
+        pg, py, pair_grad = spare[:3].view(1, 3), spare[3:5].view(1, 2), spare.view(1, 2, 4)
+    w_part = [_ct(pe), _ct(pd), _ct(pg, wp.vec3), _ct(py, wp.vec2)]
+    w_pair_grad = _ct(pair_grad, wp.vec4)
+    launch(narrowphase, n_part, [w_pair_a, w_pair_b, w_hit, w_poses, w_sizes, w_asset,
+                                 _ct(assets["sdf"]), _ct(assets["rays"]), _ct(assets["sdf_start"]),
+                                 _ct(assets["sdf_res"]), w_points, w_pt_start, w_pt_count, int(with_grad),
+                                 *w_part])
+    w_pair_energy, w_pair_depth = _ct(out["pair_energy"]), _ct(out["pair_depth"])
+    launch(reduce_pairs, n_pairs, [w_pair_a, w_pair_b, w_hit, w_poses, *w_part, int(with_grad),
+                                   w_pair_energy, w_pair_depth, w_pair_grad])
+    launch(reduce_scenes, n_scene, [w_pair_start, w_pair_energy, w_pair_depth, float(tolerance),
+                                    _ct(out["energy"]), _ct(out["max_depth"]), _ct(out["depth_sum"])])
+    if with_grad:
+        launch(reduce_objects, n_obj, [w_pair_start, w_count, n_slot, w_pair_grad,
+                                       _ct(views[8].view(n_obj, 4), wp.vec4)])
     return out
 
 
 def launch_support(*, count: torch.Tensor, poses: torch.Tensor, sizes: torch.Tensor,
                    overlap_eps: float) -> torch.Tensor:
     """Per object, its bottom's height above the highest support under it, (S, N) cm."""
-    device = poses.device
     n_scene, n_slot = poses.shape[0], poses.shape[1]
-    gap = torch.empty(n_scene, n_slot, dtype=torch.float32, device=device)
-    stream = wp.stream_from_torch(device) if device.type == "cuda" else None
-    with wp.ScopedDevice(wp.device_from_torch(device)), \
-            wp.ScopedStream(stream) if stream is not None else nullcontext():
-        wp.launch(support_gap, dim=n_scene * n_slot,
-                  inputs=[_wp(count), n_slot, _wp(poses.reshape(-1, 4), wp.vec4),
-                          _wp(sizes.reshape(-1, 3), wp.vec3), float(overlap_eps)],
-                  outputs=[_wp(gap.reshape(-1))])
+    gap = torch.empty(n_scene, n_slot, dtype=torch.float32, device=poses.device)
+    _Launcher(poses.device)(support_gap, n_scene * n_slot,
+                            [_ct(count), n_slot, _ct(poses.reshape(-1, 4), wp.vec4),
+                             _ct(sizes.reshape(-1, 3), wp.vec3), float(overlap_eps), _ct(gap.view(-1))])
     return gap

@@ -176,12 +176,14 @@ def reference_penetration(*, poses: torch.Tensor, sizes: torch.Tensor, count: to
         u = v + t_rel[:, None, :]
         q = (u / hf[:, None, :]).reshape(-1, 3)
         k = q.shape[0] // max(p_max, 1)
-        rep = lambda x: x[:, None].expand(-1, p_max).reshape(-1)  # noqa: E731
-        phi = world_phi(sdf, assets["rays"], rep(sdf_start[af]), rep(sdf_res[af]), q,
-                        hf[:, None, :].expand(-1, p_max, -1).reshape(-1, 3))
-        in_box = (q.abs() <= 1.0).all(-1)  # outside the field's box nothing penetrates
-        inside = (phi < 0) & valid.reshape(-1) & in_box
-        depth = torch.where(inside, -phi, torch.zeros_like(phi)).reshape(k, p_max)
+        # outside the field's box nothing penetrates: only points in it read the grids
+        sel = torch.nonzero(valid.reshape(-1) & (q.detach().abs() <= 1.0).all(-1)).reshape(-1)
+        combo = sel // max(p_max, 1)
+        phi = world_phi(sdf, assets["rays"], sdf_start[af][combo], sdf_res[af][combo], q[sel], hf[combo])
+        inside = phi < 0
+        flat_depth = torch.zeros(q.shape[0], dtype=dtype, device=device)
+        flat_depth = flat_depth.index_put((sel,), torch.where(inside, -phi, torch.zeros_like(phi)))
+        depth = flat_depth.reshape(k, p_max)
         e = depth.sum(-1)
         combo_energy[lo:lo + step] = e.detach()
         combo_depth[lo:lo + step] = depth.detach().max(-1).values if p_max else 0.0
