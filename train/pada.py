@@ -270,6 +270,9 @@ def pada_arguments(cfg, variant: str) -> PADAConfig:
         dataloader_num_workers=0,
         # TRL turns it on by default; the tiny/small models have memory to spare and run faster without.
         gradient_checkpointing=bool(p.get("gradient_checkpointing", False)),
+        # Two forwards (GRPO, anchor) feed one backward; every trainable (LoRA) weight is used by
+        # both, so DDP needs no unused-parameter search, which would trip over the second forward.
+        ddp_find_unused_parameters=False,
         **_precision(cfg),
     )
 
