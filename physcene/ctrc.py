@@ -150,14 +150,19 @@ def encode(scene: Scene, *, decimals: int | None = None) -> list[dict]:
     by_id = scene.by_id()
     decoded: dict[str, SceneObject] = {}  # the pose a reader of the entries will reconstruct
     layer: dict[str, int] = {TABLE: 0}
+    # Table-level boxes are measured from the zone corner the text will carry (rounded too).
+    table = _Frame.of_zone(scene.zone if decimals is None
+                           else Zone(*(_rounded(v, decimals) for v in scene.zone.to_list())))
     entries = []
     for iid in anchor_order(scene):
         o = by_id[iid]
-        frame = _Frame.of_zone(scene.zone) if o.parent == TABLE else _Frame.of_object(decoded[o.parent])
+        frame = table if o.parent == TABLE else _Frame.of_object(decoded[o.parent])
         relation = "near" if o.parent == TABLE else o.relation  # "on the table" is the table level
         box, rot = _relative(o, frame, relation)
         box = [_rounded(v, decimals) for v in box]
         rot = _rounded(rot, decimals)
+        if rot >= 180.0:  # canonical [-180, 180): rounding may land a hair below 180 on 180
+            rot -= 360.0
         center, size, yaw = _absolute(box, rot, frame, relation)
         decoded[iid] = o.moved(center=center, size=size, yaw=yaw) if decimals is not None else o
         layer[iid] = layer[o.parent] + 1
