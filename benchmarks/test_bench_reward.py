@@ -1,0 +1,72 @@
+"""Engine and reward throughput (issue 4), CPU always and CUDA when present.
+
+    python -m pytest benchmarks/test_bench_reward.py --benchmark-enable -q
+    physcene bench reward --device cuda          # the same figures as one report (Gq/s, ratios)
+
+Sizes: 512 scenes x 16 objects x 1024 points on CUDA (the issue's), 64 x 12 x 1024 on CPU. With
+``--benchmark-enable`` the CPU reward case asserts the issue's >= 500 scenes/s on 12-object scenes.
+"""
+
+from __future__ import annotations
+
+import pytest
+import torch
+from conftest import synchronized
+
+from physcene.assets import AssetLibrary
+from physcene.commands.bench import bench_scenes
+from physcene.ctrc import completion_text
+from physcene.physics import PhysicsEngine
+from physcene.physics_reference import reference_penetration
+from physcene.reward import PhysicsReward, RewardConfig
+
+
+def _sizes(device: torch.device) -> tuple[int, int]:
+    return (512, 16) if device.type == "cuda" else (64, 12)
+
+
+def _engine(device: torch.device) -> PhysicsEngine:
+    library = AssetLibrary(resolution=64, n_points=1024)
+    library.add_primitives()
+    return PhysicsEngine(library, device)
+
+
+@pytest.fixture()
+def setup(bench_device):
+    engine = _engine(bench_device)
+    scenes = bench_scenes(*_sizes(bench_device))
+    batch = engine.pack(scenes)
+    engine.evaluate(batch, with_grad=True)  # JIT, asset upload
+    return bench_device, engine, scenes, batch
+
+
+@pytest.mark.parametrize("with_grad", [False, True], ids=["forward", "forward+grad"])
+def test_bench_engine(benchmark, setup, with_grad):
+    device, engine, scenes, batch = setup
+    out = benchmark.pedantic(synchronized(lambda: engine.evaluate(batch, with_grad=with_grad), device),
+                             rounds=20 if device.type == "cuda" else 3, iterations=1, warmup_rounds=1)
+    assert out["energy"].shape == (len(scenes),)
+    benchmark.extra_info.update(scenes=len(scenes), objects=len(scenes[0].objects), device=str(device))
+
+
+@pytest.mark.parametrize("with_grad", [False, True], ids=["forward", "forward+grad"])
+def test_bench_reference(benchmark, setup, with_grad):
+    device, engine, scenes, batch = setup
+    kw = dict(poses=batch.poses, sizes=batch.sizes, count=batch.count, obj_asset=batch.asset_index,
+              assets=engine.packed_assets(), margin=engine.config.margin_cm, with_grad=with_grad)
+    out = benchmark.pedantic(synchronized(lambda: reference_penetration(**kw), device), rounds=2,
+                             iterations=1, warmup_rounds=0)
+    assert out["energy"].shape == (len(scenes),)
+
+
+def test_bench_whole_reward(benchmark, setup):
+    """Prepared completion texts -> rewards: parse, pack, one engine call, the reward formula."""
+    device, engine, scenes, batch = setup
+    reward = PhysicsReward(RewardConfig(device=str(device)), engine=engine)
+    texts = [completion_text(s) for s in scenes]
+    rewards = benchmark.pedantic(synchronized(lambda: reward.score_texts(texts), device), rounds=3,
+                                 iterations=1, warmup_rounds=1)
+    assert len(rewards) == len(scenes) and reward.last_metrics["parse_failure_rate"] == 0.0
+    if benchmark.enabled and device.type == "cpu":
+        rate = len(scenes) / benchmark.stats.stats.median
+        assert rate >= 500, f"reward on 12-object scenes: {rate:.0f} scenes/s < 500"
