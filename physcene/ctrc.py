@@ -179,11 +179,10 @@ def encode(scene: Scene, *, decimals: int | None = None) -> list[dict]:
     return entries
 
 
-def _field(entry: dict, key: str, iid: str | None, kinds, default=None, *, required: bool = False):
+def _field(entry: dict, key: str, iid: str | None, kinds, default=None):
+    """``entry[key]`` checked against ``kinds`` (booleans are never numbers); None -> default."""
     value = entry.get(key, default)
     if value is None:
-        if required:
-            raise SceneError("missing", obj=iid, field=key)
         return default
     if isinstance(value, bool) or not isinstance(value, kinds):
         raise SceneError(f"wrong type {type(value).__name__}", obj=iid, field=key)
@@ -246,10 +245,12 @@ def decode(entries: Iterable[dict], zone: Zone, *, scene_type: str = "", instruc
     for k, entry in enumerate(entries):
         if not isinstance(entry, dict):
             raise SceneError(f"expected an object, got {type(entry).__name__}", field=f"objects[{k}]")
+        if entry.get("type") == "zone":
+            continue
         iid = entry.get("instance_id", entry.get("instance"))
         if not isinstance(iid, str) or not iid.strip():
             raise SceneError(f"missing or empty instance_id {iid!r:.40}", field=f"objects[{k}].instance_id")
-        if iid == TABLE or entry.get("type") == "zone":
+        if iid == TABLE:
             continue
         if iid in parsed:
             raise SceneError("duplicate instance id", obj=iid, field="instance_id")
@@ -271,13 +272,14 @@ def decode(entries: Iterable[dict], zone: Zone, *, scene_type: str = "", instruc
 
     objects: dict[str, SceneObject] = {}
     for start in parsed:
-        chain = []  # walk up to a decoded ancestor, then decode back down
+        chain, on_chain = [], set()  # walk up to a decoded ancestor, then decode back down
         node = start
         while node != TABLE and node not in objects:
-            if node in chain:
+            if node in on_chain:
                 cycle = chain[chain.index(node):] + [node]
                 raise SceneError(f"parent cycle {' -> '.join(cycle)}", obj=node, field="parent_id")
             chain.append(node)
+            on_chain.add(node)
             node = parsed[node][0]
         for iid in reversed(chain):
             parent, relation, box, rot, category, description, asset = parsed[iid]
