@@ -181,3 +181,16 @@ def test_zero_shot_generator_uses_prompt_3_and_parses_flat_json(scene):
         sorted(o.category for o in out.objects) == ["laptop", "mug"] and out.instruction == scene.instruction
     )
     assert hasattr(bad, "reason")  # a ParseError value, not an exception
+
+
+def test_eval_command_with_the_endpoint_judge(tmp_path, capsys):
+    from physcene.cli import main
+
+    with _ChatServer() as server:
+        rc = main(["eval", "--n", "2", "--judge", "endpoint", "--out", str(tmp_path), "--quiet",
+                   f"judge_url={server.url}", "render=0"])
+    assert rc == 0 and len(server.requests) == 2  # one request per scene, two images each
+    assert all(len(r["body"]["messages"][1]["content"]) == 3 for r in server.requests)
+    data = json.loads((tmp_path / "results.json").read_text())
+    assert data["methods"]["Reference"]["summary"]["judge"]["avg"] == 8.4
+    assert len(list((tmp_path / "judge_cache").glob("*.json"))) == 2
