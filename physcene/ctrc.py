@@ -42,6 +42,7 @@ from physcene.scene import TABLE, Scene, SceneError, SceneObject, Zone, wrap_ang
 __all__ = [
     "DECIMALS",
     "MAX_ABS_CM",
+    "MAX_OBJECTS",
     "ParseError",
     "build_prompt",
     "coarse_location",
@@ -62,6 +63,9 @@ DECIMALS = 5
 MAX_ABS_CM = 1e5
 # Completions longer than this are not layouts; refusing them bounds parse time.
 MAX_CHARS = 200_000
+# More objects than this is not a tabletop (MesaTask's largest scenes have a few dozen); refusing
+# them keeps downstream O(n^2) graph and physics work bounded.
+MAX_OBJECTS = 1000
 # How many candidate '{' positions the JSON search tries before giving up.
 _MAX_JSON_ATTEMPTS = 256
 
@@ -638,6 +642,8 @@ def _parse(text, zone, scene_fields) -> Scene:
     entries = data["objects"]
     if not isinstance(entries, (list, dict)):
         raise _Reject(f"\"objects\" must be a list, got {type(entries).__name__}")
+    if len(entries) > MAX_OBJECTS:
+        raise _Reject(f"{len(entries)} objects exceed the limit of {MAX_OBJECTS}")
     zone = _zone_from(data, zone)
     if _is_flat(entries):
         scene = _parse_flat(data, zone, **scene_fields)

@@ -291,6 +291,15 @@ def test_parse_paper_appendix_verbatim():
     np.testing.assert_allclose(bottle.size, [7.8, 3.9, 16.2], atol=1e-9)
 
 
+def test_parse_rejects_too_many_objects():
+    entry = '{"instance": "cup_%d", "position": [1, 1, 1], "size": [1, 1, 1]}'
+    text = ('{"item_placement_zone": [0, 10, 0, 10], "objects": ['
+            + ", ".join(entry % k for k in range(1001)) + "]}")
+    result = parse(text)
+    assert isinstance(result, ParseError) and "1001 objects" in result.reason
+
+
+
 @pytest.mark.parametrize("text, reason", [
     ("", "empty"), ("   \n", "empty"), ("no json here", "no JSON"), ('{"objects": []', "truncated"),
     ('{"objects": [], "item_placement_zone": [0, 1, 0, 1]}', "no objects"),
