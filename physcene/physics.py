@@ -18,6 +18,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from itertools import chain
 
 import numpy as np
 import torch
@@ -69,9 +70,22 @@ class SceneBatch:
     """(S+1,) int32 CSR offsets of each scene's count*(count-1)/2 pairs (i < j, row-major)."""
     n_pairs: int
     """Total pairs T (host int: sizes the launches without a device sync)."""
-    asset_ids: list[list[str]] = field(default_factory=list)
-    """Asset used for each object; ``fallbacks`` says where the library fell back."""
-    fallbacks: list[list[str | None]] = field(default_factory=list)
+    _resolved: list = field(default_factory=list, repr=False)
+    _bounds: np.ndarray | None = field(default=None, repr=False)
+
+    @property
+    def asset_ids(self) -> list[list[str]]:
+        """The asset used for each object, per scene."""
+        return self._per_scene(1)
+
+    @property
+    def fallbacks(self) -> list[list[str | None]]:
+        """How the library fell back for each object (None when the retrieval was exact)."""
+        return self._per_scene(2)
+
+    def _per_scene(self, k: int) -> list[list]:
+        b = self._bounds if self._bounds is not None else [0]
+        return [[r[k] for r in self._resolved[b[s]:b[s + 1]]] for s in range(len(b) - 1)]
 
     @property
     def n_scene(self) -> int:
@@ -218,35 +232,36 @@ class PhysicsEngine:
         counts = np.array([len(s.objects) for s in scenes], dtype=np.int64)
         n_scene, n_slot = len(scenes), max(1, int(counts.max()) if len(scenes) else 1)
         flat = [o for s in scenes for o in s.objects]
-        resolved = [self._resolve(o.category, o.asset_id) for o in flat]
+        resolve, cache = self._resolve, self._resolved
+        resolved = [cache.get((o.category, o.asset_id)) or resolve(o.category, o.asset_id) for o in flat]
         slot_of = (np.repeat(np.arange(n_scene) * n_slot, counts)
                    + np.arange(len(flat)) - np.repeat(np.cumsum(counts) - counts, counts))
-        poses = np.zeros((n_scene * n_slot, 4), np.float32)
-        sizes = np.ones((n_scene * n_slot, 3), np.float32)
+        # one host buffer per dtype, one transfer each: [x, y, z, yaw, w, d, h] and [asset]
+        rows = np.zeros((n_scene * n_slot, 7), np.float32)
+        rows[:, 4:] = 1.0
         asset = np.zeros(n_scene * n_slot, np.int32)
         if flat:
-            poses[slot_of] = np.array([(*o.center, o.yaw) for o in flat], np.float32)
-            sizes[slot_of] = np.array([o.size for o in flat], np.float32)
-            asset[slot_of] = np.array([r[0] for r in resolved], np.int32)
-        mask = np.zeros(n_scene * n_slot, bool)
-        mask[slot_of] = True
+            rows[slot_of] = np.fromiter(chain.from_iterable((*o.center, o.yaw, *o.size) for o in flat),
+                                        np.float32, count=7 * len(flat)).reshape(-1, 7)
+            asset[slot_of] = np.fromiter((r[0] for r in resolved), np.int32, count=len(flat))
         pairs = counts * (counts - 1) // 2
         pair_start = np.concatenate([[0], np.cumsum(pairs)])
         if pair_start[-1] >= 2**31 // 64:
             raise ValueError(f"batch has {pair_start[-1]} object pairs; split it into smaller batches")
-        dev = self.device
-        bounds = np.concatenate([[0], np.cumsum(counts)])
+        ints = torch.from_numpy(np.concatenate([asset, counts, pair_start]).astype(np.int32)).to(self.device)
+        rows_t = torch.from_numpy(rows).to(self.device).view(n_scene, n_slot, 7)
+        count_t = ints[n_scene * n_slot:n_scene * n_slot + n_scene]
         return SceneBatch(
-            poses=torch.from_numpy(poses).reshape(n_scene, n_slot, 4).to(dev),
-            sizes=torch.from_numpy(sizes).reshape(n_scene, n_slot, 3).to(dev),
-            mask=torch.from_numpy(mask).reshape(n_scene, n_slot).to(dev),
+            poses=rows_t[..., :4].contiguous(),
+            sizes=rows_t[..., 4:].contiguous(),
+            mask=torch.arange(n_slot, device=self.device)[None, :] < count_t[:, None],
             ids=[s.ids() for s in scenes],
-            asset_index=torch.from_numpy(asset).reshape(n_scene, n_slot).to(dev),
-            count=torch.from_numpy(counts.astype(np.int32)).to(dev),
-            pair_start=torch.from_numpy(pair_start.astype(np.int32)).to(dev),
+            asset_index=ints[:n_scene * n_slot].view(n_scene, n_slot),
+            count=count_t,
+            pair_start=ints[n_scene * n_slot + n_scene:],
             n_pairs=int(pair_start[-1]),
-            asset_ids=[[r[1] for r in resolved[bounds[k]:bounds[k + 1]]] for k in range(n_scene)],
-            fallbacks=[[r[2] for r in resolved[bounds[k]:bounds[k + 1]]] for k in range(n_scene)],
+            _resolved=resolved,
+            _bounds=np.concatenate([[0], np.cumsum(counts)]),
         )
 
     # Evaluation --------------------------------------------------------------------------------

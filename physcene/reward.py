@@ -18,6 +18,7 @@ from collections.abc import Sequence
 from dataclasses import asdict, dataclass, replace
 
 import numpy as np
+import torch
 
 from physcene.config import load_config
 from physcene.ctrc import ParseError, parse
@@ -128,8 +129,8 @@ class PhysicsReward:
             if cfg.table_term:
                 table = out["table_depth"]
                 e = e + (table * (table > cfg.tolerance_mm / 10.0)).sum(dim=1)
-            both = np.stack([(e * 10.0).cpu().numpy(), (out["max_depth"] * 10.0).cpu().numpy()])
-            e_mm, depth_mm = both[0].astype(np.float64), both[1].astype(np.float64)
+            both = (torch.stack([e, out["max_depth"]]) * 10.0).cpu().numpy().astype(np.float64)  # one sync
+            e_mm, depth_mm = both[0], both[1]
             rewards[ok] = reward_from_energy(e_mm, cfg)
         n = max(len(parsed), 1)
         self.last_parse_errors = [p.reason if isinstance(p, ParseError) else None for p in parsed]
