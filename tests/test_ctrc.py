@@ -299,7 +299,6 @@ def test_parse_rejects_too_many_objects():
     assert isinstance(result, ParseError) and "1001 objects" in result.reason
 
 
-
 @pytest.mark.parametrize("text, reason", [
     ("", "empty"), ("   \n", "empty"), ("no json here", "no JSON"), ('{"objects": []', "truncated"),
     ('{"objects": [], "item_placement_zone": [0, 1, 0, 1]}', "no objects"),
