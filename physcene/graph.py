@@ -121,9 +121,7 @@ def relation_candidates(scene: Scene, config: GraphConfig | None = None) -> dict
             inside_z = min(a_zmax, b_zmax) - max(a_zmin, b_zmin)
             could_in = (volumes[j] >= config.in_volume_ratio * volumes[i]
                         and inside_z >= config.in_height_fraction * a_h)
-            # A support starts below what stands on it: without this, of two stacked objects both
-            # thinner than on_gap_cm, the lower one would also read as "on" the upper one.
-            could_on = abs(a_zmin - b_zmax) < config.on_gap_cm and b_zmin < a_zmin
+            could_on = abs(a_zmin - b_zmax) < config.on_gap_cm
             if not (could_in or could_on):
                 continue
             exact = _axis_aligned(a) and _axis_aligned(b)

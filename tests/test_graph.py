@@ -4,6 +4,7 @@ import math
 
 import pytest
 
+from physcene.config import ConfigError
 from physcene.graph import (
     GraphConfig,
     anchor_order,
@@ -84,6 +85,10 @@ def test_yaw_aware_footprint():
 
 
 def test_thresholds_from_config():
+    with pytest.raises(ConfigError, match="on_gap"):
+        GraphConfig.from_config(["on_gap=0.1"])  # a typo is an error, not silently ignored
+    with pytest.raises(ConfigError, match="numbers"):
+        GraphConfig.from_config(["on_gap_cm=wide"])
     cfg = GraphConfig.from_config(["on_gap_cm=0.1"])
     assert cfg.on_gap_cm == 0.1 and cfg.in_volume_ratio == 1.5
     base, top = box("book_0", 50, 30, 0, 20, 20, 4), box("book_1", 50, 30, 4.5, 20, 20, 2)

@@ -77,6 +77,7 @@ def run(args) -> int:
         sys.stdout.write(dumps_layout(result))
         return 0
 
+    graph_config = GraphConfig.from_config(args.overrides)  # checked even when unused
     source = "<stdin>" if args.input == "-" else args.input
     if args.input == "-":
         try:
@@ -92,7 +93,7 @@ def run(args) -> int:
                             restricted_zones=scene.restricted_zones) + "\n"
     else:
         if not scene.has_hierarchy:
-            scene = build_hierarchy(scene, GraphConfig.from_config(args.overrides))
+            scene = build_hierarchy(scene, graph_config)
         text = completion_text(scene)
     if args.output:
         out = Path(args.output)
