@@ -21,7 +21,7 @@ from omegaconf import OmegaConf
 from physcene.data.captions import describe
 from physcene.data.mesatask_ctrc import ctrc_record, dumps_record
 from physcene.data.noise import NoiseConfig, apply_noise
-from physcene.data.scene_types import spec_for
+from physcene.data.scene_types import OOD_SCENE_TYPES, SCENE_TYPES, spec_for
 from physcene.data.splits import PlanItem, plan_split, record_rng
 from physcene.data.synth import ContainerFit, SynthConfig, synthesize_layout
 from physcene.layout import load_layout
@@ -188,10 +188,14 @@ def measure_reference(scenes: list[Scene], engine=None) -> dict:
 
 def split_stats(records: list[dict], *, measure: bool = False, engine=None) -> dict:
     """Type × level counts, noise totals and (``measure``) the engine's reference SCR/ACR."""
-    counts: dict[str, dict[str, int]] = {}
+    found: dict[str, dict[str, int]] = {}
     for r in records:
-        row = counts.setdefault(r["scene_type"], {str(lv): 0 for lv in range(1, 6)})
+        row = found.setdefault(r["scene_type"], {str(lv): 0 for lv in range(1, 6)})
         row[str(r["level"])] += 1
+    order = [t for t in (*SCENE_TYPES, *OOD_SCENE_TYPES) if t in found] + sorted(
+        t for t in found if t not in SCENE_TYPES and t not in OOD_SCENE_TYPES
+    )
+    counts = {t: found[t] for t in order}  # Table 5's row order
     noise = {"careful": 0, "interpenetration": 0, "sunk": 0, "hover": 0}
     for r in records:
         nz = r.get("noise") or {}

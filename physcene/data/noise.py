@@ -34,21 +34,23 @@ class NoiseConfig:
 
     enabled: bool = True
     """False: layouts are written clean."""
-    careful_by_level: tuple[float, float, float, float, float] = (0.55, 0.3, 0.12, 0.0, 0.0)
+    careful_by_level: tuple[float, float, float, float, float] = (0.45, 0.27, 0.1, 0.0, 0.0)
     """Probability that a scene of level 1..5 is annotated carefully (no interpenetration)."""
     position_sigma_cm: float = 0.35
     """σ of the x/y slide of each table-level unit."""
     size_sigma: float = 0.02
     """Relative σ of each object's extents (per axis)."""
-    pair_rate: float = 0.28
+    pair_rate: float = 0.6
     """Expected interpenetrating neighbour pairs per table-level unit in a careless scene."""
-    depth_cm: tuple[float, float] = (0.15, 1.6)
+    depth_cm: tuple[float, float] = (1.8, 5.5)
     """Range of the push depth of an interpenetrating pair."""
+    align: float = 0.5
+    """Fraction of the across-push offset the pushed unit slides toward its partner."""
     neighbour_cm: float = 12.0
     """Units whose footprints are closer than this are neighbours."""
-    sink_prob: float = 0.12
+    sink_prob: float = 0.2
     """Probability that a stacked child (``on``/``in``) is sunk into its support."""
-    sink_cm: tuple[float, float] = (0.1, 0.8)
+    sink_cm: tuple[float, float] = (0.5, 2.0)
     """Range of the sink depth."""
     hover_prob: float = 0.08
     """Probability that an object hovers over its support (table or object)."""
@@ -144,8 +146,12 @@ def apply_noise(
         for a_i, a in enumerate(roots):
             for b in roots[a_i + 1 :]:
                 gap, axis, sign = _gap(boxes[a], boxes[b])
-                if gap < config.neighbour_cm:
-                    candidates.append((a, b, gap, axis, sign))
+                candidates.append((a, b, gap, axis, sign))
+        # neighbours first; a sparse scene falls back to its closest pair
+        near = [c for c in candidates if c[2] < config.neighbour_cm] or sorted(
+            candidates, key=lambda c: c[2]
+        )[:1]
+        candidates = near
         picks = rng.permutation(len(candidates))[:n_pairs] if candidates else []
         for p in picks:
             a, b, _, axis, sign = candidates[int(p)]
@@ -155,6 +161,13 @@ def apply_noise(
             direction = -sign if mover == b else sign
             step = max(gap, 0.0) + depth if gap > 0 else depth
             centers[subtrees[mover], axis] += direction * step
+            # slide part of the way toward the partner across the push, so the boxes' overlap
+            # lies near the centres' line where round shapes really meet
+            other = a if mover == b else b
+            across = 1 - axis
+            centers[subtrees[mover], across] += config.align * (
+                centers[other, across] - centers[mover, across]
+            )
             record.interpenetration.append(
                 {
                     "a": ids[a],

@@ -92,12 +92,14 @@ def stratified_counts(split: str, n: int | None = None) -> dict[tuple[str, int],
     if n < 1:
         raise ValueError(f"--n must be at least 1, got {n}")
     if split == "ood":
-        cells = [(t, lv) for t in OOD_SCENE_TYPES for lv in range(1, 6)]
-        weights = np.array([spec_for(t).level_weights[lv - 1] for t, lv in cells])
-        weights = weights / np.repeat(weights.reshape(len(OOD_SCENE_TYPES), 5).sum(1), 5)
-    else:
-        cells = [(t, lv) for t in SCENE_TYPES for lv in range(1, 6)]
-        weights = np.array([TABLE5[t][lv - 1] for t, lv in cells], dtype=np.float64)
+        per_type = _largest_remainder(np.ones(len(OOD_SCENE_TYPES)), n)
+        out: dict[tuple[str, int], int] = {}
+        for t, n_t in zip(OOD_SCENE_TYPES, per_type):
+            levels = _largest_remainder(np.asarray(spec_for(t).level_weights), int(n_t)) if n_t else [0] * 5
+            out.update({(t, lv): int(c) for lv, c in zip(range(1, 6), levels) if c > 0})
+        return out
+    cells = [(t, lv) for t in SCENE_TYPES for lv in range(1, 6)]
+    weights = np.array([TABLE5[t][lv - 1] for t, lv in cells], dtype=np.float64)
     counts = _largest_remainder(weights, n)
     return {cell: int(c) for cell, c in zip(cells, counts) if c > 0}
 

@@ -476,7 +476,7 @@ class _Builder:
     def pose_unit(self, nodes: list[_Node], xy: np.ndarray, yaw: float) -> None:
         """Turn a unit's local layout into world poses; seats ``in`` contents on the SDFs."""
         offset = len(self.nodes)
-        seated: list[np.ndarray] = []  # local boxes [x0, x1, y0, y1] of contents already in the base
+        seated: list[tuple] = []  # (local box, zmax) of contents already in the base
         for k, n in enumerate(nodes):
             local = n.center[:2].copy()
             n.center = np.array([*self._world_xy(xy, yaw, local), 0.0])
@@ -503,43 +503,36 @@ class _Builder:
         return np.array([xy[0] + c * local[0] - s * local[1], xy[1] + s * local[0] + c * local[1]])
 
     def _seat_content(
-        self, parent: _Node, n: _Node, local: np.ndarray, xy: np.ndarray, yaw: float, seated: list[np.ndarray]
+        self, parent: _Node, n: _Node, local: np.ndarray, xy: np.ndarray, yaw: float, seated: list[tuple]
     ) -> None:
         """Lower ``n`` into ``parent``; if it would not count as ``in`` (it rests too high, e.g.
         on a bowl's curved wall or a basket's handle), try other spots in the cavity and
-        smaller sizes. Falls back to resting on top (``on``)."""
+        smaller sizes. Falls back to resting on top (``on``) of the container and its contents.
+
+        ``seated`` holds (local box [x0, x1, y0, y1], zmax) of the contents already in ``parent``.
+        """
         inner = 0.5 * 0.72 * parent.size[:2]
-        for attempt in range(6):
+        for attempt in range(8):
             if attempt and attempt % 2 == 0:
                 n.size *= 0.85
+            half = 0.5 * _rotated_rel(n, n.yaw - yaw)
             if attempt:
-                half = 0.5 * _rotated_rel(n, n.yaw - yaw)
                 lo, hi = -inner + half, inner - half
                 if np.any(lo > hi):
                     continue
                 local = np.array([self.rng.uniform(lo[0], hi[0]), self.rng.uniform(lo[1], hi[1])])
-                box = np.array(
-                    [local[0] - half[0], local[0] + half[0], local[1] - half[1], local[1] + half[1]]
-                )
-                if any(
-                    box[0] < b[1] + 0.4
-                    and b[0] < box[1] + 0.4
-                    and box[2] < b[3] + 0.4
-                    and b[2] < box[3] + 0.4
-                    for b in seated
-                ):
-                    continue
+            box = np.array([local[0] - half[0], local[0] + half[0], local[1] - half[1], local[1] + half[1]])
+            if any(_boxes_touch(box, b, 0.4) for b, _ in seated):
+                continue
             n.center = np.array([*self._world_xy(xy, yaw, local), parent.center[2]])
             z = self.fit.seat(parent, n, self.config)
             if z is not None and _counts_as_in(parent, n, z):
                 n.center[2] = z
-                half = 0.5 * _rotated_rel(n, n.yaw - yaw)
-                seated.append(
-                    np.array([local[0] - half[0], local[0] + half[0], local[1] - half[1], local[1] + half[1]])
-                )
+                seated.append((box, z + 0.5 * n.size[2]))
                 return
-        n.relation = "on"  # cannot go in: rest it on top of the container
-        n.center[2] = parent.center[2] + 0.5 * parent.size[2] + 0.5 * n.size[2] + self.config.contact_gap_cm
+        n.relation = "on"  # cannot go in: rest it on top of the container and whatever sticks out
+        top = max([parent.center[2] + 0.5 * parent.size[2]] + [zmax for _, zmax in seated])
+        n.center[2] = top + 0.5 * n.size[2] + self.config.contact_gap_cm
 
     # Whole scene --------------------------------------------------------------------------------
     def build(self) -> bool:
@@ -615,6 +608,11 @@ class _Builder:
 def _rotated_rel(n: _Node, yaw: float) -> np.ndarray:
     hx, hy = _footprint_halfextents(n.size, yaw)
     return np.array([2.0 * hx, 2.0 * hy])
+
+
+def _boxes_touch(a: np.ndarray, b: np.ndarray, gap: float) -> bool:
+    """Whether boxes [x0, x1, y0, y1] come closer than ``gap`` (cm)."""
+    return bool(a[0] < b[1] + gap and b[0] < a[1] + gap and a[2] < b[3] + gap and b[2] < a[3] + gap)
 
 
 def _counts_as_in(container: _Node, content: _Node, z: float) -> bool:
