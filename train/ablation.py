@@ -5,7 +5,9 @@ SFT, SFT + TTO, GRPO, PADA* and PADA on the test split with the eval harness (ru
 ``ablation.json`` ``{"rows": [{name, scr, acr, qpr7, judge_avg, parse_rate, n}], "gpu", "commands",
 "stages"}`` plus a Markdown table. Each stage gets a share of the budget (``ablation.shares``); a
 training stage that runs out of time stops at its next optimizer step and saves (``TimeBudget``), so
-the table always comes out, with the steps actually run recorded under ``stages``.
+the table always comes out, with the time each stage took recorded under ``stages`` (and the steps
+it ran in each model's ``physcene_run.json``). With ``ablation.reuse`` (default) a stage whose final
+model exists is not rerun, so the pipeline can be driven by repeated commands under a job time limit.
 """
 
 from __future__ import annotations
@@ -16,31 +18,13 @@ import time
 from pathlib import Path
 
 from omegaconf import DictConfig, OmegaConf
-from transformers import TrainerCallback
+from physcene.train.models import RUN_INFO
+from physcene.train.sft import TimeBudget
 
 __all__ = ["ROW_NAMES", "TimeBudget", "ablation_row", "run_ablation"]
 
 ROW_NAMES = ("sft", "sft+tto", "grpo", "pada*", "pada")
 DEFAULT_SHARES = {"sft": 0.45, "anchors": 0.10, "grpo": 0.10, "pada_star": 0.10, "pada": 0.10, "eval": 0.15}
-
-
-class TimeBudget(TrainerCallback):
-    """Stop training (with a final save) ``seconds`` of wall clock after ``on_train_begin``."""
-
-    def __init__(self, seconds: float):
-        self.seconds = float(seconds)
-        self.start = None
-        self.stopped_early = False
-
-    def on_train_begin(self, args, state, control, **kwargs):
-        self.start = time.monotonic()
-
-    def on_step_end(self, args, state, control, **kwargs):
-        if self.start is not None and time.monotonic() - self.start > self.seconds:
-            self.stopped_early = True
-            control.should_training_stop = True
-            control.should_save = True
-        return control
 
 
 def ablation_row(name: str, report: dict) -> dict:
@@ -132,13 +116,26 @@ def run_ablation(cfg: DictConfig, budget_min: float | None = None) -> dict:
         stages[stage] = {"seconds": round(time.monotonic() - start, 1), **stages.get(stage, {})}
         return result
 
-    budget = TimeBudget(shares["sft"] * budget_s)
-    sft_dir = timed("sft", run_sft, cfg, callbacks=[budget])
-    stages["sft"]["stopped_by_budget"] = budget.stopped_early
+    reuse = bool(a.get("reuse", True))
+
+    def finished(out_dir) -> bool:  # a stage that already wrote its final model (reuse=true)
+        return reuse and (Path(str(out_dir)) / RUN_INFO).is_file()
+
+    sft_dir = Path(str(cfg.sft.output_dir))
+    if finished(sft_dir):
+        stages["sft"] = {"reused": True}
+    else:
+        budget = TimeBudget(shares["sft"] * budget_s)
+        sft_dir = timed("sft", run_sft, cfg, callbacks=[budget])
+        stages["sft"]["stopped_by_budget"] = budget.stopped_early
     timed("anchors", run_anchors, cfg)
     models = {"sft": sft_dir}
     skipped = []
     for variant, name in (("grpo", "grpo"), ("pada_star", "pada*"), ("pada", "pada")):
+        out_dir = OmegaConf.merge(cfg, {"pada": {"variant": variant}}).pada.output_dir
+        if finished(out_dir):
+            models[name], stages[variant] = Path(str(out_dir)), {"reused": True}
+            continue
         budget = TimeBudget(shares[variant] * budget_s)
         try:
             models[name] = timed(variant, run_pada, cfg, variant=variant, callbacks=[budget])

@@ -78,16 +78,19 @@ def generate_with(model: PreTrainedModel, tokenizer: PreTrainedTokenizerBase, pr
 
 
 def generate(model_path: str | Path, prompts: Sequence[str], *, max_new_tokens: int = 1024,
-             batch_size: int = 16, do_sample: bool = False, temperature: float = 1.0, seed: int = 0,
+             batch_size: int | None = None, do_sample: bool = False, temperature: float = 1.0, seed: int = 0,
              device: str | torch.device | None = None, dtype: str | None = None) -> list[str]:
     """Completions of ``prompts`` by the checkpoint at ``model_path`` (greedy unless ``do_sample``).
 
     ``prompts`` are CTRC prompt strings (``physcene.ctrc.build_prompt``); chat-format checkpoints get
-    them wrapped in a user turn. Returns one completion string per prompt, in order.
+    them wrapped in a user turn. ``batch_size`` defaults to the checkpoint's ``eval_batch_size``
+    (its training config's ``eval.batch_size``; 16 for foreign checkpoints). Returns one completion
+    string per prompt, in order.
     """
     if dtype is not None:
         torch_dtype(dtype)  # validate early
     model, tokenizer, info = load_for_generation(model_path, device=device, dtype=dtype)
+    batch_size = batch_size or int(info.get("eval_batch_size", 16))
     return generate_with(model, tokenizer, prompts, chat_format=bool(info.get("chat_format", False)),
                          max_new_tokens=max_new_tokens, batch_size=batch_size, do_sample=do_sample,
                          temperature=temperature, seed=seed)

@@ -288,7 +288,7 @@ def run_pada(cfg, variant: str | None = None, reward=None, callbacks=()) -> Path
     from omegaconf import OmegaConf
     from physcene.train.models import load_model, load_tokenizer, read_run_info, write_run_info
     from physcene.train.records import load_records, training_dataset
-    from physcene.train.sft import lora_config
+    from physcene.train.sft import lora_config, time_budget_callbacks
     from transformers.trainer_utils import get_last_checkpoint
 
     if variant is not None and variant != cfg.pada.variant:
@@ -319,7 +319,7 @@ def run_pada(cfg, variant: str | None = None, reward=None, callbacks=()) -> Path
         train_dataset=dataset,
         processing_class=tokenizer,
         peft_config=lora_config(cfg.pada.lora),
-        callbacks=list(callbacks),
+        callbacks=[*callbacks, *time_budget_callbacks(cfg.pada)],
     )
     kl = cfg.pada.adaptive_kl
     if kl is not None and args.beta > 0:
@@ -332,5 +332,6 @@ def run_pada(cfg, variant: str | None = None, reward=None, callbacks=()) -> Path
         tokenizer.save_pretrained(str(out))
         (out / "train_log.json").write_text(json.dumps(trainer.state.log_history, indent=1))
         write_run_info(out, stage="pada", variant=variant, chat_format=chat, alpha=args.anchor_alpha,
+                       eval_batch_size=int(cfg.eval.batch_size), steps=trainer.state.global_step,
                        base_model=str(model_dir.resolve()), n_records=len(records))
     return out

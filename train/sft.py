@@ -12,16 +12,48 @@ from __future__ import annotations
 
 import json
 import math
+import time
 from pathlib import Path
 
 from omegaconf import DictConfig, OmegaConf
 from peft import LoraConfig
 from physcene.train.models import TrainingSetupError, prepare_model_and_tokenizer, torch_dtype, write_run_info
 from physcene.train.records import load_records, training_dataset
+from transformers import TrainerCallback
 from transformers.trainer_utils import get_last_checkpoint
 from trl import SFTConfig, SFTTrainer
 
 __all__ = ["accumulation_steps", "lora_config", "run_sft"]
+
+
+class TimeBudget(TrainerCallback):
+    """Stop training ``seconds`` of wall clock after ``on_train_begin``, saving a checkpoint.
+
+    The run then ends like a finished one (final model written); running the same command again
+    resumes from that checkpoint and goes on toward ``max_steps``/the epochs. This is how a long
+    run fits into jobs with a wall-clock limit (``sft.max_minutes``, ``pada.max_minutes``).
+    """
+
+    def __init__(self, seconds: float):
+        self.seconds = float(seconds)
+        self.start = None
+        self.stopped_early = False
+
+    def on_train_begin(self, args, state, control, **kwargs):
+        self.start = time.monotonic()
+
+    def on_step_end(self, args, state, control, **kwargs):
+        if self.start is not None and time.monotonic() - self.start > self.seconds:
+            self.stopped_early = True
+            control.should_training_stop = True
+            control.should_save = True
+        return control
+
+
+def time_budget_callbacks(stage_cfg) -> list[TimeBudget]:
+    """``[TimeBudget]`` when the stage config sets ``max_minutes``, else ``[]``."""
+    minutes = stage_cfg.get("max_minutes")
+    return [TimeBudget(60.0 * float(minutes))] if minutes else []
 
 
 def world_size() -> int:
@@ -107,7 +139,7 @@ def run_sft(cfg: DictConfig, callbacks=()) -> Path:
         train_dataset=training_dataset(records, chat_format=chat),
         processing_class=tokenizer,
         peft_config=lora_config(cfg.sft.lora),
-        callbacks=list(callbacks),
+        callbacks=[*callbacks, *time_budget_callbacks(cfg.sft)],
     )
     trainer.train(resume_from_checkpoint=get_last_checkpoint(str(out)) if out.is_dir() else None)
     if cfg.sft.lora is not None:
@@ -120,5 +152,6 @@ def run_sft(cfg: DictConfig, callbacks=()) -> Path:
         tokenizer.save_pretrained(str(out))
         (out / "train_log.json").write_text(json.dumps(trainer.state.log_history, indent=1))
         write_run_info(out, stage="sft", chat_format=chat, config=str(cfg.name), n_records=len(records),
+                       eval_batch_size=int(cfg.eval.batch_size), steps=trainer.state.global_step,
                        base_model=str(cfg.model.path) if cfg.model.source == "pretrained" else "scratch")
     return out
