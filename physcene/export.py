@@ -20,11 +20,15 @@ from __future__ import annotations
 import hashlib
 import json
 import math
+import multiprocessing
 import os
 import re
 import tempfile
+import warnings
 import xml.etree.ElementTree as ET
 from collections.abc import Sequence
+from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -139,11 +143,11 @@ def convex_parts(mesh: trimesh.Trimesh, settings: dict) -> list[trimesh.Trimesh]
     A mesh within ``convex_tolerance`` of its convex hull (by volume) is its own single part.
     """
     hull = mesh.convex_hull
-    if mesh.is_volume and hull.volume - mesh.volume <= settings.get("convex_tolerance", 0.03) * hull.volume:
+    if mesh.is_volume and hull.volume - mesh.volume <= settings.get("convex_tolerance", 0.05) * hull.volume:
         return [hull]
     import coacd
 
-    kwargs = _coacd_kwargs(settings)
+    kwargs = _coacd_kwargs(settings)  # the cache key holds the setting as configured
     digest = hashlib.sha256()
     digest.update(np.ascontiguousarray(mesh.vertices, dtype=np.float64).tobytes())
     digest.update(np.ascontiguousarray(mesh.faces, dtype=np.int64).tobytes())
@@ -156,11 +160,19 @@ def convex_parts(mesh: trimesh.Trimesh, settings: dict) -> list[trimesh.Trimesh]
                 return _unpack_parts(data["vertices"], data["faces"], data["offsets"])
         except (OSError, ValueError, KeyError):
             pass  # a corrupt or foreign entry: decompose again and overwrite it
-    coacd.set_log_level("error")
-    raw = coacd.run_coacd(coacd.Mesh(np.asarray(mesh.vertices), np.asarray(mesh.faces)), **kwargs)
-    parts = [trimesh.Trimesh(v, f, process=True).convex_hull for v, f in raw if len(v) >= 4]
+    if kwargs.get("preprocess_mode", "auto") == "auto":
+        # CoACD's own "auto" check aborts the process on some closed meshes (a procedural apple);
+        # trimesh decides instead: remesh to a manifold only when the mesh is not a closed volume.
+        kwargs["preprocess_mode"] = "off" if mesh.is_volume else "on"
+    raw = _run_coacd_isolated(np.asarray(mesh.vertices), np.asarray(mesh.faces), kwargs)
+    if raw is None and kwargs["preprocess_mode"] == "off":
+        raw = _run_coacd_isolated(np.asarray(mesh.vertices), np.asarray(mesh.faces),
+                                  {**kwargs, "preprocess_mode": "on"})
+    parts = [trimesh.Trimesh(v, f, process=True).convex_hull for v, f in raw or () if len(v) >= 4]
     if not parts:
-        return [hull]
+        warnings.warn(f"CoACD failed on a mesh of {len(mesh.faces)} faces; its convex hull stands in "
+                      "(cavities of this asset are closed in the export)", RuntimeWarning, stacklevel=2)
+        parts = [hull]
     vertices = np.concatenate([p.vertices for p in parts])
     faces = np.concatenate([p.faces for p in parts])
     offsets = np.cumsum([[0, 0]] + [[len(p.vertices), len(p.faces)] for p in parts], axis=0)
@@ -175,6 +187,29 @@ def convex_parts(mesh: trimesh.Trimesh, settings: dict) -> list[trimesh.Trimesh]
         Path(tmp).unlink(missing_ok=True)
         raise
     return parts
+
+
+def _coacd_child(vertices: np.ndarray, faces: np.ndarray, kwargs: dict) -> list[tuple[np.ndarray, ...]]:
+    import coacd
+
+    coacd.set_log_level("error")
+    return [(np.asarray(v), np.asarray(f)) for v, f in coacd.run_coacd(coacd.Mesh(vertices, faces), **kwargs)]
+
+
+def _run_coacd_isolated(vertices: np.ndarray, faces: np.ndarray, kwargs: dict):
+    """CoACD's parts [(vertices, faces)], run in a child process; None when the child died.
+
+    CoACD aborts (C++ ``std::logic_error``, SIGABRT) on some inputs, which would kill the whole
+    export; in a child process that is a value. Fork keeps the start cheap on Linux (CoACD's
+    OpenMP pool is never started in the parent, so forking is safe).
+    """
+    methods = multiprocessing.get_all_start_methods()
+    ctx = multiprocessing.get_context("fork" if "fork" in methods else "spawn")
+    with ProcessPoolExecutor(max_workers=1, mp_context=ctx) as pool:
+        try:
+            return pool.submit(_coacd_child, vertices, faces, kwargs).result()
+        except BrokenProcessPool:
+            return None
 
 
 def _unpack_parts(vertices: np.ndarray, faces: np.ndarray, offsets: np.ndarray) -> list[trimesh.Trimesh]:
