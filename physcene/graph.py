@@ -55,11 +55,17 @@ class GraphConfig:
     @classmethod
     def from_config(cls, overrides=()) -> GraphConfig:
         """Read ``configs/graph.yaml`` with ``key=value`` overrides."""
-        from physcene.config import load_config
+        from physcene.config import ConfigError, load_config
 
         cfg = load_config("graph", list(overrides))
         known = {f.name for f in fields(cls)}
-        return cls(**{k: float(v) for k, v in cfg.items() if k in known})
+        unknown = sorted(set(cfg) - known)
+        if unknown:
+            raise ConfigError(f"unknown graph setting(s) {unknown}; known: {sorted(known)}")
+        try:
+            return cls(**{k: float(v) for k, v in cfg.items()})
+        except (TypeError, ValueError) as exc:
+            raise ConfigError(f"graph settings must be numbers: {exc}") from None
 
 
 def _polygon(o: SceneObject) -> Polygon:
@@ -121,7 +127,9 @@ def relation_candidates(scene: Scene, config: GraphConfig | None = None) -> dict
             inside_z = min(a_zmax, b_zmax) - max(a_zmin, b_zmin)
             could_in = (volumes[j] >= config.in_volume_ratio * volumes[i]
                         and inside_z >= config.in_height_fraction * a_h)
-            could_on = abs(a_zmin - b_zmax) < config.on_gap_cm
+            # A support starts below what stands on it: without this, of two stacked objects both
+            # thinner than on_gap_cm, the lower one would also read as "on" the upper one.
+            could_on = abs(a_zmin - b_zmax) < config.on_gap_cm and b_zmin < a_zmin
             if not (could_in or could_on):
                 continue
             exact = _axis_aligned(a) and _axis_aligned(b)
