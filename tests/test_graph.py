@@ -96,6 +96,13 @@ def test_thresholds_from_config():
     assert relations(base, top, config=cfg)["book_1"] == (TABLE, "near")
 
 
+def test_thin_stacked_cards_point_one_way():
+    # Both thinner than on_gap_cm: only the upper one rests on the lower (a support starts below).
+    rel = relations(box("card_0", 50, 30, 0, 9, 6, 0.2), box("card_1", 50, 30, 0.2, 9, 6, 0.2),
+                    box("card_2", 50, 30, 0.4, 9, 6, 0.2))
+    assert rel == {"card_0": (TABLE, "near"), "card_1": ("card_0", "on"), "card_2": ("card_1", "on")}
+
+
 @pytest.mark.parametrize("h", [0.2, 0.5, 2.0])
 def test_degenerate_equal_boxes_form_a_forest(h):
     objs = [box(f"card_{k}", 50, 30, 0, 10, 10, h) for k in range(4)]
