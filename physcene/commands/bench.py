@@ -36,7 +36,11 @@ class BenchTarget:
 
 
 def timed(fn: Callable[[], object], device: torch.device, repeat: int, warmup: int = 2) -> float:
-    """Median wall seconds of ``fn()`` with the device synchronised before and after each call."""
+    """Median wall seconds of ``fn()`` with the device synchronised before and after each call.
+
+    The median process CPU seconds of the same calls is left in ``timed.last_cpu_seconds``: on a
+    loaded CPU-only machine it is the figure an idle machine would show for single-threaded work.
+    """
 
     def sync():
         if device.type == "cuda":
@@ -45,14 +49,19 @@ def timed(fn: Callable[[], object], device: torch.device, repeat: int, warmup: i
     for _ in range(warmup):
         fn()
     sync()
-    times = []
+    times, cpu = [], []
     for _ in range(max(1, repeat)):
         sync()
-        start = time.perf_counter()
+        start, start_cpu = time.perf_counter(), time.process_time()
         fn()
         sync()
         times.append(time.perf_counter() - start)
+        cpu.append(time.process_time() - start_cpu)
+    timed.last_cpu_seconds = statistics.median(cpu)
     return statistics.median(times)
+
+
+timed.last_cpu_seconds = 0.0
 
 
 def bench_scenes(n_scene: int, n_obj: int, seed: int = 0):
@@ -118,7 +127,8 @@ def bench_reward(args) -> dict:
     }
 
     def figures(seconds: float) -> dict:
-        return {"seconds": seconds, "scenes_per_s": args.scenes / seconds,
+        return {"seconds": seconds, "cpu_seconds": timed.last_cpu_seconds,
+                "scenes_per_s": args.scenes / seconds,
                 "gq_per_s": evaluated / seconds / 1e9, "all_pairs_gq_per_s": nominal / seconds / 1e9}
 
     repeat = args.repeat
@@ -136,11 +146,14 @@ def bench_reward(args) -> dict:
         result["speedup_grad"] = result["reference_grad"]["seconds"] / result["warp_grad"]["seconds"]
     reward = PhysicsReward(RewardConfig(device=str(device)), engine=engine)
     texts = [completion_text(s) for s in scenes]
-    parsed = [s for s in scenes]
+    parsed = list(scenes)
     whole = timed(lambda: reward.score_texts(texts), device, max(1, repeat // 2), 1)
+    whole_cpu = timed.last_cpu_seconds
     from_scenes = timed(lambda: reward.score_parsed(parsed), device, repeat)
-    result["reward_from_text"] = {"seconds": whole, "scenes_per_s": args.scenes / whole}
-    result["reward_from_scenes"] = {"seconds": from_scenes, "scenes_per_s": args.scenes / from_scenes}
+    result["reward_from_text"] = {"seconds": whole, "cpu_seconds": whole_cpu,
+                                  "scenes_per_s": args.scenes / whole}
+    result["reward_from_scenes"] = {"seconds": from_scenes, "cpu_seconds": timed.last_cpu_seconds,
+                                    "scenes_per_s": args.scenes / from_scenes}
     return result
 
 
@@ -155,8 +168,8 @@ def _reward_summary(r: dict) -> str:
                        ("reference_grad", "torch reference forward+grad")):
         if key in r:
             f = r[key]
-            lines.append(f"{label:30s} {f['seconds'] * 1e3:9.3f} ms  {f['scenes_per_s']:12.1f} scenes/s  "
-                         f"{f['gq_per_s']:8.3f} Gq/s evaluated  "
+            lines.append(f"{label:30s} {f['seconds'] * 1e3:9.3f} ms ({f['cpu_seconds'] * 1e3:9.3f} ms CPU)  "
+                         f"{f['scenes_per_s']:12.1f} scenes/s  {f['gq_per_s']:8.3f} Gq/s evaluated  "
                          f"{f['all_pairs_gq_per_s']:8.3f} Gq/s all-pairs")
     if "speedup_forward" in r:
         lines.append(f"warp / reference: forward {r['speedup_forward']:.1f}x, "
@@ -164,7 +177,8 @@ def _reward_summary(r: dict) -> str:
     for key, label in (("reward_from_text", "whole reward (text -> rewards)"),
                        ("reward_from_scenes", "reward from parsed scenes")):
         f = r[key]
-        lines.append(f"{label:30s} {f['seconds'] * 1e3:9.3f} ms  {f['scenes_per_s']:12.1f} scenes/s")
+        lines.append(f"{label:30s} {f['seconds'] * 1e3:9.3f} ms ({f['cpu_seconds'] * 1e3:9.3f} ms CPU)  "
+                     f"{f['scenes_per_s']:12.1f} scenes/s")
     return "\n".join(lines)
 
 
