@@ -333,5 +333,7 @@ def run_pada(cfg, variant: str | None = None, reward=None, callbacks=()) -> Path
         (out / "train_log.json").write_text(json.dumps(trainer.state.log_history, indent=1))
         write_run_info(out, stage="pada", variant=variant, chat_format=chat, alpha=args.anchor_alpha,
                        eval_batch_size=int(cfg.eval.batch_size), steps=trainer.state.global_step,
+                       stopped_by_budget=any(getattr(c, "stopped_early", False)
+                                             for c in trainer.callback_handler.callbacks),
                        base_model=str(model_dir.resolve()), n_records=len(records))
     return out

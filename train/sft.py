@@ -153,5 +153,7 @@ def run_sft(cfg: DictConfig, callbacks=()) -> Path:
         (out / "train_log.json").write_text(json.dumps(trainer.state.log_history, indent=1))
         write_run_info(out, stage="sft", chat_format=chat, config=str(cfg.name), n_records=len(records),
                        eval_batch_size=int(cfg.eval.batch_size), steps=trainer.state.global_step,
+                       stopped_by_budget=any(getattr(c, "stopped_early", False)
+                                             for c in trainer.callback_handler.callbacks),
                        base_model=str(cfg.model.path) if cfg.model.source == "pretrained" else "scratch")
     return out
