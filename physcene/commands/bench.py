@@ -3,9 +3,13 @@
     physcene bench reward --device cuda                      # 512 scenes x 16 objects x 1024 points
     physcene bench reward --device cpu --scenes 256 --objects 12 --json
 
-Targets live in ``TARGETS`` (name -> :class:`BenchTarget`); a new one is one more entry with its
-own ``add_arguments`` and ``run(args) -> dict``. Every target takes ``--device``, ``--json`` and
-``--repeat``; it warms up first and synchronises the device around every timed call.
+Targets live in ``TARGETS`` (name -> :class:`BenchTarget`). A new target is one function:
+
+    @bench_target("tto", "TTO steps/s", add_arguments=_tto_arguments)
+    def bench_tto(args) -> dict: ...        # args.device, args.repeat, args.json + its own options
+
+Every target takes ``--device``, ``--json`` and ``--repeat``; use :func:`timed` (warm-up, device
+synchronised around every timed call, median).
 """
 
 from __future__ import annotations
@@ -22,7 +26,7 @@ import torch
 NAME = "bench"
 HELP = "Throughput benchmarks (targets: reward, tto)"
 
-__all__ = ["TARGETS", "BenchTarget", "bench_scenes", "timed"]
+__all__ = ["TARGETS", "BenchTarget", "bench_scenes", "bench_target", "timed"]
 
 
 @dataclass(frozen=True)
@@ -33,6 +37,20 @@ class BenchTarget:
     """run(args) -> a JSON-able dict of figures."""
     summary: Callable[[dict], str]
     """Human-readable lines of the figures."""
+
+
+TARGETS: dict[str, BenchTarget] = {}
+
+
+def bench_target(name: str, help: str, *, add_arguments: Callable = lambda parser: None,
+                 summary: Callable[[dict], str] | None = None):
+    """Register ``run(args) -> dict`` as ``physcene bench NAME`` (summary default: indented JSON)."""
+
+    def register(run: Callable[..., dict]) -> Callable[..., dict]:
+        TARGETS[name] = BenchTarget(help, add_arguments, run, summary or (lambda r: json.dumps(r, indent=1)))
+        return run
+
+    return register
 
 
 def timed(fn: Callable[[], object], device: torch.device, repeat: int, warmup: int = 2) -> float:
@@ -188,10 +206,8 @@ def _device_name(device: torch.device) -> str:
     return f"cpu ({torch.get_num_threads()} torch threads)"
 
 
-TARGETS: dict[str, BenchTarget] = {
-    "reward": BenchTarget("Warp engine vs torch reference, and the whole physics reward",
-                          _reward_arguments, bench_reward, _reward_summary),
-}
+bench_target("reward", "Warp engine vs torch reference, and the whole physics reward",
+             add_arguments=_reward_arguments, summary=_reward_summary)(bench_reward)
 
 
 def _tto_target() -> BenchTarget:
