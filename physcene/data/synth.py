@@ -120,24 +120,26 @@ class ContainerFit:
     def _sample(sdf: np.ndarray, q: np.ndarray) -> np.ndarray:
         """Trilinear SDF (normalised units) at points q (..., 3) of the [-1, 1]^3 frame.
 
-        Points outside the grid get +1 (outside the shape's box, so outside the shape).
+        Points outside the grid get +1 (outside the shape's box, so outside the shape); only the
+        points inside are interpolated, on the flattened grid (8 gathers of one index array).
         """
         r = sdf.shape[0]
+        out = np.ones(q.shape[:-1], dtype=np.float64)
         inside = np.all(np.abs(q) <= 1.0, axis=-1)
-        g = (np.clip(q, -1.0, 1.0) + 1.0) * 0.5 * (r - 1)
-        i0 = np.clip(np.floor(g).astype(np.int64), 0, r - 2)
+        if not inside.any():
+            return out
+        g = (q[inside] + 1.0) * (0.5 * (r - 1))  # (M, 3)
+        i0 = np.minimum(g.astype(np.int64), r - 2)
         t = g - i0
-        x0, y0, z0 = i0[..., 0], i0[..., 1], i0[..., 2]
-        tx, ty, tz = t[..., 0], t[..., 1], t[..., 2]
-        c = 0.0
-        for dx in (0, 1):
-            wx = tx if dx else 1.0 - tx
-            for dy in (0, 1):
-                wy = ty if dy else 1.0 - ty
-                for dz in (0, 1):
-                    wz = tz if dz else 1.0 - tz
-                    c = c + wx * wy * wz * sdf[x0 + dx, y0 + dy, z0 + dz]
-        return np.where(inside, c, 1.0)
+        flat = sdf.reshape(-1)
+        base = (i0[:, 0] * r + i0[:, 1]) * r + i0[:, 2]
+        tx, ty, tz = t[:, 0], t[:, 1], t[:, 2]
+        c00 = flat[base] * (1 - tz) + flat[base + 1] * tz
+        c01 = flat[base + r] * (1 - tz) + flat[base + r + 1] * tz
+        c10 = flat[base + r * r] * (1 - tz) + flat[base + r * r + 1] * tz
+        c11 = flat[base + r * r + r] * (1 - tz) + flat[base + r * r + r + 1] * tz
+        out[inside] = (c00 * (1 - ty) + c01 * ty) * (1 - tx) + (c10 * (1 - ty) + c11 * ty) * tx
+        return out
 
     @staticmethod
     def _to_frame(points_world: np.ndarray, center: np.ndarray, yaw: float, size: np.ndarray) -> np.ndarray:
