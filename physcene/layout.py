@@ -40,6 +40,7 @@ __all__ = [
     "iter_layout_tree",
     "layout_to_dict",
     "load_layout",
+    "quaternion_tilt",
     "quaternion_to_yaw",
     "read_layout",
     "write_layout",
@@ -79,6 +80,15 @@ def quaternion_to_yaw(q) -> float:
         raise ValueError(f"quaternion {list(q)} has no usable length")
     x, y, z, w = x / norm, y / norm, z / norm, w / norm
     return math.atan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))
+
+
+def quaternion_tilt(q) -> float:
+    """Angle (rad) between the rotated +z axis and world +z: the roll/pitch a yaw-only model drops."""
+    x, y, z, w = (float(v) for v in q)
+    n2 = x * x + y * y + z * z + w * w
+    if not math.isfinite(n2) or n2 < 1e-24:
+        return 0.0
+    return math.acos(max(-1.0, min(1.0, 1.0 - 2.0 * (x * x + y * y) / n2)))
 
 
 def yaw_to_quaternion(yaw: float) -> list[float]:
@@ -203,12 +213,18 @@ def load_layout(data: dict, *, source: str = "<dict>", scene_type: str | None = 
     restricted += _rects(data.get("sink_zone"), field="sink_zone", source=source)
     items = _object_items(data.get("objects", []), source)
     objects = [_load_object(name, entry, source) for name, entry in items]
+    # Yaw-only scenes drop roll/pitch; say which objects lost more than ~0.5 degree of it.
+    tilted = sorted(name for name, entry in items
+                    if isinstance(entry.get("rotation"), list) and len(entry["rotation"]) == 4
+                    and quaternion_tilt(entry["rotation"]) > 0.01)
     extras = {name: {k: v for k, v in entry.items() if k not in _OBJECT_KEYS} for name, entry in items}
     for key in ("scene_type", "instruction"):
         if data.get(key) is not None and not isinstance(data[key], str):
             raise SceneError(f"expected a string, got {data[key]!r:.40}", field=key, source=source)
     meta = {k: v for k, v in data.items() if k not in _SCENE_KEYS}
     meta["source"] = source
+    if tilted:
+        meta["tilted_objects"] = tilted
     extras = {name: e for name, e in extras.items() if e}
     if extras:
         meta["object_extras"] = extras  # unknown per-object keys, written back by layout_to_dict

@@ -83,6 +83,16 @@ def test_quaternion_yaw_with_tilt_and_scale():
     assert quaternion_to_yaw([0, 0, 1, 0]) == pytest.approx(math.pi)
 
 
+def test_tilt_is_reported_not_kept():
+    data = _layout()
+    half = math.sqrt(0.5)
+    data["objects"][0]["rotation"] = [half, 0.0, 0.0, half]  # lying on its side (90 deg about x)
+    scene = load_layout(data)
+    assert scene.meta["tilted_objects"] == ["1_teapot_0"]
+    assert scene.objects[0].yaw == pytest.approx(0.0)
+    assert "tilted_objects" not in load_layout(_layout()).meta
+
+
 def test_objects_as_dict_keyed_by_instance():
     data = _layout(objects={"3_cup_1": {"position": [5, 5, 5], "size": [8, 8, 10], "z_rotation": 0.3}})
     (o,) = load_layout(data).objects
