@@ -192,6 +192,10 @@ class PhysicsEngine:
             library = default_library()
         self.library = library
         self.device = torch.device(device)
+        if self.device.type not in ("cpu", "cuda"):
+            raise ValueError(f"engine device {str(device)!r}: expected cpu, cuda or cuda:N")
+        if self.device.type == "cuda" and not torch.cuda.is_available():
+            raise ValueError(f"engine device {str(device)!r}: CUDA is not available on this machine")
         if self.device.type == "cuda" and self.device.index is None:
             self.device = torch.device("cuda", torch.cuda.current_device())
         self.config = config or PhysicsConfig()
