@@ -242,3 +242,46 @@ def test_every_scene_type_spec_is_usable():
         rng = np.random.default_rng(0)
         scene = synthesize_layout(spec, 9, 3, rng)
         assert len(scene) == 9 and scene.scene_type == name
+
+
+def test_endpoint_instructor_runs_prompts_1_and_2_over_http():
+    import http.server
+    import threading
+
+    from physcene.data.instructions import EndpointInstructor
+
+    seen: list[str] = []
+
+    class Handler(http.server.BaseHTTPRequestHandler):
+        def do_POST(self):  # noqa: N802 (http.server's name)
+            body = json.loads(self.rfile.read(int(self.headers["Content-Length"])))
+            prompt = body["messages"][0]["content"]
+            seen.append(prompt)
+            text = (
+                "<description>A tidy desk with a pen holder at the back.<description>"
+                if "Scene Graph" in prompt
+                else "<instruction>Set up a tidy desk for studying with pens close at hand.<instruction>"
+            )
+            data = json.dumps({"choices": [{"message": {"content": text}}]}).encode()
+            self.send_response(200)
+            self.send_header("Content-Type", "application/json")
+            self.send_header("Content-Length", str(len(data)))
+            self.end_headers()
+            self.wfile.write(data)
+
+        def log_message(self, *args):
+            pass
+
+    server = http.server.HTTPServer(("127.0.0.1", 0), Handler)
+    thread = threading.Thread(target=server.serve_forever, daemon=True)
+    thread.start()
+    try:
+        instructor = EndpointInstructor(base_url=f"http://127.0.0.1:{server.server_port}/v1", model="m")
+        item, scene = _clean("test", 1)
+        description, instruction = instructor.instruct(scene)
+    finally:
+        server.shutdown()
+    assert description.startswith("A tidy desk") and instruction.startswith("Set up a tidy desk")
+    assert "## Scene Graph" in seen[0] and "less than 30 words" in seen[1] and description in seen[1]
+    with pytest.raises(RuntimeError, match="127.0.0.1:9"):
+        EndpointInstructor(base_url="http://127.0.0.1:9/v1", model="m", timeout_s=2).instruct(scene)
