@@ -34,6 +34,13 @@ def training_config(name: str, overrides=()):
     return load_config(name if path_like else f"train_{name}", list(overrides))
 
 
+def _main_process() -> bool:
+    """Rank 0 under ``accelerate launch`` (every rank runs the stage; one prints)."""
+    import os
+
+    return int(os.environ.get("RANK", "0")) == 0
+
+
 def run(args) -> int:
     overrides = list(args.overrides)
     if args.variant:
@@ -42,19 +49,25 @@ def run(args) -> int:
     if args.stage == "sft":
         from physcene.train.sft import run_sft
 
-        print(f"sft model: {run_sft(cfg)}")
+        out = run_sft(cfg)
+        if _main_process():
+            print(f"sft model: {out}")
     elif args.stage == "anchors":
         from physcene.train.anchors import run_anchors
 
         out = run_anchors(cfg)
         summary = out.with_suffix(".summary.json")
+        if not _main_process():
+            return 0
         print(f"anchors: {out}")
         if summary.is_file():
             print(summary.read_text())
     elif args.stage == "pada":
         from physcene.train.pada import run_pada
 
-        print(f"{cfg.pada.variant} adapter: {run_pada(cfg)}")
+        out = run_pada(cfg)
+        if _main_process():
+            print(f"{cfg.pada.variant} adapter: {out}")
     else:
         from physcene.train.ablation import run_ablation
 
