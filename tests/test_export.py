@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 from pathlib import Path
 
 import numpy as np
@@ -191,3 +192,19 @@ def test_bad_input_is_named():
         export(SCENE, "/nonexistent", "stl")
     with pytest.raises(ValueError, match="densit"):
         ExportConfig.load(["density_kg_m3.book=-1"])
+
+
+def _abort(*args, **kwargs):
+    os.abort()  # what CoACD's C++ std::logic_error does to the process
+
+
+def test_a_crashing_decomposition_does_not_kill_the_export(tmp_path, monkeypatch):
+    """CoACD aborts the process on some meshes; the export survives and falls back to the hull."""
+    import physcene.export as export_module
+
+    monkeypatch.setattr(export_module, "_coacd_child", _abort)
+    mesh = default_library().resolve("bowl").asset.mesh
+    settings = {**ExportConfig.load().decomposition, "cache_dir": str(tmp_path)}
+    with pytest.warns(RuntimeWarning, match="CoACD failed"):
+        parts = convex_parts(mesh, settings)
+    assert len(parts) == 1 and parts[0].volume == pytest.approx(mesh.convex_hull.volume)
