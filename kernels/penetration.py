@@ -499,9 +499,22 @@ def support_gap(
     gap_out[slot] = gap
 
 
+_CTYPES: dict = {}
+
+
 def _ct(t: torch.Tensor, dtype=None):
-    """A zero-copy Warp view of a contiguous torch tensor, in launch's fast ctype form."""
-    return wp.from_torch(t, dtype=dtype, return_ctype=True)
+    """A zero-copy Warp view of a contiguous torch tensor, in launch's fast ctype form.
+
+    The view is only (pointer, shape, strides, dtype), so views are memoised on exactly that key:
+    a later tensor at the same address with the same layout gets an identical view.
+    """
+    key = (t.data_ptr(), t.shape, t.stride(), t.dtype, dtype, t.device)
+    view = _CTYPES.get(key)
+    if view is None:
+        if len(_CTYPES) > 4096:
+            _CTYPES.clear()
+        view = _CTYPES[key] = wp.from_torch(t, dtype=dtype, return_ctype=True)
+    return view
 
 
 class _Launcher:
