@@ -201,6 +201,18 @@ def test_scenes_of_different_sizes_in_one_batch_score_as_alone(engine):
         assert together.pairs[k] == alone.pairs[0]
 
 
+def test_kernel_pair_order_is_the_csr_order_of_pair_slots(engine):
+    scenes = random_scenes(np.random.default_rng(10), 7, max_obj=6)
+    batch = engine.pack(scenes)
+    out = engine.evaluate(batch)
+    slots = batch.pair_slots()
+    n_slot = batch.poses.shape[1]
+    assert len(slots) == batch.n_pairs
+    assert out["pair_a"].tolist() == (slots[:, 0] * n_slot + slots[:, 1]).tolist()
+    assert out["pair_b"].tolist() == (slots[:, 0] * n_slot + slots[:, 2]).tolist()
+    assert batch.asset_ids[0] and all(f is None for row in batch.fallbacks for f in row)
+
+
 def test_a_single_scene_and_an_empty_scene(engine):
     sc = scene(obj("a", (10, 10, 5), (10, 10, 10)))
     score = engine.score([sc, Scene(ZONE, ())])
