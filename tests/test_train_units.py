@@ -245,3 +245,25 @@ def test_ablation_row_and_table_from_an_eval_report():
     table = markdown_table([row, empty, {"name": "pada*", "skipped": "no anchors"}])
     assert "| pada | 50.0% | 12.5% | 25.0% | 7.50 | 75.0% | 4 |" in table and "| sft | — |" in table
     assert "skipped: no anchors" in table
+
+
+def test_configs_carry_the_paper_hyperparameters(monkeypatch):
+    from physcene.train.sft import sft_arguments
+
+    cfg = load_config("train_qwen3_vl_8b", ["model.path=/models/qwen3-vl-8b"])
+    assert sft_arguments(cfg).gradient_accumulation_steps == 32  # one process: 2 x 32 = 64
+    monkeypatch.setattr("physcene.train.sft.world_size", lambda: 8)  # what WORLD_SIZE says on 8 GPUs
+    sft = sft_arguments(cfg)
+    assert (sft.learning_rate, sft.adam_beta1, sft.adam_beta2, sft.warmup_steps) == (1e-5, 0.9, 0.95, 0.03)
+    assert sft.lr_scheduler_type == "cosine" and sft.num_train_epochs == 5 and sft.completion_only_loss
+    assert sft.per_device_train_batch_size * sft.gradient_accumulation_steps * 8 == 64
+    assert cfg.sft.lora is None and cfg.model.freeze_vision and cfg.model.chat_format
+    monkeypatch.undo()
+    for name in ("qwen3_vl_8b", "small"):
+        c = load_config(f"train_{name}", ["model.path=/m"])
+        pada = pada_arguments(c, "pada")
+        assert (pada.learning_rate, pada.lr_scheduler_type, pada.num_train_epochs) == (5e-4, "constant", 1)
+        assert (pada.num_generations, pada.beta, pada.anchor_alpha) == (4, 0.04, 0.1)
+        assert int(c.pada.global_batch_size) == 128 and (c.pada.lora.r, c.pada.lora.alpha) == (16, 32)
+        assert set(c.pada.lora.target_modules) == {"q_proj", "k_proj", "v_proj", "o_proj", "gate_proj",
+                                                   "up_proj", "down_proj"}
