@@ -313,6 +313,12 @@ def run_evaluation(cfg, *, command: str = "", title: str = "physcene evaluation"
                                           seed=cfg.seed, progress=progress, model=cfg.generator_model)
         methods[name] = report
         slug = name.lower().replace(" + ", "_").replace(" ", "_").replace("(", "").replace(")", "")
+        if cfg.get("save_layouts", False):  # re-score later with --generator file:<out>/layouts/<slug>
+            from physcene.layout import write_layout
+
+            for it, scene in zip(items, outputs):
+                if isinstance(scene, Scene):
+                    write_layout(scene, out / "layouts" / slug / f"{it.id}.json")
         todo = list(zip(items, outputs))[:n_render]
         for it, scene in tqdm(todo, desc=f"render {name}", disable=not progress, unit="scene"):
             if not isinstance(scene, Scene) or not len(scene):

@@ -33,7 +33,7 @@ from physcene.assets import CATEGORY_ALIASES, CATEGORY_PRIORS
 from physcene.scene import TABLE, Scene
 
 __all__ = ["EndpointJudge", "EvalCase", "JudgeError", "LayoutStats", "RuleJudge", "SYSTEM_PROMPT",
-           "USER_PROMPT", "canonical_category", "layout_features", "parse_judge_reply"]
+           "USER_PROMPT", "adjacency_pairs", "canonical_category", "layout_features", "parse_judge_reply"]
 
 
 class JudgeError(ValueError):
@@ -61,12 +61,38 @@ class EvalCase:
     """Requested object categories (canonical, one entry per instance)."""
     relations: tuple[tuple[str, str, str], ...] = ()
     """Stated relations (child category, "in"|"on", parent category)."""
+    adjacency: tuple[tuple[str, str], ...] = ()
+    """Functional neighbours (category, category of its nearest object) of the reference layout:
+    mouse next to keyboard, fork next to plate."""
 
     @classmethod
     def from_reference(cls, scene: Scene) -> EvalCase:
-        """The request behind a reference layout: its objects and its in/on relations."""
+        """The request behind a reference layout: its objects, in/on relations and neighbours."""
         return cls(scene.instruction, scene.scene_type,
-                   tuple(canonical_category(o.category) for o in scene.objects), stated_relations(scene))
+                   tuple(canonical_category(o.category) for o in scene.objects), stated_relations(scene),
+                   tuple(sorted(adjacency_pairs(scene, k=1).elements())))
+
+
+def adjacency_pairs(scene: Scene, k: int = 1) -> Counter:
+    """Multiset of (category, neighbour category) over every object and the categories among its
+    ``k`` nearest other objects (centre distance in the table plane, cm)."""
+    objs = list(scene.objects)
+    pairs: Counter = Counter()
+    if len(objs) < 2:
+        return pairs
+    cats = [canonical_category(o.category) for o in objs]
+    xy = np.array([o.center[:2] for o in objs])  # (n, 2)
+    d = np.linalg.norm(xy[:, None] - xy[None], axis=-1) + np.eye(len(objs)) * 1e12
+    for i, row in enumerate(np.argsort(d, axis=1)[:, :k]):
+        for b in {cats[j] for j in row}:
+            pairs[(cats[i], b)] += 1
+    return pairs
+
+
+def _held(need: Counter, got: Counter) -> tuple[float, int]:
+    """(share of ``need`` found in ``got`` as multisets, size of ``need``)."""
+    n = sum(need.values())
+    return (sum(min(c, got[key]) for key, c in need.items()) / n if n else 1.0), n
 
 
 def stated_relations(scene: Scene) -> tuple[tuple[str, str, str], ...]:
@@ -193,19 +219,28 @@ class RuleJudge:
 
     # -- criteria ---------------------------------------------------------------------------
     def consistency_with_task(self, scene: Scene, case: EvalCase) -> float:
-        """CwT: share of requested objects present (multiset over categories), 70 %, and share of
-        stated in/on relations that hold in the generated layout, 30 %."""
+        """CwT: q = present · (0.25 + 0.75·kept). *present*: share of requested objects in the
+        layout (multiset over categories). *kept*: share of the request's functional relations
+        that hold — its in/on relations (hierarchy of the generated layout) and its neighbour
+        pairs (an object's reference neighbour category among its 2 nearest objects)."""
         if not case.requested:
             return 10.0
         want = Counter(case.requested)
         have = Counter(canonical_category(o.category) for o in scene.objects)
         present = sum(min(n, have[c]) for c, n in want.items()) / sum(want.values())
-        if not case.relations or not len(scene):
-            return _to_score(present)
-        got = Counter(stated_relations(scene))
-        need = Counter(case.relations)
-        held = sum(min(n, got[r]) for r, n in need.items()) / sum(need.values())
-        return _to_score(0.7 * present + 0.3 * held)
+        return _to_score(present * (0.25 + 0.75 * self._relations_kept(scene, case)))
+
+    @staticmethod
+    def _adjacency_kept(scene: Scene, case: EvalCase) -> float:
+        return _held(Counter(case.adjacency), adjacency_pairs(scene, k=2))[0]
+
+    def _relations_kept(self, scene: Scene, case: EvalCase) -> float:
+        if not len(scene):
+            return 0.0
+        got = Counter(stated_relations(scene)) if case.relations else Counter()
+        rel, n_rel = _held(Counter(case.relations), got)
+        adj, n_adj = _held(Counter(case.adjacency), adjacency_pairs(scene, k=2))
+        return (rel * n_rel + adj * n_adj) / (n_rel + n_adj) if n_rel + n_adj else 1.0
 
     def object_size_reasonableness(self, scene: Scene) -> float:
         """OSR: per object with a size prior, the log-ratio of each dimension to the prior mean in
@@ -235,15 +270,20 @@ class RuleJudge:
         p += min(max(physics.table_penetration_cm, 0.0) / 1.0, 1.0)
         return round(10.0 - 9.0 * (1.0 - math.exp(-p / self.penalty_scale)), 3)
 
-    def layout_coherence(self, scene: Scene) -> float:
+    def layout_coherence(self, scene: Scene, case: EvalCase | None = None) -> float:
         """LCR: z-scores of coverage, spacing, spread and edge fraction against the reference
-        layouts of the scene type; a feature within 1 std costs nothing, beyond it
-        exp(−½·mean(excess²))."""
+        layouts of the scene type (a feature within 1 std costs nothing, beyond it
+        exp(−½·mean(excess²))), times 0.4 + 0.6·(share of the request's neighbour pairs kept)
+        when the request ``case`` is given."""
         if not len(scene):
             return 1.0
         z = self.stats.z_scores(scene)
         excess = np.array([max(abs(v) - 1.0, 0.0) for v in z.values()])
-        return _to_score(math.exp(-0.5 * float(np.mean(excess**2))))
+        spatial = math.exp(-0.5 * float(np.mean(excess**2)))
+        if case is None:
+            return _to_score(spatial)
+        # Coherence: related objects stay together (keyboard by the monitor, fork by the plate).
+        return _to_score(spatial * (0.4 + 0.6 * self._adjacency_kept(scene, case)))
 
     def object_visibility(self, scene: Scene) -> float:
         """OV: per object, visibility = 0 if it sits inside a non-container, else the larger of its
@@ -291,7 +331,7 @@ class RuleJudge:
         out = {"CwT": self.consistency_with_task(scene, case),
                "OSR": self.object_size_reasonableness(scene),
                "PPI": self.placement_plausibility(scene, physics),
-               "LCR": self.layout_coherence(scene),
+               "LCR": self.layout_coherence(scene, case),
                "OV": self.object_visibility(scene)}
         out["avg"] = round(float(np.mean([out[c] for c in CRITERIA])), 4)
         return out
