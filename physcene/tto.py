@@ -50,6 +50,8 @@ class TTOConfig:
     """Adam iterations (paper: 100)."""
     lr: float = 0.01
     """Adam step size in metres / radians (paper: 0.01)."""
+    lr_final: float = 0.01
+    """Learning rate reached at the last step by cosine decay (= lr: constant, the paper's)."""
     lambda_sdf: float = 10.0
     """Weight of the penetration energy, taken in metres (engine cm / 100)."""
     lambda_rel: float = 5.0
@@ -61,6 +63,8 @@ class TTOConfig:
     contact_gap_cm: float = 1e-5
     """An ``on`` child rests this far above its support's top: float32 rounding of a zero gap
     reads as ~1e-7 cm penetration; the gap is far below the 1e-4 cm placement requirement."""
+    footprint_proxy: bool = True
+    """Add the footprint-overlap proxy of pairs that penetrate at the start (see docs/tto.md)."""
     near_margin_cm: float = 0.5
     """Slack a near direction keeps over the axis tie (never more than the input had)."""
     stop_energy_cm: float = 1e-3
@@ -137,6 +141,8 @@ class TTOProblem:
     near_margin: torch.Tensor   # (S, K) cm
     near_mask: torch.Tensor     # (S, K) bool
     frozen_energy: torch.Tensor  # (S,) cm, energy of pairs inside one rigid in-body (constant)
+    contact: torch.Tensor       # (S, P, 2) long, pairs penetrating in the input or its snapped start
+    contact_mask: torch.Tensor  # (S, P) bool
     group: np.ndarray           # (S, N) rigid-body root slot of every object (host)
 
     @property
@@ -239,7 +245,7 @@ def build_problem(scenes: Sequence[Scene], engine, config: TTOConfig) -> TTOProb
     i64 = dict(dtype=torch.long, device=dev)
     max_depth = int(depth.max()) if depth.size else 0
     kind_t = torch.as_tensor(kind, **i64)
-    return TTOProblem(
+    problem = TTOProblem(
         batch=batch,
         mask=torch.as_tensor(mask, device=dev),
         kind=kind_t,
@@ -260,8 +266,12 @@ def build_problem(scenes: Sequence[Scene], engine, config: TTOConfig) -> TTOProb
         near_margin=torch.as_tensor(near_margin, **f32),
         near_mask=torch.as_tensor(near_mask, device=dev),
         frozen_energy=_frozen_energy(engine, batch, group).to(**f32),
+        contact=torch.zeros(n_scene, 1, 2, **i64),
+        contact_mask=torch.zeros(n_scene, 1, dtype=torch.bool, device=dev),
         group=group,
     )
+    problem.contact, problem.contact_mask = _contact_pairs(engine, problem)
+    return problem
 
 
 def _frozen_energy(engine, batch, group: np.ndarray) -> torch.Tensor:
@@ -279,6 +289,31 @@ def _frozen_energy(engine, batch, group: np.ndarray) -> torch.Tensor:
     same = group[slots[:, 0], slots[:, 1]] == group[slots[:, 0], slots[:, 2]]
     energy = out["pair_energy"].detach().cpu().numpy().astype(np.float64)
     return torch.as_tensor(np.bincount(slots[same, 0], weights=energy[same], minlength=n_scene))
+
+
+def _contact_pairs(engine, problem: TTOProblem) -> tuple[torch.Tensor, torch.Tensor]:
+    """Pairs (outside one rigid in-body) that penetrate in the input or at ξ0: (S, P, 2), (S, P).
+
+    They get the footprint proxy of :func:`_footprint_overlap`.
+    """
+    slots = problem.batch.pair_slots()
+    n_scene = problem.n_scene
+    if len(slots) == 0:
+        return problem.contact, problem.contact_mask
+    hot = np.zeros(len(slots), bool)
+    for poses in (problem.raw_poses, forward_kinematics(problem, problem.xi0)):
+        hot |= engine.evaluate(problem.batch, poses)["pair_energy"].detach().cpu().numpy() > 0
+    hot &= problem.group[slots[:, 0], slots[:, 1]] != problem.group[slots[:, 0], slots[:, 2]]
+    slots = slots[hot]
+    counts = np.bincount(slots[:, 0], minlength=n_scene)
+    width = max(1, int(counts.max()) if counts.size else 1)
+    pairs = np.zeros((n_scene, width, 2), np.int64)
+    mask = np.zeros((n_scene, width), bool)
+    rank = np.arange(len(slots)) - np.repeat(np.cumsum(counts) - counts, counts)
+    pairs[slots[:, 0], rank] = slots[:, 1:]
+    mask[slots[:, 0], rank] = True
+    dev = problem.mask.device
+    return torch.as_tensor(pairs, device=dev), torch.as_tensor(mask, device=dev)
 
 
 # --------------------------------------------------------------------------------------------
@@ -307,9 +342,32 @@ def _footprints(poses: torch.Tensor, sizes: torch.Tensor) -> torch.Tensor:
     return torch.stack((poses[..., 0:1] + c * lx - s * ly, poses[..., 1:2] + s * lx + c * ly), dim=-1)
 
 
-def _zone_violation(problem: TTOProblem, poses: torch.Tensor) -> torch.Tensor:
+def _footprint_overlap(problem: TTOProblem, poses: torch.Tensor, corners: torch.Tensor) -> torch.Tensor:
+    """(S,) cm: Σ over contact pairs whose z-ranges overlap of the footprint-AABB penetration depth.
+
+    Why: where one object stands in a thin one (a bottle in a tray's floor, both on the table) the
+    SDF pushes only vertically, and z is held; this proxy gives the sideways direction out.
+    """
+    lo, hi = corners.amin(dim=2), corners.amax(dim=2)  # (S, N, 2)
+    half_h = 0.5 * problem.sizes[..., 2]
+    zlo, zhi = poses[..., 2] - half_h, poses[..., 2] + half_h
+
+    def pick(t: torch.Tensor, k: int) -> torch.Tensor:
+        idx = problem.contact[..., k]
+        if t.dim() == 2:
+            return torch.gather(t, 1, idx)
+        return torch.gather(t, 1, idx.unsqueeze(-1).expand(-1, -1, t.shape[-1]))
+
+    # the shortest of the four sideways moves that separates the boxes (also when one contains
+    # the other, where the plain overlap width has no gradient)
+    push = torch.minimum(pick(hi, 1) - pick(lo, 0), pick(hi, 0) - pick(lo, 1))  # (S, P, 2)
+    z_overlap = torch.minimum(pick(zhi, 0), pick(zhi, 1)) - torch.maximum(pick(zlo, 0), pick(zlo, 1))
+    depth = torch.relu(push.amin(dim=-1)) * (z_overlap > 0) * problem.contact_mask
+    return depth.sum(-1)
+
+
+def _zone_violation(problem: TTOProblem, poses: torch.Tensor, corners: torch.Tensor) -> torch.Tensor:
     """(S,) cm: Σ corner distance outside the zone + Σ overlap depth with restricted zones."""
-    corners = _footprints(poses, problem.sizes)  # (S, N, 4, 2)
     z = problem.zone[:, None, None, :]
     outside = (torch.relu(z[..., 0] - corners[..., 0]) + torch.relu(corners[..., 0] - z[..., 1])
                + torch.relu(z[..., 2] - corners[..., 1]) + torch.relu(corners[..., 1] - z[..., 3]))
@@ -384,8 +442,9 @@ def optimise(problem: TTOProblem, engine, config: TTOConfig) -> TTOSolution:
         xi_eff = torch.where(trainable, xi, xi0)  # in children and padding stay put
         poses = forward_kinematics(problem, xi_eff)
         energy = penetration(engine, problem, poses)
+        corners = _footprints(poses, problem.sizes)  # (S, N, 4, 2)
         hinge_cm = (_CM * _support_violation(problem, xi_eff) + _near_violation(problem, poses),
-                    _zone_violation(problem, poses))
+                    _zone_violation(problem, poses, corners))
         drift = ((xi_eff - xi0) ** 2 * trainable).sum((1, 2))
         rest = (config.lambda_rel * hinge_cm[0] + config.lambda_zone * hinge_cm[1]) / _CM \
             + config.lambda_reg * drift
@@ -401,9 +460,14 @@ def optimise(problem: TTOProblem, engine, config: TTOConfig) -> TTOSolution:
                 active = active & ~done
         if step == config.steps:
             break
-        loss = ((config.lambda_sdf * energy / _CM + rest) * active).sum()
+        proxy = _footprint_overlap(problem, poses, corners) if config.footprint_proxy else 0.0
+        loss = ((config.lambda_sdf * (energy + proxy) / _CM + rest) * active).sum()
         opt.zero_grad(set_to_none=False)
         loss.backward()
+        # cosine decay lr -> lr_final: full-size steps travel, small ones settle at the contacts
+        # (a host float: no sync)
+        opt.param_groups[0]["lr"] = config.lr_final + 0.5 * (config.lr - config.lr_final) * (
+            1.0 + math.cos(math.pi * step / max(config.steps, 1)))
         opt.step()
         with torch.no_grad():
             bound = _support_bounds(problem, xi)
