@@ -36,6 +36,8 @@ def test_heuristic_is_collision_free_and_semantics_blind(items):
     assert all(r.physics.collision_free(0.5) for r in heur)  # packed with a 1 cm gap
     # No stacking or containment: the stated in/on relations are lost, so CwT drops.
     assert sum(r.judge["CwT"] for r in heur) < sum(r.judge["CwT"] for r in ref)
+    # Random placement breaks the functional neighbour pairs: LCR drops too.
+    assert sum(r.judge["LCR"] for r in heur) < sum(r.judge["LCR"] for r in ref)
 
 
 def test_eval_command_writes_tables_plots_and_results(tmp_path, capsys):
