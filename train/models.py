@@ -124,6 +124,15 @@ def load_model(path: str | Path, dtype: str = "bfloat16", freeze_vision: bool = 
 def load_tokenizer(path: str | Path) -> PreTrainedTokenizerBase:
     """The tokenizer saved with a checkpoint, left-padded for generation, with a pad token."""
     tokenizer = AutoTokenizer.from_pretrained(str(path))
+    if tokenizer.chat_template is None:
+        # Vision-language checkpoints may keep the template with the processor files only.
+        for name in ("chat_template.jinja", "chat_template.json"):
+            f = Path(path) / name
+            if f.is_file():
+                text = f.read_text()
+                is_json = name.endswith(".json")
+                tokenizer.chat_template = json.loads(text)["chat_template"] if is_json else text
+                break
     if tokenizer.pad_token is None:
         tokenizer.pad_token = tokenizer.eos_token
     tokenizer.padding_side = "left"
