@@ -41,6 +41,15 @@ __all__ = ["LANES", "launch_penetration", "launch_support"]
 LANES = wp.constant(16)
 # Gradients of the normalised field smaller than this are "vanished": fall back to h_min.
 _GRAD_EPS = wp.constant(1.0e-6)
+# Surface points are sorted into BUCKETS^3 cells of the normalised cube (physics.pack_assets), so
+# the narrowphase reads only the cells that meet the other object's box.
+BUCKETS = wp.constant(4)
+
+
+@wp.func
+def bucket_of(x: float):
+    """The point-bucket index (0..BUCKETS-1) of a normalised coordinate, clamped."""
+    return wp.clamp(int(wp.floor((x + 1.0) * 0.5 * float(BUCKETS))), 0, BUCKETS - 1)
 
 
 @wp.func
@@ -262,9 +271,8 @@ def narrowphase(
     rays: wp.array(dtype=float),  # (3 * len(sdf),) axis ray distances, 3 per node, interleaved
     sdf_start: wp.array(dtype=wp.int32),  # (A,)
     sdf_res: wp.array(dtype=wp.int32),  # (A,)
-    points: wp.array(dtype=wp.vec3),  # all surface points, normalised frames
-    pt_start: wp.array(dtype=wp.int32),  # (A,)
-    pt_count: wp.array(dtype=wp.int32),  # (A,)
+    points: wp.array(dtype=wp.vec3),  # all surface points, normalised frames, bucket-sorted
+    pt_bucket: wp.array(dtype=wp.int32),  # (A * (BUCKETS^3 + 1),) first point of each bucket
     with_grad: int,
     part_energy_out: wp.array(dtype=float),  # (T*2*LANES,) Σ ReLU(−φ) cm
     part_depth_out: wp.array(dtype=float),  # (T*2*LANES,) max ReLU(−φ) cm
@@ -303,25 +311,44 @@ def narrowphase(
     sum_gu = wp.vec3(0.0, 0.0, 0.0)
     yaw_owner = float(0.0)
     yaw_field = float(0.0)
-    p0 = pt_start[ao]
-    n_pt = pt_count[ao]
-    for p in range(lane, n_pt, LANES):
-        pl = points[p0 + p]
-        v = rotate_z(cr, sr, wp.cw_mul(pl, ho))  # owner point, field frame, relative to owner
-        u = v + t_rel  # field-local cm
-        q = wp.cw_div(u, hf)
-        # a point outside the field's box cannot be inside its shape: skip the grid (most points)
-        if wp.max(wp.abs(q[0]), wp.max(wp.abs(q[1]), wp.abs(q[2]))) > 1.0:
-            continue
-        phi, gq = world_phi(sdf, rays, grid0, res, q, hf)
-        if phi < 0.0:
-            energy += -phi
-            depth = wp.max(depth, -phi)
-            if with_grad != 0:
-                gu = wp.cw_div(gq, hf)  # ∂φ/∂u, field-local cm
-                sum_gu += gu
-                yaw_owner += gu[1] * v[0] - gu[0] * v[1]
-                yaw_field += gu[0] * u[1] - gu[1] * u[0]
+    # the field's box seen from the owner's normalised frame: only the owner's point buckets that
+    # meet it are read (every point of the other buckets is outside the field's box)
+    co = wp.cos(po[3])
+    so = wp.sin(po[3])
+    d = rotate_z(co, -so, -dt)  # field centre, owner-local cm
+    ca = wp.abs(cr)
+    sa = wp.abs(sr)
+    reach = wp.vec3(ca * hf[0] + sa * hf[1], sa * hf[0] + ca * hf[1], hf[2])
+    lo = wp.cw_div(d - reach, ho)
+    hi = wp.cw_div(d + reach, ho)
+    kx0 = bucket_of(lo[0] - 1.0e-4)
+    kx1 = bucket_of(hi[0] + 1.0e-4)
+    ky0 = bucket_of(lo[1] - 1.0e-4)
+    ky1 = bucket_of(hi[1] + 1.0e-4)
+    kz0 = bucket_of(lo[2] - 1.0e-4)
+    kz1 = bucket_of(hi[2] + 1.0e-4)
+    b0 = ao * (BUCKETS * BUCKETS * BUCKETS + 1)
+    for kx in range(kx0, kx1 + 1):
+        for ky in range(ky0, ky1 + 1):
+            for kz in range(kz0, kz1 + 1):
+                b = b0 + (kx * BUCKETS + ky) * BUCKETS + kz
+                for p in range(pt_bucket[b] + lane, pt_bucket[b + 1], LANES):
+                    pl = points[p]
+                    v = rotate_z(cr, sr, wp.cw_mul(pl, ho))  # owner point, field frame, from owner
+                    u = v + t_rel  # field-local cm
+                    q = wp.cw_div(u, hf)
+                    # a point outside the field's box cannot be inside its shape: no grid read
+                    if wp.max(wp.abs(q[0]), wp.max(wp.abs(q[1]), wp.abs(q[2]))) > 1.0:
+                        continue
+                    phi, gq = world_phi(sdf, rays, grid0, res, q, hf)
+                    if phi < 0.0:
+                        energy += -phi
+                        depth = wp.max(depth, -phi)
+                        if with_grad != 0:
+                            gu = wp.cw_div(gq, hf)  # ∂φ/∂u, field-local cm
+                            sum_gu += gu
+                            yaw_owner += gu[1] * v[0] - gu[0] * v[1]
+                            yaw_field += gu[0] * u[1] - gu[1] * u[0]
     part_energy_out[tid] = energy
     part_depth_out[tid] = depth
     if with_grad != 0:
@@ -552,7 +579,8 @@ def launch_penetration(
 
     Inputs: pair_start (S+1,) int32; count (S,) int32; poses (S, N, 4) float32 contiguous;
     sizes (S, N, 3) float32; obj_asset (S, N) int32; ``assets`` the packed arrays (``sdf``,
-    ``rays``, ``sdf_start``, ``sdf_res``, ``points`` (K, 3), ``pt_start``, ``pt_count``).
+    ``rays``, ``sdf_start``, ``sdf_res``, ``points`` (K, 3), ``pt_start``, ``pt_count``,
+    ``pt_bucket``).
     Returns torch tensors: ``energy``, ``max_depth``, ``depth_sum`` (S,); ``pair_a``, ``pair_b``
     (T,) slots; ``pair_hit`` (T,); ``pair_energy``, ``pair_depth`` (T,); ``table_depth``,
     ``table_energy``, ``table_below`` (S, N); ``grad`` (S, N, 4) when ``with_grad``.
@@ -603,7 +631,7 @@ def launch_penetration(
     w_pair_grad = _ct(pair_grad, wp.vec4)
     launch(narrowphase, n_part, [w_pair_a, w_pair_b, w_hit, w_poses, w_sizes, w_asset,
                                  _ct(assets["sdf"]), _ct(assets["rays"]), _ct(assets["sdf_start"]),
-                                 _ct(assets["sdf_res"]), w_points, w_pt_start, w_pt_count, int(with_grad),
+                                 _ct(assets["sdf_res"]), w_points, _ct(assets["pt_bucket"]), int(with_grad),
                                  *w_part])
     w_pair_energy, w_pair_depth = _ct(out["pair_energy"]), _ct(out["pair_depth"])
     launch(reduce_pairs, n_pairs, [w_pair_a, w_pair_b, w_hit, w_poses, *w_part, int(with_grad),

@@ -24,10 +24,11 @@ import numpy as np
 import torch
 
 from physcene.config import load_config
-from physcene.kernels.penetration import launch_penetration, launch_support
+from physcene.kernels.penetration import BUCKETS, launch_penetration, launch_support
 from physcene.scene import Scene
 
-__all__ = ["PhysicsConfig", "PhysicsEngine", "SceneBatch", "Score", "axis_ray_distances", "pack_assets"]
+__all__ = ["PhysicsConfig", "PhysicsEngine", "SceneBatch", "Score", "axis_ray_distances", "bucket_points",
+           "pack_assets"]
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -163,19 +164,35 @@ def axis_ray_distances(sdf: np.ndarray) -> np.ndarray:
     return out
 
 
+def bucket_points(points: np.ndarray, buckets: int = BUCKETS) -> tuple[np.ndarray, np.ndarray]:
+    """Points sorted by their cell of a buckets^3 grid over [-1, 1]^3, and each cell's first index.
+
+    Returns (sorted points (P, 3), offsets (buckets^3 + 1,)); cell (kx, ky, kz) is
+    (kx * buckets + ky) * buckets + kz, as ``bucket_of`` in kernels/penetration.py computes it.
+    """
+    k = np.clip(np.floor((points.astype(np.float64) + 1.0) * 0.5 * buckets), 0, buckets - 1).astype(np.int64)
+    cell = (k[:, 0] * buckets + k[:, 1]) * buckets + k[:, 2]
+    order = np.argsort(cell, kind="stable")
+    offsets = np.searchsorted(cell[order], np.arange(buckets**3 + 1))
+    return points[order], offsets
+
+
 def pack_assets(assets: Sequence, device: torch.device) -> dict[str, torch.Tensor]:
     """Concatenate assets' SDF grids and points into the engine's flat arrays on ``device``."""
     res = np.array([a.resolution for a in assets], dtype=np.int32)
     n_pt = np.array([len(a.points) for a in assets], dtype=np.int32)
+    bucketed = [bucket_points(a.points) for a in assets]
+    pt_start = np.concatenate([[0], np.cumsum(n_pt)[:-1]]).astype(np.int64)
     arrays = {
         "sdf": np.concatenate([a.sdf.reshape(-1) for a in assets]).astype(np.float32),
         # per node its 3 axis-ray distances, interleaved, at 3 * sdf_start (penetration.world_phi)
         "rays": np.concatenate([np.moveaxis(axis_ray_distances(a.sdf), 0, -1).reshape(-1) for a in assets]),
         "sdf_start": np.concatenate([[0], np.cumsum(res.astype(np.int64) ** 3)[:-1]]).astype(np.int32),
         "sdf_res": res,
-        "points": np.concatenate([a.points for a in assets]).astype(np.float32).reshape(-1, 3),
-        "pt_start": np.concatenate([[0], np.cumsum(n_pt)[:-1]]).astype(np.int32),
+        "points": np.concatenate([b[0] for b in bucketed]).astype(np.float32).reshape(-1, 3),
+        "pt_start": pt_start.astype(np.int32),
         "pt_count": n_pt,
+        "pt_bucket": np.concatenate([b[1] + start for b, start in zip(bucketed, pt_start)]).astype(np.int32),
     }
     if arrays["sdf"].size >= 2**31:
         raise ValueError(f"{len(assets)} assets exceed 2^31 SDF samples; use lower resolutions")

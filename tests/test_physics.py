@@ -10,7 +10,7 @@ import pytest
 import torch
 
 from physcene.assets import Asset, grid_coordinates, primitive_asset
-from physcene.physics import PhysicsEngine, SceneBatch
+from physcene.physics import PhysicsEngine, SceneBatch, bucket_points
 from physcene.physics_reference import reference_penetration, reference_support_gap
 from physcene.scene import Scene, SceneObject, Zone
 
@@ -241,6 +241,17 @@ def test_assets_of_different_resolutions_and_point_counts(engine):
     out, ref = eng.evaluate(batch, with_grad=True), reference(eng, batch, with_grad=True)
     torch.testing.assert_close(out["energy"].double(), ref["energy"], rtol=1e-4, atol=1e-3)
     assert (out["grad"].double() - ref["grad"]).abs().max() / ref["grad"].abs().max() < 1e-3
+
+
+def test_point_buckets_partition_the_points():
+    points = primitive_asset("cylinder", n_points=500).points
+    ordered, offsets = bucket_points(points, 4)
+    assert offsets[0] == 0 and offsets[-1] == len(points) and np.all(np.diff(offsets) >= 0)
+    assert sorted(map(tuple, ordered.tolist())) == sorted(map(tuple, points.tolist()))
+    for cell in range(64):
+        k = np.array([cell // 16, cell // 4 % 4, cell % 4])
+        chunk = ordered[offsets[cell]:offsets[cell + 1]]
+        assert np.all(chunk >= -1 + 0.5 * k - 1e-6) and np.all(chunk <= -1 + 0.5 * (k + 1) + 1e-6)
 
 
 # Table and support ------------------------------------------------------------------------------
