@@ -112,3 +112,38 @@ def test_train_cli_reports_bad_config_in_one_line(capsys):
     assert main(["train", "sft", "--config", "no_such_config"]) == 2
     err = capsys.readouterr().err
     assert "unknown config 'train_no_such_config'" in err and "Traceback" not in err
+
+
+CHAT_TEMPLATE = ("{% for m in messages %}<|im_start|>{{ m.role }}\n{{ m.content }}<|endoftext|>\n{% endfor %}"
+                 "{% if add_generation_prompt %}<|im_start|>assistant\n{% endif %}")
+
+
+def test_chat_format_pretrained_checkpoint(tmp_path, one_thread):
+    """The 8B code path at tiny size: a local 'pretrained' checkpoint with a chat template, conversational
+    SFT, conversational PADA with anchors, chat-wrapped generation."""
+    from physcene.train.models import build_scratch_model, load_tokenizer
+    from physcene.train.tokenizer import train_tokenizer
+
+    records = _records(4, seed=2)
+    for r in records:
+        r["anchor"] = r["anchor_raw"] = r["completion"]
+    write_records(records, tmp_path / "train.jsonl")
+    base = tmp_path / "base"
+    tok = train_tokenizer([r["prompt"] + r["completion"] for r in records], base, vocab_size=300)
+    tok.chat_template = CHAT_TEMPLATE
+    tok.save_pretrained(base)
+    arch = dict(load_config("train_tiny").model.arch)
+    build_scratch_model(arch, load_tokenizer(base)).save_pretrained(base)
+    cfg = load_config("train_tiny", [
+        "model.source=pretrained", f"model.path={base}", "model.chat_format=true",
+        f"data.train={tmp_path / 'train.jsonl'}", f"output_dir={tmp_path / 'run'}", "sft.max_steps=2",
+        f"pada.anchors={tmp_path / 'train.jsonl'}", "pada.max_steps=1", "pada.max_completion_length=16"])
+    sft_dir = run_sft(cfg)
+    info = json.loads((sft_dir / "physcene_run.json").read_text())
+    assert info["chat_format"] is True and info["base_model"] == str(base) and info["steps"] == 2
+    out = run_pada(cfg, variant="pada", reward=PhysicsReward(RewardConfig(device="cpu")))
+    step = [e for e in json.loads((out / "train_log.json").read_text()) if "reward" in e][0]
+    assert step["anchor_ce"] > 0 and step["parse_rate"] == 0.0
+    texts = generate(out, [r["prompt"] for r in records[:2]], max_new_tokens=8)
+    # Completions only: neither the prompt nor the chat wrapping comes back.
+    assert len(texts) == 2 and all(records[0]["prompt"][:30] not in t and "user\n" not in t for t in texts)
