@@ -267,3 +267,18 @@ def test_configs_carry_the_paper_hyperparameters(monkeypatch):
         assert int(c.pada.global_batch_size) == 128 and (c.pada.lora.r, c.pada.lora.alpha) == (16, 32)
         assert set(c.pada.lora.target_modules) == {"q_proj", "k_proj", "v_proj", "o_proj", "gate_proj",
                                                    "up_proj", "down_proj"}
+
+
+@pytest.mark.cuda
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+def test_reward_function_on_the_rank_device_matches_cpu():
+    from physcene.ctrc import completion_text
+    from physcene.noisy_scenes import noisy_scenes
+    from physcene.train.pada import PhysicsRewardFunction
+
+    texts = [completion_text(s) for s in noisy_scenes(6, n_objects=6, seed=3)] + ["not a layout"]
+    logged = {}
+    gpu = PhysicsRewardFunction("cuda:0")(None, texts, log_metric=logged.__setitem__)
+    cpu = PhysicsRewardFunction("cpu")(None, texts)
+    assert gpu == pytest.approx(cpu, rel=1e-4, abs=1e-4) and gpu[-1] == -100.0
+    assert logged["parse_rate"] == pytest.approx(6 / 7) and logged["penetration_mm"] >= 0
