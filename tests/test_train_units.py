@@ -272,9 +272,10 @@ def test_configs_carry_the_paper_hyperparameters(monkeypatch):
 @pytest.mark.cuda
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
 def test_reward_function_on_the_rank_device_matches_cpu():
+    from physcene.train.pada import PhysicsRewardFunction
+
     from physcene.ctrc import completion_text
     from physcene.noisy_scenes import noisy_scenes
-    from physcene.train.pada import PhysicsRewardFunction
 
     texts = [completion_text(s) for s in noisy_scenes(6, n_objects=6, seed=3)] + ["not a layout"]
     logged = {}
