@@ -165,6 +165,8 @@ def world_phi(sdf: wp.array(dtype=float), rays: wp.array(dtype=float), start: in
         return phi, g
     qc, node, t = grid_cell(q, res)
     for k in range(3):
+        if half[k] >= scale:
+            continue  # h_k r_k >= h_k |φ_n| >= this depth already (r_k >= |φ_n|): cannot be smaller
         r = trilinear(rays, 3 * (start + node) + k, 3, res, t, float(res - 1) * 0.5)
         if -half[k] * r[0] > phi:
             phi = -half[k] * r[0]

@@ -90,7 +90,8 @@ def world_phi(sdf, rays, start, res, q, half):
     terms = [phi_n * scale]
     for k in range(3):
         r, _ = _trilinear(rays, 3 * (start + node) + k, 3, res, t, inv_h)
-        terms.append(-half[:, k] * r)
+        # axes at least as long as the scale are not consulted (h_k r_k >= h_k |φ_n| >= the depth)
+        terms.append(torch.where(half[:, k] < scale, -half[:, k] * r, torch.full_like(r, -torch.inf)))
     capped = torch.stack(terms, -1).max(-1).values
     # under a uniform scale the first-order term is exact and the rays are not consulted
     uniform = half.max(-1).values <= half.min(-1).values * 1.000001
