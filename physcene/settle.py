@@ -126,12 +126,41 @@ def settle(scene: Scene, *, library=None, config: SettleConfig | None = None,
     return SettleResult(objects=objects, diverged=diverged, path=path)
 
 
+def _settle_job(job: tuple) -> SettleResult:
+    scene, path, config, export_config = job
+    return settle(scene, config=config, export_config=export_config, path=path)
+
+
 def settle_many(scenes: Iterable[Scene], *, library=None, config: SettleConfig | None = None,
-                export_config: ExportConfig | None = None) -> list[SettleResult]:
-    """:func:`settle` for each scene (one MuJoCo model each; scenes do not interact)."""
+                export_config: ExportConfig | None = None, paths: Sequence[str | None] | None = None,
+                workers: int = 1, progress: bool = False) -> list[SettleResult]:
+    """:func:`settle` for each scene (one MuJoCo model each; scenes do not interact), in order.
+
+    ``workers`` > 1 runs scenes in that many spawned processes (MuJoCo and the mesh work are CPU
+    bound); they share the on-disk decomposition cache and use the default asset library, so a
+    custom ``library`` needs ``workers=1``.
+    """
+    from tqdm import tqdm
+
     config = config or SettleConfig.load()
     export_config = export_config or ExportConfig.load()
-    return [settle(s, library=library, config=config, export_config=export_config) for s in scenes]
+    scenes = list(scenes)
+    paths = list(paths) if paths is not None else [None] * len(scenes)
+    if len(paths) != len(scenes):
+        raise ValueError(f"settle_many: {len(paths)} paths for {len(scenes)} scenes")
+    bar = dict(total=len(scenes), desc="settle", unit="scene", disable=not progress or len(scenes) < 2)
+    if workers <= 1 or len(scenes) < 2:
+        return [settle(s, library=library, config=config, export_config=export_config, path=p)
+                for s, p in tqdm(zip(scenes, paths), **bar)]
+    if library is not None:
+        raise ValueError("settle_many: workers > 1 uses the default asset library; pass library=None")
+    import multiprocessing
+    from concurrent.futures import ProcessPoolExecutor
+
+    jobs = [(s, p, config, export_config) for s, p in zip(scenes, paths)]
+    # Spawned, not forked: the parent may hold torch/OpenMP threads that a fork would copy mid-state.
+    with ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context("spawn")) as pool:
+        return list(tqdm(pool.map(_settle_job, jobs, chunksize=4), **bar))
 
 
 def stability_rate(results: Iterable[SettleResult | dict]) -> float:

@@ -3,6 +3,7 @@
     physcene settle scene/layout.json                # one layout
     physcene settle Layout_info/ data.jsonl --json   # a tree of layout.json files, a JSONL dataset
     physcene settle data.jsonl settle.duration_s=4 mujoco.timestep=0.001   # configs/export.yaml
+    physcene settle data.jsonl --workers 8 --json > settle.json           # scenes in 8 processes
 
 PATH is a layout.json, a directory (searched recursively for layout.json) or a JSONL file whose
 records carry a ``layout`` object (a record is named ``FILE:LINE``). A scene is stable when every
@@ -31,6 +32,8 @@ def add_arguments(parser) -> None:
     parser.add_argument("paths", nargs="+", metavar="PATH",
                         help="layout.json, a directory of layout.json files, or a JSONL dataset")
     parser.add_argument("--json", action="store_true", help="print one JSON document")
+    parser.add_argument("--workers", type=int, default=1,
+                        help="processes to simulate scenes in parallel (default 1)")
 
 
 def read_inputs(paths: Sequence[str]) -> list[tuple[str, Scene | None, str | None]]:
@@ -53,20 +56,18 @@ class _NoRecord:
 
 
 def run(args) -> int:
-    from tqdm import tqdm
-
     from physcene.export import ExportConfig
-    from physcene.settle import SettleConfig, object_stability_rate, settle, stability_rate
+    from physcene.settle import SettleConfig, object_stability_rate, settle_many, stability_rate
 
     items = read_inputs(args.paths)
     export_config = ExportConfig.load(args.overrides)
     config = SettleConfig.load(args.overrides)
     readable = [(label, scene) for label, scene, error in items if error is None]
     errors = [error for _, _, error in items if error is not None]
-    results = []
-    for label, scene in tqdm(readable, desc="settle", unit="scene", disable=len(readable) < 2,
-                             file=sys.stderr):
-        results.append(settle(scene, config=config, export_config=export_config, path=label))
+    if args.workers < 1:
+        raise ValueError(f"--workers must be >= 1, got {args.workers}")
+    results = settle_many([scene for _, scene in readable], config=config, export_config=export_config,
+                          paths=[label for label, _ in readable], workers=args.workers, progress=True)
     rate, object_rate = stability_rate(results), object_stability_rate(results)
     for error in errors:  # named on stderr; the readable scenes are still reported
         print(f"physcene settle: error: {error}", file=sys.stderr)
