@@ -172,7 +172,7 @@ def convex_parts(mesh: trimesh.Trimesh, settings: dict) -> list[trimesh.Trimesh]
     if not parts:
         warnings.warn(f"CoACD failed on a mesh of {len(mesh.faces)} faces; its convex hull stands in "
                       "(cavities of this asset are closed in the export)", RuntimeWarning, stacklevel=2)
-        parts = [hull]
+        return [hull]  # not cached: every run says so, and a fixed CoACD gets its chance
     vertices = np.concatenate([p.vertices for p in parts])
     faces = np.concatenate([p.faces for p in parts])
     offsets = np.cumsum([[0, 0]] + [[len(p.vertices), len(p.faces)] for p in parts], axis=0)

@@ -211,3 +211,4 @@ def test_a_crashing_decomposition_does_not_kill_the_export(tmp_path, monkeypatch
     with pytest.warns(RuntimeWarning, match="CoACD failed"):
         parts = convex_parts(mesh, settings)
     assert len(parts) == 1 and parts[0].volume == pytest.approx(mesh.convex_hull.volume)
+    assert not list(tmp_path.iterdir())  # a fallback is not cached
