@@ -212,3 +212,18 @@ def test_a_crashing_decomposition_does_not_kill_the_export(tmp_path, monkeypatch
         parts = convex_parts(mesh, settings)
     assert len(parts) == 1 and parts[0].volume == pytest.approx(mesh.convex_hull.volume)
     assert not list(tmp_path.iterdir())  # a fallback is not cached
+
+
+def test_export_command_takes_one_jsonl_record(tmp_path, capsys, export_config):
+    records = [{"id": f"s{k}", "layout": {"item_placement_zone": [0, 50, 0, 50], "objects": {
+        f"box_{k}": {"position": [10 + k, 10, 5], "size": [10, 10, 10], "z_rotation": 0}}}} for k in range(2)]
+    jsonl = tmp_path / "data.jsonl"
+    jsonl.write_text("".join(json.dumps(r) + "\n" for r in records))
+    out = tmp_path / "out"
+    assert main(["export", f"{jsonl}:2", "--format", "glb", "-o", str(out)]) == 0
+    loaded = trimesh.load(out / "scene.glb")
+    assert "box_1" in loaded.graph.nodes_geometry and "box_0" not in loaded.graph.nodes_geometry
+    capsys.readouterr()
+    assert main(["export", str(jsonl), "--format", "glb", "-o", str(out)]) == 2
+    assert "holds 2 layouts" in capsys.readouterr().err
+    assert main(["export", f"{jsonl}:9", "--format", "glb", "-o", str(out)]) == 2
