@@ -63,6 +63,9 @@ class TTOConfig:
     contact_gap_cm: float = 1e-5
     """An ``on`` child rests this far above its support's top: float32 rounding of a zero gap
     reads as ~1e-7 cm penetration; the gap is far below the 1e-4 cm placement requirement."""
+    reattach_gap_cm: float = 3.0
+    """A table-level object hovering over / sunk into a support by less than this is optimised as
+    ``on`` it (0 disables; see :func:`_reattach`)."""
     footprint_proxy: bool = True
     """Add the footprint-overlap proxy of pairs that penetrate at the start (see docs/tto.md)."""
     near_margin_cm: float = 0.5
@@ -144,6 +147,7 @@ class TTOProblem:
     contact: torch.Tensor       # (S, P, 2) long, pairs penetrating in the input or its snapped start
     contact_mask: torch.Tensor  # (S, P) bool
     group: np.ndarray           # (S, N) rigid-body root slot of every object (host)
+    reattached: list = field(default_factory=list)  # per scene, [(object id, support id)]
 
     @property
     def n_scene(self) -> int:
@@ -182,8 +186,12 @@ def _relative(child: SceneObject, parent: SceneObject) -> tuple[float, float, fl
     return c * dx + s * dy, -s * dx + c * dy, child.yaw - parent.yaw
 
 
-def build_problem(scenes: Sequence[Scene], engine, config: TTOConfig) -> TTOProblem:
-    """Pack hierarchical, non-empty ``scenes`` (every object has a parent) for :func:`optimise`."""
+def build_problem(scenes: Sequence[Scene], engine, config: TTOConfig,
+                  freeze: Sequence[set[str]] | None = None) -> TTOProblem:
+    """Pack hierarchical, non-empty ``scenes`` (every object has a parent) for :func:`optimise`.
+
+    ``freeze``: per scene, ids whose ξ is held at its start (their subtrees still follow them).
+    """
     from physcene.graph import near_references
 
     batch = engine.pack(list(scenes))
@@ -208,23 +216,29 @@ def build_problem(scenes: Sequence[Scene], engine, config: TTOConfig) -> TTOProb
     near_margin = np.zeros((n_scene, n_near))
     near_mask = np.zeros((n_scene, n_near), bool)
     group = np.tile(np.arange(n_slot), (n_scene, 1))
+    reattached = []
+    held = np.zeros((n_scene, n_slot), bool)
     for s, scene in enumerate(scenes):
         n = len(scene)
-        objs = scene.objects
-        k, p = _kinds(scene)
+        hold = freeze[s] if freeze else set()
+        held[s, :n] = [oid in hold for oid in scene.ids()]
+        attached, notes = _reattach(scene, config) if not hold else (scene, [])
+        reattached.append(notes)
+        objs = attached.objects
+        k, p = _kinds(attached)
         kind[s, :n], parent[s, :n], depth[s, :n] = k, p, _depths(p)
         for i in np.argsort(depth[s, :n], kind="stable"):  # parents before children
             o = objs[i]
             if k[i] == ROOT:
                 xi0[s, i] = (o.center[0] / _CM, o.center[1] / _CM, o.yaw)
-                zloc[s, i] = 0.5 * o.size[2]
+                zloc[s, i] = o.center[2] if held[s, i] else 0.5 * o.size[2]  # held: exactly as input
                 continue
             par = objs[p[i]]
             u, v, psi = _relative(o, par)
             xi0[s, i] = (u / _CM, v / _CM, psi)
             parent_half[s, i] = (0.5 * par.size[0], 0.5 * par.size[1])
-            zloc[s, i] = (0.5 * (par.size[2] + o.size[2]) + config.contact_gap_cm if k[i] == ON
-                          else o.center[2] - par.center[2])
+            zloc[s, i] = (0.5 * (par.size[2] + o.size[2]) + config.contact_gap_cm
+                          if k[i] == ON and not held[s, i] else o.center[2] - par.center[2])
             group[s, i] = group[s, p[i]] if k[i] == IN else i
         zone[s] = scene.zone.to_list()
         for r, rz in enumerate(scene.restricted_zones):
@@ -252,7 +266,7 @@ def build_problem(scenes: Sequence[Scene], engine, config: TTOConfig) -> TTOProb
         parent=torch.as_tensor(parent, **i64),
         depth_masks=[torch.as_tensor(depth == d, device=dev) for d in range(1, max_depth + 1)],
         xi0=torch.as_tensor(xi0, **f32),
-        trainable=torch.as_tensor(mask, device=dev) & (kind_t != IN),
+        trainable=torch.as_tensor(mask & ~held, device=dev) & (kind_t != IN),
         zloc=torch.as_tensor(zloc, **f32),
         sizes=batch.sizes.to(**f32),
         raw_poses=batch.poses.to(**f32),
@@ -269,9 +283,49 @@ def build_problem(scenes: Sequence[Scene], engine, config: TTOConfig) -> TTOProb
         contact=torch.zeros(n_scene, 1, 2, **i64),
         contact_mask=torch.zeros(n_scene, 1, dtype=torch.bool, device=dev),
         group=group,
+        reattached=reattached,
     )
     problem.contact, problem.contact_mask = _contact_pairs(engine, problem)
     return problem
+
+
+def _reattach(scene: Scene, config: TTOConfig) -> tuple[Scene, list[tuple[str, str]]]:
+    """Put back on its support a table-level object that hovers over or is sunk into one.
+
+    A table-level object whose bottom is off the table (|zmin| > 0.05 cm) but within
+    ``reattach_gap_cm`` of the top of an object below it (lower centre, not in its own subtree)
+    that covers more than the graph's on-overlap of its footprint is optimised as ``on`` the
+    highest such support. Dropping it to the table instead would put it inside the support's
+    footprint, where the SDF pushes only vertically (z is held) and the object is stuck.
+    """
+    if config.reattach_gap_cm <= 0:
+        return scene, []
+    from physcene.graph import GraphConfig, footprint_overlap
+
+    min_overlap = GraphConfig().on_footprint_overlap
+    children: dict[str, list[str]] = {}
+    for o in scene.objects:
+        children.setdefault(o.parent, []).append(o.instance_id)
+    moves: dict[str, str] = {}
+    for a in scene.objects:
+        if a.parent not in (None, TABLE) or abs(a.zmin) <= 0.05:
+            continue
+        subtree, stack = {a.instance_id}, [a.instance_id]
+        while stack:
+            for c in children.get(stack.pop(), []):
+                subtree.add(c)
+                stack.append(c)
+        supports = [b for b in scene.objects
+                    if b.instance_id not in subtree and b.center[2] < a.center[2]
+                    and abs(a.zmin - b.zmax) < config.reattach_gap_cm
+                    and footprint_overlap(a, b) > min_overlap]
+        if supports:
+            moves[a.instance_id] = max(supports, key=lambda b: (b.zmax, b.instance_id)).instance_id
+    if not moves:
+        return scene, []
+    return (scene.with_objects(o.moved(parent=moves[o.instance_id], relation="on")
+                               if o.instance_id in moves else o for o in scene.objects),
+            sorted(moves.items()))
 
 
 def _frozen_energy(engine, batch, group: np.ndarray) -> torch.Tensor:
@@ -513,7 +567,51 @@ def repair(scenes: Sequence[Scene], config: TTOConfig | None = None, engine=None
         for k, result in enumerate(_results(problem, solution, [scenes[i] for i in chunk], hier,
                                             engine, config)):
             results[chunk[k]] = result
+        _second_pass(chunk, hier, scenes, results, engine, config)
     return results
+
+
+def _second_pass(chunk: list[int], hier: list[Scene], scenes: list[Scene], results: list, engine,
+                 config: TTOConfig) -> None:
+    """Re-run scenes whose rebuilt graph lost an in/on edge, with that child's chain held.
+
+    Why: sliding an ``on`` child (or its support, or a container over it), or snapping it onto its
+    support, can make another container's ``in`` test true, and the graph ranks ``in`` above
+    ``on``. The child, its ancestors and the object that took it (with its ancestors) are held
+    exactly where the input had them (z included, no snapping, no reattachment); the rest of the
+    scene is still optimised. The second result is taken when it keeps more
+    in/on edges and is not worse in energy.
+    """
+    if not config.report_relations:
+        return
+    redo = [k for k, i in enumerate(chunk) if results[i].report["relations"]["in_on_broken"]]
+    if not redo:
+        return
+    from physcene.graph import build_hierarchy
+
+    freeze = []
+    for k in redo:
+        after = results[chunk[k]].scene
+        taken = build_hierarchy(after.with_objects(o.moved(parent=None, relation=None)
+                                                   for o in after.objects))
+        by_id, ids = hier[k].by_id(), set()
+        for child in results[chunk[k]].report["relations"]["in_on_broken"]:
+            # the child's chain and the chain of what the rebuilt graph gave it to
+            for oid in (child, taken.get(child).parent):
+                while oid in by_id and oid not in ids:
+                    ids.add(oid)
+                    oid = by_id[oid].parent
+        freeze.append(ids)
+    sub = [hier[k] for k in redo]
+    problem = build_problem(sub, engine, config, freeze)
+    solution = optimise(problem, engine, config)
+    for k, again in zip(redo, _results(problem, solution, [scenes[chunk[k]] for k in redo], sub,
+                                       engine, config)):
+        first = results[chunk[k]]
+        if (again.report["relations"]["in_on_kept"] > first.report["relations"]["in_on_kept"]
+                and again.energy_after <= first.energy_before):
+            again.report["held"] = sorted(freeze[redo.index(k)])
+            results[chunk[k]] = again
 
 
 def summarize(results: Sequence[TTOResult]) -> dict:
@@ -582,6 +680,7 @@ def _results(problem: TTOProblem, solution: TTOSolution, inputs: list[Scene], hi
         e_after = float(e_before[s] if kept[s] else e_best[s])
         report = _describe(hier[s], after, problem.group[s, :len(after)], before_score, after_score,
                            s, config)
+        report["reattached"] = [{"object": a, "on": b} for a, b in problem.reattached[s]]
         report.update(energy_before=float(e_before[s]), energy_after=e_after,
                       max_displacement_cm=float(disp.max()), mean_displacement_cm=float(disp.mean()),
                       steps=int(steps[s]), kept_input=bool(kept[s]))

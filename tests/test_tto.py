@@ -178,6 +178,23 @@ def test_restricted_zone_pushes_a_stack_out_whole(engine):
     assert result.scene.get("book_1").zmin == pytest.approx(result.scene.get("box_0").zmax, abs=1e-4)
 
 
+def test_object_sunk_into_a_support_is_put_back_on_it(engine):
+    """A banana sunk 1.4 cm into a cutting board at the zone's edge: graph says near (gap > 1 cm);
+    dropping it to the table would trap it in the board, so TTO puts it back on the board."""
+    scene = Scene(zone=Zone(0, 80, 0, 60), objects=(
+        _obj("board_0", "cutting_board", (22, 30, 1.1), (40, 25, 2.2)),
+        _obj("banana_1", "banana", (9, 28, 2.9), (16, 5, 4.2)),  # zmin 0.8: 1.4 cm into the board
+        _obj("mug_2", "mug", (60, 30, 5), (9, 8, 10)),
+    ))
+    [result] = repair([scene], TTOConfig(), engine)
+    assert result.report["reattached"] == [{"object": "banana_1", "on": "board_0"}]
+    after = result.scene
+    assert after.get("banana_1").zmin == pytest.approx(after.get("board_0").zmax, abs=1e-4)
+    assert result.report["collision_free"] and result.energy_after < result.energy_before
+    off = repair([scene], TTOConfig(reattach_gap_cm=0.0), engine)[0]
+    assert off.report["reattached"] == [] and off.scene.get("banana_1").zmin == pytest.approx(0.0, abs=1e-4)
+
+
 def test_relation_preservation_measure():
     scene = _stack_scene()
     same = relation_preservation(scene, scene)
