@@ -18,7 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from physcene.config import load_config
-from physcene.export import ExportConfig, build_models, mjcf_document
+from physcene.export import ExportConfig, ExportError, build_models, mjcf_document
 from physcene.scene import Scene
 
 __all__ = ["ObjectSettle", "SettleConfig", "SettleResult", "object_stability_rate", "settle",
@@ -101,7 +101,10 @@ def settle(scene: Scene, *, library=None, config: SettleConfig | None = None,
         return SettleResult(objects=(), path=path)
     models = build_models(scene, library=library, config=export_config)
     xml, files = mjcf_document(scene, config=export_config, models=models)
-    mj_model = mujoco.MjModel.from_xml_string(xml, files)
+    try:
+        mj_model = mujoco.MjModel.from_xml_string(xml, files)
+    except ValueError as exc:  # MuJoCo's compiler error, e.g. a degenerate mesh part
+        raise ExportError(f"{path or 'scene'}: MuJoCo rejected the exported model: {exc}") from exc
     data = mujoco.MjData(mj_model)
     mujoco.mj_forward(mj_model, data)
     addr = np.array([mj_model.jnt_qposadr[mujoco.mj_name2id(mj_model, mujoco.mjtObj.mjOBJ_JOINT, m.name)]
