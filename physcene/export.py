@@ -310,7 +310,10 @@ def build_models(scene: Scene, *, library=None, config: ExportConfig | None = No
                 raise ExportError(f"object {obj.instance_id!r}: convex decomposition of asset "
                                   f"{asset.asset_id!r} left no part of positive volume")
             shapes = tuple(shapes)
-        mass, com, inertia = _mass_properties(visual, half, config.density(obj.category), config.min_mass_kg)
+        # A category the config does not list takes the density of the asset it was retrieved as
+        # ("desk_lamp" -> lamp), before the default.
+        category = obj.category if obj.category in config.densities else asset.category
+        mass, com, inertia = _mass_properties(visual, half, config.density(category), config.min_mass_kg)
         models.append(ObjectModel(
             instance_id=obj.instance_id, category=obj.category, name=name,
             position=CM * np.asarray(obj.center, dtype=np.float64), quaternion=_yaw_quaternion(obj.yaw),
