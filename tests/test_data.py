@@ -234,6 +234,8 @@ def test_import_mesatask_errors_name_the_input(tmp_path, capsys):
     assert main(["data", "import-mesatask", str(tmp_path / "missing"), "--out", str(tmp_path / "o")]) == 2
     assert "missing" in capsys.readouterr().err
     assert main(["data", "synth", "--out", str(tmp_path / "o"), "--n", "0"]) == 2
+    assert main(["data", "synth", "--out", str(tmp_path / "o"), "--n", "2", "noise.bogus=1"]) == 2
+    assert "bogus" in capsys.readouterr().err
 
 
 def test_every_scene_type_spec_is_usable():

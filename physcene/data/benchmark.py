@@ -51,17 +51,31 @@ class DataConfig:
 
     @classmethod
     def load(cls, overrides=()) -> DataConfig:
-        from physcene.config import load_config
+        """``configs/data.yaml`` with ``key=value`` overrides; unknown keys are a ConfigError."""
+        from dataclasses import fields
+
+        from physcene.config import ConfigError, load_config
 
         cfg = OmegaConf.to_container(load_config("data", list(overrides)), resolve=True)
 
-        def tuples(d: dict) -> dict:
-            return {k: tuple(v) if isinstance(v, list) else v for k, v in d.items()}
+        def build(kind, section: str):
+            values = cfg.get(section) or {}
+            known = {f.name for f in fields(kind)}
+            unknown = sorted(set(values) - known)
+            if unknown:
+                raise ConfigError(f"unknown {section} keys {unknown}; known: {sorted(known)}")
+            try:
+                return kind(**{k: tuple(v) if isinstance(v, list) else v for k, v in values.items()})
+            except (TypeError, ValueError) as exc:
+                raise ConfigError(f"bad {section} config: {exc}") from exc
 
-        rec = cfg.get("record", {})
+        unknown = sorted(set(cfg) - {"synth", "noise", "record"})
+        if unknown:
+            raise ConfigError(f"unknown data config sections {unknown}; known: synth, noise, record")
+        rec = cfg.get("record") or {}
         return cls(
-            synth=SynthConfig(**tuples(cfg.get("synth", {}))),
-            noise=NoiseConfig(**tuples(cfg.get("noise", {}))),
+            synth=build(SynthConfig, "synth"),
+            noise=build(NoiseConfig, "noise"),
             prompt_objects=bool(rec.get("prompt_objects", True)),
             workers=int(rec.get("workers", 2)),
             measure=str(rec.get("measure", "auto")).lower(),
