@@ -70,6 +70,7 @@ def test_model_generator_feeds_ctrc_prompts_and_parses_completions(items, monkey
     """``model:PATH`` calls physcene.train.generate.generate on the benchmark's CTRC prompts; here
     the 'model' answers with the reference completions (and one garbage answer)."""
     import physcene.train.generate as train_generate
+
     from physcene.data import synthesize
 
     completions = {r["prompt"]: r["completion"] for r in synthesize("test", n=len(items))}
