@@ -2,16 +2,21 @@
 
 Each module in :mod:`physcene.commands` defines ``NAME``, ``HELP``, ``add_arguments(parser)`` and
 ``run(args) -> int``; they are found here without a central list, so adding a subcommand is
-adding a file. Expected errors (bad input files, bad configs) print one line and exit 2; they
-never print a traceback.
+adding a file. ``NAME`` and ``HELP`` are string literals read from the source without importing
+it, and only the invoked subcommand's module is imported: the modules pull in torch, Warp and
+trimesh, and importing all of them cost every command several seconds of start-up. Expected
+errors (bad input files, bad configs) print one line and exit 2; they never print a traceback.
 """
 
 from __future__ import annotations
 
 import argparse
+import ast
 import importlib
+import importlib.util
 import pkgutil
 import sys
+from pathlib import Path
 
 from physcene import commands
 
@@ -22,25 +27,50 @@ _INPUT_ERRORS: tuple[type[BaseException], ...] = (ValueError, FileNotFoundError,
                                                    PermissionError, KeyError)
 
 
-def _subcommand_modules():
+def _literal_constants(path: Path, names: tuple[str, ...]) -> dict[str, str]:
+    """Module-level ``NAME = "..."`` string constants of a source file, without importing it."""
+    found = {}
+    for node in ast.parse(path.read_text(encoding="utf-8")).body:
+        if isinstance(node, ast.Assign) and isinstance(node.value, ast.Constant):
+            for target in node.targets:
+                if isinstance(target, ast.Name) and target.id in names:
+                    found[target.id] = str(node.value.value)
+    return found
+
+
+def subcommands() -> dict[str, tuple[str, str]]:
+    """``{name: (module, help)}`` for every module of :mod:`physcene.commands`."""
+    table = {}
     for info in sorted(pkgutil.iter_modules(commands.__path__), key=lambda m: m.name):
-        if not info.name.startswith("_"):
-            yield importlib.import_module(f"physcene.commands.{info.name}")
+        if info.name.startswith("_"):
+            continue
+        module = f"physcene.commands.{info.name}"
+        consts = _literal_constants(Path(importlib.util.find_spec(module).origin), ("NAME", "HELP"))
+        if "NAME" not in consts:
+            raise RuntimeError(f"{module} defines no literal NAME")
+        table[consts["NAME"]] = (module, consts.get("HELP", ""))
+    return table
 
 
-def build_parser() -> argparse.ArgumentParser:
+def build_parser(selected: str | None = None) -> argparse.ArgumentParser:
+    """The parser; only ``selected`` (or, when None, every) subcommand gets its arguments."""
     parser = argparse.ArgumentParser(prog="physcene", description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     sub.required = True
-    for module in _subcommand_modules():
-        p = sub.add_parser(module.NAME, help=module.HELP, description=module.HELP)
-        module.add_arguments(p)
-        p.set_defaults(_run=module.run)
+    for name, (module_name, help_text) in subcommands().items():
+        p = sub.add_parser(name, help=help_text, description=help_text)
+        if selected is None or name == selected:
+            module = importlib.import_module(module_name)
+            module.add_arguments(p)
+            p.set_defaults(_run=module.run)
     return parser
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = build_parser()
+    argv = list(sys.argv[1:] if argv is None else argv)
+    # the first word that is not an option names the subcommand (top-level takes only -h)
+    invoked = next((a for a in argv if not a.startswith("-")), "")
+    parser = build_parser(invoked if invoked in subcommands() else "")
     args, extra = parser.parse_known_args(argv)
     unknown = [a for a in extra if "=" not in a or a.startswith("-")]
     if unknown:
