@@ -173,14 +173,16 @@ def repair_outputs(outputs: list, *, tto_overrides: Sequence[str] = (), engine=N
 
 
 def make_judge(kind: str, references: Sequence[Scene], *, url: str | None = None, model: str = "gpt-4o",
-               cache_dir: str | None = None):
-    """``rule`` (fitted on ``references``) or ``endpoint`` (needs ``url``)."""
+               cache_dir: str | None = None, image_size: Sequence[int] = (512, 384)):
+    """``rule`` (fitted on ``references``) or ``endpoint`` (needs ``url``; renders of
+    ``image_size`` = (width, height) px)."""
     if kind == "rule":
         return RuleJudge(LayoutStats.fit(references))
     if kind == "endpoint":
         if not url:
             raise EvalError("judge=endpoint needs judge_url=http://host:port/v1")
-        return EndpointJudge(url, model=model, cache_dir=cache_dir)
+        size = (int(image_size[0]), int(image_size[1]))
+        return EndpointJudge(url, model=model, cache_dir=cache_dir, image_size=size)
     raise EvalError(f"unknown judge {kind!r}; expected rule or endpoint")
 
 
@@ -301,7 +303,8 @@ def run_evaluation(cfg, *, command: str = "", title: str = "physcene evaluation"
     if not items:
         raise EvalError(f"split {cfg.split!r} gave no scenes")
     judge = make_judge(cfg.judge, [it.reference for it in items], url=cfg.judge_url,
-                       model=cfg.judge_model, cache_dir=cfg.judge_cache or str(out / "judge_cache"))
+                       model=cfg.judge_model, cache_dir=cfg.judge_cache or str(out / "judge_cache"),
+                       image_size=cfg.get("judge_image_size", (512, 384)))
     engine = PhysicsEngine()
     methods: dict[str, dict] = {}
     renders: dict[str, dict[str, str]] = {}

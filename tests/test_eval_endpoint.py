@@ -188,7 +188,7 @@ def test_eval_command_with_the_endpoint_judge(tmp_path, capsys):
 
     with _ChatServer() as server:
         rc = main(["eval", "--n", "2", "--judge", "endpoint", "--out", str(tmp_path), "--quiet",
-                   f"judge_url={server.url}", "render=0"])
+                   f"judge_url={server.url}", "render=0", "judge_image_size=[128,96]"])
     assert rc == 0 and len(server.requests) == 2  # one request per scene, two images each
     assert all(len(r["body"]["messages"][1]["content"]) == 3 for r in server.requests)
     data = json.loads((tmp_path / "results.json").read_text())
