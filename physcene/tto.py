@@ -7,10 +7,13 @@ Parametrisation ξ (METRES and radians; the engine and the scene work in cm):
 - table-level objects (parent = TABLE): (x, y, yaw) absolute; z held at h/2 (resting on the table);
 - ``on`` children: (u, v, ψ) = the centre offset in the parent's yawed frame and the yaw relative to
   the parent; z held at the support's top (zmax(parent) + h/2);
-- ``in`` children: frozen in the parent's frame (offset, z offset and relative yaw are constants),
-  so a container and its contents move as one rigid body.
+- ``in`` children (``in_children``): ``slide`` (default) = (u, v, ψ) in the container's yawed
+  frame like an ``on`` child, z offset to the container held (the content stays in, at its height),
+  footprint kept inside the container's; ``frozen`` (the paper's, DESIGN) = offset, z offset and
+  relative yaw are constants, so a container and its contents move as one rigid body.
 Absolute poses come from a differentiable forward kinematics over the forest, one batched gather
-per tree depth. Pairs inside one rigid body cannot change and are left out of L_sdf.
+per tree depth. Pairs inside one rigid body cannot change and are left out of L_sdf (``frozen``
+only; with ``slide`` the container–content pairs are optimised like any other).
 
 L_rel = support term (an ``on`` child's footprint may not slide further off its support than it
 started, hinge on the offset in the parent frame, plus a hard projection after every step) + near
@@ -39,7 +42,9 @@ __all__ = ["TTOConfig", "TTOProblem", "TTOResult", "build_problem", "forward_kin
 
 # Kinds of parametrisation per object slot.
 ROOT, ON, IN = 0, 1, 2
+IN_MODES = ("slide", "frozen")
 _CM = 100.0  # cm per metre: ξ is in metres, poses in cm
+_LIFT_CM = 10.0  # cm per unit of ξ's lift component: an Adam step of lr 0.01 lifts by 0.1 cm
 
 
 @dataclass(kw_only=True)
@@ -66,6 +71,14 @@ class TTOConfig:
     reattach_gap_cm: float = 3.0
     """A table-level object hovering over / sunk into a support by less than this is optimised as
     ``on`` it (0 disables; see :func:`_reattach`)."""
+    in_children: str = "slide"
+    """``slide``: an ``in`` child's (x, y, yaw) in its container's frame are parameters (z offset held,
+    footprint kept inside the container's), so a content modelled into its container's wall can be
+    fixed; ``frozen``: the paper's rigid container body (docs/tto.md, "in children")."""
+    in_lift_cm: float = 3.0
+    """``slide`` only: a content may also rise by up to this much in its container (never so far that
+    less than 55 % of its height stays inside the container's z-range, the graph's ``in`` test
+    needs 50 %), so a content sunk into its container's floor can come out (0: z offset fixed)."""
     footprint_proxy: bool = True
     """Add the footprint-overlap proxy of pairs that penetrate at the start (see docs/tto.md)."""
     near_margin_cm: float = 0.5
@@ -102,6 +115,8 @@ class TTOConfig:
         if unknown:
             raise ConfigError(f"unknown tto option(s) {unknown}; known: {sorted(known)}")
         config = cls(**cfg)
+        if config.in_children not in IN_MODES:
+            raise ConfigError(f"tto: in_children must be one of {list(IN_MODES)}, got {config.in_children!r}")
         if config.steps < 0 or config.lr <= 0 or config.check_every < 1 or config.batch_size < 1:
             raise ConfigError(f"tto: steps >= 0, lr > 0, check_every >= 1, batch_size >= 1 required, "
                               f"got steps={config.steps} lr={config.lr} check_every={config.check_every} "
@@ -129,8 +144,10 @@ class TTOProblem:
     kind: torch.Tensor          # (S, N) long, ROOT / ON / IN
     parent: torch.Tensor        # (S, N) long, parent slot (own slot for roots)
     depth_masks: list           # per depth d >= 1: (S, N) bool, slots at depth d
-    xi0: torch.Tensor           # (S, N, 3) initial ξ, metres / radians
-    trainable: torch.Tensor     # (S, N) bool, ξ free (roots and on children)
+    xi0: torch.Tensor           # (S, N, 4) initial ξ: x|u, y|v (metres), yaw|ψ (rad), lift (10 cm units)
+    trainable: torch.Tensor     # (S, N) bool, ξ free (roots, on children, sliding in children)
+    bounded: torch.Tensor       # (S, N) bool, (u, v) kept over the parent (on + sliding in children)
+    lift_max: torch.Tensor      # (S, N) ξ lift units, upper bound of the lift (0: no lift)
     zloc: torch.Tensor          # (S, N) cm: root h/2; on parent_h/2 + h/2; in z − z_parent
     sizes: torch.Tensor         # (S, N, 3) cm
     raw_poses: torch.Tensor     # (S, N, 4) cm / rad, the input
@@ -143,10 +160,11 @@ class TTOProblem:
     near_sign: torch.Tensor     # (S, K) float, ±1
     near_margin: torch.Tensor   # (S, K) cm
     near_mask: torch.Tensor     # (S, K) bool
-    frozen_energy: torch.Tensor  # (S,) cm, energy of pairs inside one rigid in-body (constant)
+    frozen_energy: torch.Tensor  # (S,) cm, energy of pairs inside one rigid in-body (constant; 0 with slide)
     contact: torch.Tensor       # (S, P, 2) long, pairs penetrating in the input or its snapped start
     contact_mask: torch.Tensor  # (S, P) bool
-    group: np.ndarray           # (S, N) rigid-body root slot of every object (host)
+    group: np.ndarray           # (S, N) rigid-body root slot of every object (host; own slot with slide)
+    body: np.ndarray            # (S, N) container-body root slot: the top container of an in chain (host)
     reattached: list = field(default_factory=list)  # per scene, [(object id, support id)]
 
     @property
@@ -204,7 +222,8 @@ def build_problem(scenes: Sequence[Scene], engine, config: TTOConfig,
     kind = np.zeros((n_scene, n_slot), np.int64)
     parent = np.tile(np.arange(n_slot), (n_scene, 1))
     depth = np.zeros((n_scene, n_slot), np.int64)
-    xi0 = np.zeros((n_scene, n_slot, 3))
+    xi0 = np.zeros((n_scene, n_slot, 4))
+    lift_max = np.zeros((n_scene, n_slot))
     zloc = np.zeros((n_scene, n_slot))
     parent_half = np.zeros((n_scene, n_slot, 2))
     zone = np.zeros((n_scene, 4))
@@ -215,7 +234,7 @@ def build_problem(scenes: Sequence[Scene], engine, config: TTOConfig,
     near_sign = np.ones((n_scene, n_near))
     near_margin = np.zeros((n_scene, n_near))
     near_mask = np.zeros((n_scene, n_near), bool)
-    group = np.tile(np.arange(n_slot), (n_scene, 1))
+    body = np.tile(np.arange(n_slot), (n_scene, 1))
     reattached = []
     held = np.zeros((n_scene, n_slot), bool)
     for s, scene in enumerate(scenes):
@@ -230,16 +249,20 @@ def build_problem(scenes: Sequence[Scene], engine, config: TTOConfig,
         for i in np.argsort(depth[s, :n], kind="stable"):  # parents before children
             o = objs[i]
             if k[i] == ROOT:
-                xi0[s, i] = (o.center[0] / _CM, o.center[1] / _CM, o.yaw)
+                xi0[s, i] = (o.center[0] / _CM, o.center[1] / _CM, o.yaw, 0.0)
                 zloc[s, i] = o.center[2] if held[s, i] else 0.5 * o.size[2]  # held: exactly as input
                 continue
             par = objs[p[i]]
             u, v, psi = _relative(o, par)
-            xi0[s, i] = (u / _CM, v / _CM, psi)
+            xi0[s, i] = (u / _CM, v / _CM, psi, 0.0)
+            if k[i] == IN and config.in_children == "slide" and not held[s, i]:
+                # rise out of a floor it was sunk into, keeping > half its height inside
+                room = par.zmax - o.zmin - 0.55 * o.size[2]
+                lift_max[s, i] = max(0.0, min(config.in_lift_cm, room)) / _LIFT_CM
             parent_half[s, i] = (0.5 * par.size[0], 0.5 * par.size[1])
             zloc[s, i] = (0.5 * (par.size[2] + o.size[2]) + config.contact_gap_cm
                           if k[i] == ON and not held[s, i] else o.center[2] - par.center[2])
-            group[s, i] = group[s, p[i]] if k[i] == IN else i
+            body[s, i] = body[s, p[i]] if k[i] == IN else i
         zone[s] = scene.zone.to_list()
         for r, rz in enumerate(scene.restricted_zones):
             restricted[s, r], restricted_mask[s, r] = rz.to_list(), True
@@ -259,6 +282,10 @@ def build_problem(scenes: Sequence[Scene], engine, config: TTOConfig,
     i64 = dict(dtype=torch.long, device=dev)
     max_depth = int(depth.max()) if depth.size else 0
     kind_t = torch.as_tensor(kind, **i64)
+    slide = config.in_children == "slide"
+    # frozen: a container and its in children are one rigid body; slide: every object its own
+    group = np.tile(np.arange(n_slot), (n_scene, 1)) if slide else body
+    bounded = (kind_t == ON) | ((kind_t == IN) & slide)
     problem = TTOProblem(
         batch=batch,
         mask=torch.as_tensor(mask, device=dev),
@@ -266,7 +293,9 @@ def build_problem(scenes: Sequence[Scene], engine, config: TTOConfig,
         parent=torch.as_tensor(parent, **i64),
         depth_masks=[torch.as_tensor(depth == d, device=dev) for d in range(1, max_depth + 1)],
         xi0=torch.as_tensor(xi0, **f32),
-        trainable=torch.as_tensor(mask & ~held, device=dev) & (kind_t != IN),
+        trainable=torch.as_tensor(mask & ~held, device=dev) & ((kind_t != IN) | slide),
+        bounded=bounded,
+        lift_max=torch.as_tensor(lift_max, **f32),
         zloc=torch.as_tensor(zloc, **f32),
         sizes=batch.sizes.to(**f32),
         raw_poses=batch.poses.to(**f32),
@@ -283,10 +312,51 @@ def build_problem(scenes: Sequence[Scene], engine, config: TTOConfig,
         contact=torch.zeros(n_scene, 1, 2, **i64),
         contact_mask=torch.zeros(n_scene, 1, dtype=torch.bool, device=dev),
         group=group,
+        body=body,
         reattached=reattached,
     )
+    _seat_contents(engine, problem)
     problem.contact, problem.contact_mask = _contact_pairs(engine, problem)
     return problem
+
+
+_SEAT_GRID = 13  # lifts tried per content: 0, 1/12, ..., 1 × its lift_max
+
+
+def _seat_contents(engine, problem: TTOProblem) -> None:
+    """Start every liftable ``in`` child at the lowest lift that minimises its energy with its container.
+
+    Why: a content sunk into its container's floor by more than half the floor's thickness is
+    pushed further down by the SDF (the nearest surface is the floor's underside), so gradient steps
+    on the lift cannot bring it out; ``on`` children are snapped onto their support for the same
+    reason. All contents are tried at once on a grid of lifts (``_SEAT_GRID`` engine passes over
+    the batch); the lift stays a parameter afterwards.
+    """
+    lift_max = problem.lift_max.cpu().numpy()
+    if not np.any(lift_max > 0):
+        return
+    slots = problem.batch.pair_slots()
+    parent = problem.parent.cpu().numpy()
+    s_, i_, j_ = slots[:, 0], slots[:, 1], slots[:, 2]
+    # the (content, container) pairs: i < j, either may be the child
+    child = np.where(parent[s_, j_] == i_, j_, np.where(parent[s_, i_] == j_, i_, -1))
+    keep = (child >= 0) & (lift_max[s_, np.maximum(child, 0)] > 0)
+    if not np.any(keep):
+        return
+    rows, s_, child = np.nonzero(keep)[0], s_[keep], child[keep]
+    grid = np.linspace(0.0, 1.0, _SEAT_GRID)
+    energy = np.zeros((_SEAT_GRID, len(rows)))
+    xi = problem.xi0.clone()
+    with torch.no_grad():
+        for g, t in enumerate(grid):
+            xi[..., 3] = problem.lift_max * float(t)
+            out = engine.evaluate(problem.batch, forward_kinematics(problem, xi))
+            energy[g] = out["pair_energy"].detach().cpu().numpy()[rows]
+    best = energy.min(axis=0)
+    first = np.argmax(energy <= best + 1e-6 * (1.0 + best), axis=0)  # the lowest lift that is as good
+    lift = np.zeros_like(lift_max)
+    lift[s_, child] = grid[first] * lift_max[s_, child]
+    problem.xi0[..., 3] = torch.as_tensor(lift, dtype=problem.xi0.dtype, device=problem.xi0.device)
 
 
 def _reattach(scene: Scene, config: TTOConfig) -> tuple[Scene, list[tuple[str, str]]]:
@@ -335,20 +405,22 @@ def _frozen_energy(engine, batch, group: np.ndarray) -> torch.Tensor:
     cannot change (and its gradient cancels through the forward kinematics); it is subtracted so
     that "collision-free" means free of the collisions TTO is responsible for.
     """
-    out = engine.evaluate(batch)
     slots = batch.pair_slots()
     n_scene = batch.mask.shape[0]
-    if len(slots) == 0:
+    if len(slots) == 0 or np.all(group == np.arange(group.shape[1])):  # no rigid in-body
         return torch.zeros(n_scene)
+    out = engine.evaluate(batch)
     same = group[slots[:, 0], slots[:, 1]] == group[slots[:, 0], slots[:, 2]]
     energy = out["pair_energy"].detach().cpu().numpy().astype(np.float64)
     return torch.as_tensor(np.bincount(slots[same, 0], weights=energy[same], minlength=n_scene))
 
 
 def _contact_pairs(engine, problem: TTOProblem) -> tuple[torch.Tensor, torch.Tensor]:
-    """Pairs (outside one rigid in-body) that penetrate in the input or at ξ0: (S, P, 2), (S, P).
+    """Pairs (outside one container body) that penetrate in the input or at ξ0: (S, P, 2), (S, P).
 
-    They get the footprint proxy of :func:`_footprint_overlap`.
+    They get the footprint proxy of :func:`_footprint_overlap`. Pairs inside one container body
+    (a container and its contents, contents of one container) never do: the proxy would push a
+    content out of its container's footprint, which the ``in`` edge forbids.
     """
     slots = problem.batch.pair_slots()
     n_scene = problem.n_scene
@@ -357,7 +429,7 @@ def _contact_pairs(engine, problem: TTOProblem) -> tuple[torch.Tensor, torch.Ten
     hot = np.zeros(len(slots), bool)
     for poses in (problem.raw_poses, forward_kinematics(problem, problem.xi0)):
         hot |= engine.evaluate(problem.batch, poses)["pair_energy"].detach().cpu().numpy() > 0
-    hot &= problem.group[slots[:, 0], slots[:, 1]] != problem.group[slots[:, 0], slots[:, 2]]
+    hot &= problem.body[slots[:, 0], slots[:, 1]] != problem.body[slots[:, 0], slots[:, 2]]
     slots = slots[hot]
     counts = np.bincount(slots[:, 0], minlength=n_scene)
     width = max(1, int(counts.max()) if counts.size else 1)
@@ -374,15 +446,16 @@ def _contact_pairs(engine, problem: TTOProblem) -> tuple[torch.Tensor, torch.Ten
 # Device side: forward kinematics, loss terms, the Adam loop
 # --------------------------------------------------------------------------------------------
 def forward_kinematics(problem: TTOProblem, xi: torch.Tensor) -> torch.Tensor:
-    """Absolute poses (S, N, 4) cm / rad from ξ (S, N, 3) metres / rad; one gather per tree depth."""
+    """Absolute poses (S, N, 4) cm / rad from ξ (S, N, 4); one gather per tree depth."""
     x, y, yaw = xi[..., 0] * _CM, xi[..., 1] * _CM, xi[..., 2]
-    pose = torch.stack((x, y, problem.zloc, yaw), dim=-1)  # correct for roots
+    zloc = problem.zloc + xi[..., 3] * _LIFT_CM  # lift is 0 except for sliding in children
+    pose = torch.stack((x, y, zloc, yaw), dim=-1)  # correct for roots
     index = problem.parent.unsqueeze(-1).expand(-1, -1, 4)
     for at_depth in problem.depth_masks:
         par = torch.gather(pose, 1, index)
         c, s = torch.cos(par[..., 3]), torch.sin(par[..., 3])
         child = torch.stack((par[..., 0] + c * x - s * y, par[..., 1] + s * x + c * y,
-                             par[..., 2] + problem.zloc, par[..., 3] + yaw), dim=-1)
+                             par[..., 2] + zloc, par[..., 3] + yaw), dim=-1)
         pose = torch.where(at_depth.unsqueeze(-1), child, pose)
     return pose
 
@@ -436,7 +509,7 @@ def _zone_violation(problem: TTOProblem, poses: torch.Tensor, corners: torch.Ten
 
 
 def _support_bounds(problem: TTOProblem, xi: torch.Tensor) -> torch.Tensor:
-    """(S, N, 2) metres: how far an on child's centre may sit from its support's centre.
+    """(S, N, 2) metres: how far an on (or sliding in) child's centre may sit from its parent's centre.
 
     Per axis of the parent frame, never further out than the input was and always allowed to be
     fully over the support: max(|u0|, |P − h(ψ)|), with h the child's half extent there.
@@ -449,9 +522,9 @@ def _support_bounds(problem: TTOProblem, xi: torch.Tensor) -> torch.Tensor:
 
 
 def _support_violation(problem: TTOProblem, xi: torch.Tensor) -> torch.Tensor:
-    """(S,) metres: on children's offsets beyond their support bounds."""
+    """(S,) metres: on / sliding in children's offsets beyond their parents' bounds."""
     excess = torch.relu(xi[..., :2].abs() - _support_bounds(problem, xi)).sum(-1)
-    return (excess * (problem.kind == ON)).sum(-1)
+    return (excess * problem.bounded).sum(-1)
 
 
 def _near_violation(problem: TTOProblem, poses: torch.Tensor) -> torch.Tensor:
@@ -473,7 +546,7 @@ def penetration(engine, problem: TTOProblem, poses: torch.Tensor) -> torch.Tenso
 class TTOSolution:
     """Device results of :func:`optimise` for S scenes."""
 
-    xi: torch.Tensor          # (S, N, 3) best ξ
+    xi: torch.Tensor          # (S, N, 4) best ξ
     poses: torch.Tensor       # (S, N, 4) cm, poses of the best ξ
     energy: torch.Tensor      # (S,) cm, optimised energy of the best ξ
     energy_input: torch.Tensor  # (S,) cm, the same energy of the unmodified input
@@ -482,7 +555,10 @@ class TTOSolution:
 
 def optimise(problem: TTOProblem, engine, config: TTOConfig) -> TTOSolution:
     """Batched Adam over ξ; host syncs only every ``check_every`` steps (all-stopped test)."""
-    xi0, trainable = problem.xi0, problem.trainable.unsqueeze(-1)
+    xi0 = problem.xi0
+    # (S, N, 4): x, y, yaw of every free object; the lift only where it has room
+    trainable = problem.trainable.unsqueeze(-1) & torch.cat(
+        (torch.ones_like(xi0[..., :3], dtype=torch.bool), (problem.lift_max > 0).unsqueeze(-1)), dim=-1)
     xi = xi0.clone().requires_grad_(True)
     opt = torch.optim.Adam([xi], lr=config.lr, fused=xi.device.type == "cuda")  # one kernel per step
     n = problem.n_scene
@@ -491,9 +567,9 @@ def optimise(problem: TTOProblem, engine, config: TTOConfig) -> TTOSolution:
     best_xi, best_e, best_rest = xi0.clone(), inf.clone(), inf.clone()
     active = torch.ones(n, dtype=torch.bool, device=dev)
     steps_taken = torch.full((n,), config.steps, dtype=torch.long, device=dev)
-    on = problem.kind == ON
+    on = problem.bounded
     for step in range(config.steps + 1):
-        xi_eff = torch.where(trainable, xi, xi0)  # in children and padding stay put
+        xi_eff = torch.where(trainable, xi, xi0)  # frozen in children, held objects, padding stay put
         poses = forward_kinematics(problem, xi_eff)
         energy = penetration(engine, problem, poses)
         corners = _footprints(poses, problem.sizes)  # (S, N, 4, 2)
@@ -527,6 +603,7 @@ def optimise(problem: TTOProblem, engine, config: TTOConfig) -> TTOSolution:
             bound = _support_bounds(problem, xi)
             projected = torch.maximum(torch.minimum(xi[..., :2], bound), -bound)
             xi[..., :2] = torch.where(on.unsqueeze(-1), projected, xi[..., :2])
+            xi[..., 3] = torch.minimum(xi[..., 3].clamp_min(0.0), problem.lift_max)
             xi.copy_(torch.where(active[:, None, None], xi, best_xi))
         if config.early_stop and (step + 1) % config.check_every == 0 and not bool(active.any()):
             break
@@ -617,9 +694,12 @@ def _second_pass(chunk: list[int], hier: list[Scene], scenes: list[Scene], resul
 def summarize(results: Sequence[TTOResult]) -> dict:
     """Dataset figures of :func:`repair` results (the issue's acceptance measures).
 
-    ``collision_free``: fraction of scenes without a pair deeper than ``collision_depth_cm`` among
-    the pairs TTO can move (pairs inside one rigid in-body are the input's and stay as they are);
-    ``collision_free_all_pairs`` counts those too. Relation fractions are pooled over all edges.
+    ``collision_free``: fraction of scenes without any pair deeper than ``collision_depth_cm``
+    (every pair counted, the issue's measure); ``collision_free_excluding_frozen`` leaves out pairs
+    inside one rigid in-body (``in_children=frozen`` only: TTO may not move those);
+    ``scenes_with_frozen_residual`` / ``scenes_with_in_body_residual`` count scenes whose residual
+    collisions include such a pair / a pair inside one container body. Relation fractions are pooled
+    over all edges.
     """
     n = len(results)
     reports = [r.report for r in results]
@@ -627,11 +707,14 @@ def summarize(results: Sequence[TTOResult]) -> dict:
     edges = sum(k["in_on_edges"] for k in rel)
     nears = sum(k["near_relations"] for k in rel)
     disp = [r.max_displacement_cm for r in results]
-    free = sum(all(p["frozen"] for p in r.get("residual_collisions", [])) for r in reports)
+    residual = [r.get("residual_collisions", []) for r in reports]
     return {
         "scenes": n,
-        "collision_free": free / max(n, 1),
-        "collision_free_all_pairs": sum(bool(r["collision_free"]) for r in reports) / max(n, 1),
+        "collision_free": sum(not pairs for pairs in residual) / max(n, 1),
+        "collision_free_excluding_frozen":
+            sum(all(p["frozen"] for p in pairs) for pairs in residual) / max(n, 1),
+        "scenes_with_frozen_residual": sum(any(p["frozen"] for p in pairs) for pairs in residual),
+        "scenes_with_in_body_residual": sum(any(p.get("in_body") for p in pairs) for pairs in residual),
         "energy_increased": sum(r.energy_after > r.energy_before for r in results),
         "kept_input": sum(bool(r.get("kept_input")) for r in reports),
         "in_on_edges": edges,
@@ -678,8 +761,8 @@ def _results(problem: TTOProblem, solution: TTOSolution, inputs: list[Scene], hi
         after = scene if kept[s] else scene.with_poses(poses[s, :len(scene)])
         disp = np.linalg.norm(after.poses()[:, :3] - scene.poses()[:, :3], axis=1)
         e_after = float(e_before[s] if kept[s] else e_best[s])
-        report = _describe(hier[s], after, problem.group[s, :len(after)], before_score, after_score,
-                           s, config)
+        report = _describe(hier[s], after, problem.group[s, :len(after)], problem.body[s, :len(after)],
+                           before_score, after_score, s, config)
         report["reattached"] = [{"object": a, "on": b} for a, b in problem.reattached[s]]
         report.update(energy_before=float(e_before[s]), energy_after=e_after,
                       max_displacement_cm=float(disp.max()), mean_displacement_cm=float(disp.mean()),
@@ -691,17 +774,25 @@ def _results(problem: TTOProblem, solution: TTOSolution, inputs: list[Scene], hi
     return results
 
 
-def _describe(before: Scene, after: Scene, group: np.ndarray, before_score, after_score, s: int,
-              config: TTOConfig) -> dict:
-    """Per-scene report: depths, residual collisions, relations kept, what could not be satisfied."""
+def _describe(before: Scene, after: Scene, group: np.ndarray, body: np.ndarray, before_score,
+              after_score, s: int, config: TTOConfig) -> dict:
+    """Per-scene report: depths, residual collisions, relations kept, what could not be satisfied.
+
+    A residual pair is ``frozen`` when both are in one rigid in-body (``in_children=frozen``: TTO may
+    not move them relative to each other) and ``in_body`` when both are in one container body (a
+    container and its contents), whichever the mode.
+    """
     ids = after.ids()
     unsatisfied: list[str] = []
     residual = []
     for i, j, depth in after_score.pairs[s]:
         if float(depth) > config.collision_depth_cm:
-            frozen = bool(group[i] == group[j])
-            residual.append({"a": ids[i], "b": ids[j], "depth_cm": round(float(depth), 4), "frozen": frozen})
-            why = " (both in one rigid in-body: frozen by the hierarchy)" if frozen else ""
+            frozen, in_body = bool(group[i] == group[j]), bool(body[i] == body[j])
+            residual.append({"a": ids[i], "b": ids[j], "depth_cm": round(float(depth), 4), "frozen": frozen,
+                             "in_body": in_body})
+            why = (" (both in one rigid in-body: frozen by the hierarchy)" if frozen else
+                   " (inside one container: the content does not fit where the in edge allows)"
+                   if in_body else "")
             unsatisfied.append(f"{ids[i]} and {ids[j]} still penetrate by {float(depth):.2f} cm{why}")
     zone = after.zone
     for o in after.objects:

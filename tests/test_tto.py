@@ -12,6 +12,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from physcene.config import ConfigError
+from physcene.graph import footprint_overlap
 from physcene.noisy_scenes import noisy_scenes
 from physcene.physics import PhysicsEngine
 from physcene.relations import relation_preservation
@@ -68,6 +69,43 @@ def test_config_defaults_are_the_papers_and_overrides_apply():
         TTOConfig.from_config(["lamda_sdf=3"])
     with pytest.raises(ConfigError, match="lr > 0"):
         TTOConfig.from_config(["lr=0"])
+    assert cfg.in_children == "slide"
+    assert TTOConfig.from_config(["in_children=frozen"]).in_children == "frozen"
+    with pytest.raises(ConfigError, match="in_children"):
+        TTOConfig.from_config(["in_children=loose"])
+
+
+def _holder_scene() -> Scene:
+    """A pen modelled through its holder's wall and sunk into its floor, the holder against a mug."""
+    return Scene(zone=Zone(0, 60, 0, 40), objects=(
+        _obj("pen_holder_0", "pen_holder", (20, 20, 5), (8, 8, 10)),
+        _obj("pen_1", "pen", (23.2, 20, 6.5), (1.0, 1.0, 14), parent="pen_holder_0", relation="in"),
+        _obj("mug_2", "mug", (29, 20, 5), (8, 8, 10), parent=TABLE, relation="near"),
+    ))
+
+
+def test_in_child_slides_out_of_its_containers_wall(engine):
+    """slide: the pen leaves the wall and the floor, stays in (z offset only raised, footprint
+    inside), the holder and its pen are collision-free; frozen: the pair stays and is reported."""
+    from physcene.graph import build_hierarchy
+
+    scene = _holder_scene()
+    scene = scene.with_objects(o if o.parent else o.moved(parent=TABLE, relation="near")
+                               for o in scene.objects)
+    assert engine.score([scene]).max_depth[0] > 0.1
+    [slide] = repair([scene], TTOConfig(), engine)
+    [frozen] = repair([scene], TTOConfig(in_children="frozen"), engine)
+    pen, holder = slide.scene.get("pen_1"), slide.scene.get("pen_holder_0")
+    assert slide.report["collision_free"], slide.report["residual_collisions"]
+    assert footprint_overlap(pen, holder) >= 0.9
+    rebuilt = build_hierarchy(slide.scene.with_objects(o.moved(parent=None, relation=None)
+                                                       for o in slide.scene.objects))
+    assert (rebuilt.get("pen_1").parent, rebuilt.get("pen_1").relation) == ("pen_holder_0", "in")
+    assert 0.0 <= pen.center[2] - holder.center[2] - 1.5 <= TTOConfig().in_lift_cm + 1e-4
+    assert slide.energy_after <= slide.energy_before
+    pairs = frozen.report["residual_collisions"]
+    assert pairs and all(p["frozen"] and p["in_body"] for p in pairs)
+    assert any("frozen by the hierarchy" in u for u in frozen.report["unsatisfied"])
 
 
 def test_forward_kinematics_reproduces_input_and_moves_subtrees_rigidly(engine):
@@ -76,29 +114,36 @@ def test_forward_kinematics_reproduces_input_and_moves_subtrees_rigidly(engine):
     scene = build_hierarchy(_stack_scene())
     rel = {o.instance_id: (o.parent, o.relation) for o in scene.objects}
     assert rel["book_1"] == ("box_0", "on") and rel["apple_3"] == ("bowl_2", "in")
-    problem = build_problem([scene], engine, TTOConfig())
+    problem = build_problem([scene], engine, TTOConfig(in_children="frozen"))
     poses = forward_kinematics(problem, problem.xi0)[0].double().numpy()
     np.testing.assert_allclose(poses, scene.poses(), atol=1e-4)  # the input already rests exactly
     xi = problem.xi0.clone()
-    xi[0, 0] += torch.tensor([0.05, -0.02, 0.3])  # move and turn the box (metres, rad)
+    xi[0, 0] += torch.tensor([0.05, -0.02, 0.3, 0.0])  # move and turn the box (metres, rad)
     moved = scene.with_poses(forward_kinematics(problem, xi)[0].double().numpy())
     np.testing.assert_allclose(_relative(moved.get("book_1"), moved.get("box_0")),
                                _relative(scene.get("book_1"), scene.get("box_0")), atol=1e-4)
     assert moved.get("book_1").zmin == pytest.approx(moved.get("box_0").zmax, abs=1e-4)
 
 
-def test_stack_overlapping_a_neighbour_moves_as_a_whole(engine):
+@pytest.mark.parametrize("in_children", ["slide", "frozen"])
+def test_stack_overlapping_a_neighbour_moves_as_a_whole(engine, in_children):
     scene = _stack_scene()
-    [result] = repair([scene], TTOConfig(), engine)
+    [result] = repair([scene], TTOConfig(in_children=in_children), engine)
     after = result.scene
     for child in ("book_1", "apple_3"):
         assert after.get(child).center != scene.get(child).center  # the stack did move
-    # on: z exactly at the support's top; in: the whole relative pose is frozen (1e-4 cm)
+    # on: z exactly at the support's top (1e-4 cm)
     assert after.get("book_1").zmin == pytest.approx(after.get("box_0").zmax, abs=1e-4)
-    np.testing.assert_allclose(_relative(after.get("apple_3"), after.get("bowl_2")),
-                               _relative(scene.get("apple_3"), scene.get("bowl_2")), atol=1e-4)
+    rel_after = _relative(after.get("apple_3"), after.get("bowl_2"))
+    rel_before = _relative(scene.get("apple_3"), scene.get("bowl_2"))
+    if in_children == "frozen":  # in: the whole relative pose is frozen (1e-4 cm)
+        np.testing.assert_allclose(rel_after, rel_before, atol=1e-4)
+        assert all(p["frozen"] for p in result.report["residual_collisions"])
+    else:  # in: it may slide and rise out of the floor it was sunk into, never sink or leave
+        assert 0.0 <= rel_after[2] - rel_before[2] <= TTOConfig().in_lift_cm + 1e-4
+        assert footprint_overlap(after.get("apple_3"), after.get("bowl_2")) >= 0.9
+        assert result.report["collision_free"]  # every pair, the apple and its bowl included
     assert result.energy_after < 1e-3 < result.energy_before
-    assert all(p["frozen"] for p in result.report["residual_collisions"])
     kept = result.report["relations"]
     assert kept["in_on_kept"] == 1.0 and kept["near_kept"] == 1.0
     assert 0 < result.max_displacement_cm < 10

@@ -139,7 +139,7 @@ def _summary(results, config) -> str:
 
     s = summarize(results)
     return (f"repaired {s['scenes']} scene(s): {s['collision_free']:.1%} without a pair deeper than "
-            f"{config.collision_depth_cm} cm (frozen in-body pairs aside), in/on kept {s['in_on_kept']:.1%}, "
+            f"{config.collision_depth_cm} cm (every pair), in/on kept {s['in_on_kept']:.1%}, "
             f"near kept {s['near_kept']:.1%}, median max displacement "
             f"{s['median_max_displacement_cm']:.2f} cm;")
 
