@@ -305,14 +305,19 @@ def run_evaluation(cfg, *, command: str = "", title: str = "physcene evaluation"
     judge = make_judge(cfg.judge, [it.reference for it in items], url=cfg.judge_url,
                        model=cfg.judge_model, cache_dir=cfg.judge_cache or str(out / "judge_cache"),
                        image_size=cfg.get("judge_image_size", (512, 384)))
-    engine = PhysicsEngine()
+    device = str(cfg.get("device", "cpu"))
+    engine = PhysicsEngine(device=device)
+    # TTO optimises on the engine's device unless the tto overrides say otherwise.
+    tto_overrides = list(cfg.tto)
+    if not any(o.startswith("device=") for o in tto_overrides):
+        tto_overrides.insert(0, f"device={device}")
     methods: dict[str, dict] = {}
     renders: dict[str, dict[str, str]] = {}
     n_render = min(int(cfg.render), len(items))
     for gen in generators:
         name = method_name(gen, bool(cfg.repair))
         report, outputs = evaluate_method(items, gen, judge, engine=engine, repair=bool(cfg.repair),
-                                          tto_overrides=list(cfg.tto), settle=bool(cfg.settle),
+                                          tto_overrides=tto_overrides, settle=bool(cfg.settle),
                                           seed=cfg.seed, progress=progress, model=cfg.generator_model)
         methods[name] = report
         slug = name.lower().replace(" + ", "_").replace(" ", "_").replace("(", "").replace(")", "")
