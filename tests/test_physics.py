@@ -289,6 +289,9 @@ def test_cuda_matches_cpu():
     for key in ("energy", "max_depth", "pair_depth", "table_depth"):
         torch.testing.assert_close(b[key].cpu(), a[key], rtol=1e-4, atol=1e-4)
     assert (b["grad"].cpu() - a["grad"]).abs().max() / a["grad"].abs().max() < 1e-4
+    worst = {key: float((b[key].cpu() - a[key]).abs().max() / a[key].abs().max().clamp_min(1e-12))
+             for key in ("energy", "max_depth", "pair_depth", "grad")}
+    print(f"cpu vs cuda, max |diff| / max |cpu| over {len(scenes)} scenes: {worst}")
     assert cpu.score(scenes).floating == gpu.score(scenes).floating
     batch = gpu.pack(scenes)
     poses = batch.poses.clone().requires_grad_(True)
