@@ -13,6 +13,7 @@ from __future__ import annotations
 import argparse
 import json
 import time
+from dataclasses import replace
 
 import torch
 from torch.profiler import ProfilerActivity, profile
@@ -52,19 +53,24 @@ def main() -> None:
     parser.add_argument("--objects", type=int, default=16)
     parser.add_argument("--points", type=int, default=1024)
     parser.add_argument("--repeat", type=int, default=50)
+    parser.add_argument("--lanes", type=int, nargs="+", default=[16, 32, 64, 128],
+                        help="narrowphase threads per (pair, direction) to compare")
     args = parser.parse_args()
     library = AssetLibrary(n_points=args.points)
     library.add_primitives()
     engine = PhysicsEngine(library, args.device)
     batch = engine.pack(bench_scenes(args.scenes, args.objects))
     report = {}
-    for name, grad in (("forward", False), ("forward+grad", True)):
-        fn = lambda grad=grad: engine.evaluate(batch, with_grad=grad)  # noqa: E731
-        for _ in range(3):
-            fn()
-        kernels = kernel_times(fn, args.repeat)
-        report[name] = {"wall_ms": wall_ms(fn, args.repeat), "kernel_ms_total": sum(kernels.values()),
-                        "kernels_ms": dict(sorted(kernels.items(), key=lambda kv: -kv[1]))}
+    for lanes in args.lanes:
+        engine.config = replace(engine.config, lanes_cuda=lanes, lanes_cpu=lanes)
+        for name, grad in (("forward", False), ("forward+grad", True)):
+            fn = lambda grad=grad: engine.evaluate(batch, with_grad=grad)  # noqa: E731
+            for _ in range(3):
+                fn()
+            kernels = kernel_times(fn, args.repeat)
+            report[f"lanes={lanes} {name}"] = {
+                "wall_ms": wall_ms(fn, args.repeat), "kernel_ms_total": sum(kernels.values()),
+                "kernels_ms": dict(sorted(kernels.items(), key=lambda kv: -kv[1]))}
     print(json.dumps(report, indent=1))
 
 

@@ -9,8 +9,11 @@ Pairs are enumerated per scene as CSR: scene s owns pair indices [pair_start[s],
 
 1. ``broadphase``: per pair, decode (i, j), test the slightly inflated yawed boxes (z interval +
    2-D separating axes of the two footprints) and write ``pair_hit``.
-2. ``narrowphase``: one thread per (pair, direction, lane): LANES threads share the points of one
-   object of the pair and query the other's field; each writes its partial sums. No atomics: the
+2. ``narrowphase``: one thread per (pair, direction, lane): ``lanes`` threads share the points of
+   one object of the pair and query the other's field; each writes its partial sums. ``lanes`` is
+   a launch argument: few on the CPU (every thread is a loop iteration there, idle ones included),
+   many on CUDA (a 16-object batch has only a few thousand candidate pairs, and more lanes are
+   what fills the GPU). No atomics: the
    partials are reduced in a fixed order, so results are bit-for-bit repeatable.
 3. ``reduce_pairs``: per pair energy Σ ReLU(−φ), depth max(−φ), and the pose gradient of both
    objects (4-vectors), from the partials of step 2.
@@ -35,10 +38,10 @@ wp.config.log_level = max(wp.config.log_level, wp.LOG_WARNING)  # no greeting on
 wp.set_module_options({"enable_backward": False})
 wp.init()
 
-__all__ = ["LANES", "launch_penetration", "launch_support"]
+__all__ = ["DEFAULT_LANES", "launch_penetration", "launch_support"]
 
-# Threads sharing one (pair, direction): with 2 directions a pair fills one 32-wide CUDA warp.
-LANES = wp.constant(16)
+# Threads sharing one (pair, direction), per device type (see the module docstring).
+DEFAULT_LANES = {"cpu": 16, "cuda": 64}
 # Gradients of the normalised field smaller than this are "vanished": fall back to h_min.
 _GRAD_EPS = wp.constant(1.0e-6)
 # Surface points are sorted into BUCKETS^3 cells of the normalised cube (physics.pack_assets), so
@@ -276,18 +279,19 @@ def narrowphase(
     points: wp.array(dtype=wp.vec3),  # all surface points, normalised frames, bucket-sorted
     pt_bucket: wp.array(dtype=wp.int32),  # (A * (BUCKETS^3 + 1),) first point of each bucket
     with_grad: int,
-    part_energy_out: wp.array(dtype=float),  # (T*2*LANES,) Σ ReLU(−φ) cm
-    part_depth_out: wp.array(dtype=float),  # (T*2*LANES,) max ReLU(−φ) cm
-    part_gu_out: wp.array(dtype=wp.vec3),  # (T*2*LANES,) Σ ∂φ/∂u, field frame (cm/cm)
-    part_yaw_out: wp.array(dtype=wp.vec2),  # (T*2*LANES,) Σ ∂φ/∂yaw of (owner, field)
+    lanes: int,
+    part_energy_out: wp.array(dtype=float),  # (T*2*lanes,) Σ ReLU(−φ) cm
+    part_depth_out: wp.array(dtype=float),  # (T*2*lanes,) max ReLU(−φ) cm
+    part_gu_out: wp.array(dtype=wp.vec3),  # (T*2*lanes,) Σ ∂φ/∂u, field frame (cm/cm)
+    part_yaw_out: wp.array(dtype=wp.vec2),  # (T*2*lanes,) Σ ∂φ/∂yaw of (owner, field)
 ):
     tid = wp.tid()
-    pair = tid // (2 * LANES)
+    pair = tid // (2 * lanes)
     if pair_hit[pair] == 0:
         return
-    rem = tid - pair * 2 * LANES
-    direction = rem // LANES
-    lane = rem - direction * LANES
+    rem = tid - pair * 2 * lanes
+    direction = rem // lanes
+    lane = rem - direction * lanes
     owner = pair_a[pair]
     field = pair_b[pair]
     if direction == 1:
@@ -334,7 +338,7 @@ def narrowphase(
         for ky in range(ky0, ky1 + 1):
             for kz in range(kz0, kz1 + 1):
                 b = b0 + (kx * BUCKETS + ky) * BUCKETS + kz
-                for p in range(pt_bucket[b] + lane, pt_bucket[b + 1], LANES):
+                for p in range(pt_bucket[b] + lane, pt_bucket[b + 1], lanes):
                     pl = points[p]
                     v = rotate_z(cr, sr, wp.cw_mul(pl, ho))  # owner point, field frame, from owner
                     u = v + t_rel  # field-local cm
@@ -369,6 +373,7 @@ def reduce_pairs(
     part_gu: wp.array(dtype=wp.vec3),
     part_yaw: wp.array(dtype=wp.vec2),
     with_grad: int,
+    lanes: int,
     pair_energy_out: wp.array(dtype=float),  # (T,) cm
     pair_depth_out: wp.array(dtype=float),  # (T,) cm
     pair_grad_out: wp.array(dtype=wp.vec4, ndim=2),  # (T, 2) ∂E/∂(x,y,z,yaw) of a and b
@@ -379,8 +384,8 @@ def reduce_pairs(
     ga = wp.vec4(0.0, 0.0, 0.0, 0.0)
     gb = wp.vec4(0.0, 0.0, 0.0, 0.0)
     if pair_hit[pair] != 0:
-        base = pair * 2 * LANES
-        for k in range(2 * LANES):
+        base = pair * 2 * lanes
+        for k in range(2 * lanes):
             energy += part_energy[base + k]
             depth = wp.max(depth, part_depth[base + k])
         if with_grad != 0:
@@ -389,9 +394,9 @@ def reduce_pairs(
             for direction in range(2):
                 gu = wp.vec3(0.0, 0.0, 0.0)
                 yaw = wp.vec2(0.0, 0.0)
-                for lane in range(LANES):
-                    gu += part_gu[base + direction * LANES + lane]
-                    yaw += part_yaw[base + direction * LANES + lane]
+                for lane in range(lanes):
+                    gu += part_gu[base + direction * lanes + lane]
+                    yaw += part_yaw[base + direction * lanes + lane]
                 # E = Σ −φ: ∂E/∂t_owner = −R_f Σgu, ∂E/∂t_field = +R_f Σgu
                 yf = yb
                 if direction == 1:
@@ -576,6 +581,7 @@ def launch_penetration(
     margin: float,
     tolerance: float,
     with_grad: bool,
+    lanes: int | None = None,
 ) -> dict[str, torch.Tensor]:
     """Run broadphase → narrowphase → reductions on torch tensors (zero-copy, torch's stream).
 
@@ -586,9 +592,13 @@ def launch_penetration(
     Returns torch tensors: ``energy``, ``max_depth``, ``depth_sum`` (S,); ``pair_a``, ``pair_b``
     (T,) slots; ``pair_hit`` (T,); ``pair_energy``, ``pair_depth`` (T,); ``table_depth``,
     ``table_energy``, ``table_below`` (S, N); ``grad`` (S, N, 4) when ``with_grad``.
+    ``lanes``: threads per (pair, direction), default ``DEFAULT_LANES`` of the device type.
     No host synchronisation: every size is known from the arguments.
     """
     device = poses.device
+    lanes = DEFAULT_LANES[device.type] if lanes is None else int(lanes)
+    if lanes < 1:
+        raise ValueError(f"lanes must be >= 1, got {lanes}")
     launch = _Launcher(device)
     n_scene, n_slot = poses.shape[0], poses.shape[1]
     n_obj = n_scene * n_slot
@@ -620,7 +630,7 @@ def launch_penetration(
     w_pair_a, w_pair_b, w_hit = _ct(out["pair_a"]), _ct(out["pair_b"]), _ct(out["pair_hit"])
     launch(broadphase, n_pairs, [w_pair_start, w_count, n_slot, w_poses, w_sizes, float(margin),
                                  w_pair_a, w_pair_b, w_hit])
-    n_part = n_pairs * 2 * LANES
+    n_part = n_pairs * 2 * lanes
     if with_grad:
         part = torch.empty(7 * n_part + 8 * n_pairs, dtype=torch.float32, device=device)
         pe, pd, pg, py, pair_grad = torch.split(part, [n_part, n_part, 3 * n_part, 2 * n_part, 8 * n_pairs])
@@ -634,9 +644,9 @@ def launch_penetration(
     launch(narrowphase, n_part, [w_pair_a, w_pair_b, w_hit, w_poses, w_sizes, w_asset,
                                  _ct(assets["sdf"]), _ct(assets["rays"]), _ct(assets["sdf_start"]),
                                  _ct(assets["sdf_res"]), w_points, _ct(assets["pt_bucket"]), int(with_grad),
-                                 *w_part])
+                                 lanes, *w_part])
     w_pair_energy, w_pair_depth = _ct(out["pair_energy"]), _ct(out["pair_depth"])
-    launch(reduce_pairs, n_pairs, [w_pair_a, w_pair_b, w_hit, w_poses, *w_part, int(with_grad),
+    launch(reduce_pairs, n_pairs, [w_pair_a, w_pair_b, w_hit, w_poses, *w_part, int(with_grad), lanes,
                                    w_pair_energy, w_pair_depth, w_pair_grad])
     launch(reduce_scenes, n_scene, [w_pair_start, w_pair_energy, w_pair_depth, float(tolerance),
                                     _ct(out["energy"]), _ct(out["max_depth"]), _ct(out["depth_sum"])])

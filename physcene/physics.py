@@ -41,6 +41,10 @@ class PhysicsConfig:
     """An object whose bottom is more than this above every support under it is floating."""
     footprint_overlap_cm: float = 0.01
     """Two footprints must overlap by more than this to count as one standing on the other."""
+    lanes_cpu: int = 16
+    """Narrowphase threads per (pair, direction) on the CPU."""
+    lanes_cuda: int = 64
+    """Narrowphase threads per (pair, direction) on CUDA (more lanes fill the GPU)."""
 
     @classmethod
     def load(cls, overrides: Sequence[str] = ()) -> PhysicsConfig:
@@ -48,7 +52,8 @@ class PhysicsConfig:
         unknown = set(cfg) - set(cls.__dataclass_fields__)
         if unknown:
             raise ValueError(f"configs/physics.yaml: unknown keys {sorted(unknown)}")
-        return cls(**{k: float(v) for k, v in cfg.items()})
+        types = {k: type(getattr(cls, k)) for k in cls.__dataclass_fields__}
+        return cls(**{k: types[k](v) for k, v in cfg.items()})
 
 
 @dataclass
@@ -300,7 +305,8 @@ class PhysicsEngine:
             pair_start=batch.pair_start, count=batch.count, n_pairs=batch.n_pairs,
             poses=self._poses(batch, poses), sizes=batch.sizes, obj_asset=batch.asset_index,
             assets=self.packed_assets(), margin=self.config.margin_cm, tolerance=tolerance,
-            with_grad=with_grad)
+            with_grad=with_grad,
+            lanes=self.config.lanes_cuda if self.device.type == "cuda" else self.config.lanes_cpu)
 
     def support_gap(self, batch: SceneBatch, poses: torch.Tensor | None = None) -> torch.Tensor:
         """(S, N) cm: each object's bottom above the highest support under it (0 when contained)."""
