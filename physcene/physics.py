@@ -43,7 +43,7 @@ class PhysicsConfig:
     """Two footprints must overlap by more than this to count as one standing on the other."""
     lanes_cpu: int = 16
     """Narrowphase threads per (pair, direction) on the CPU."""
-    lanes_cuda: int = 64
+    lanes_cuda: int = 32
     """Narrowphase threads per (pair, direction) on CUDA (more lanes fill the GPU)."""
 
     @classmethod
