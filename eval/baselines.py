@@ -8,111 +8,20 @@ output did not parse (a value, never an exception).
 
 from __future__ import annotations
 
-import json
 import math
 from collections.abc import Sequence
 
 import numpy as np
 
+from physcene import ctrc
 from physcene.scene import TABLE, Scene
 
-__all__ = ["PROMPT_3", "heuristic_place", "objects_cluster", "zero_shot_prompt"]
-
-# Paper appendix, Prompt 3 (Layout Generation by Zero-shot LLM), verbatim with the listing's
-# line-break hyphens joined.
-PROMPT_3 = """You are tasked with generating a scene graph layout for a tabletop arrangement based on the following instructions and parameters. 
-
-### TASK:
-Your primary goal is to output a **VALID JSON OBJECT** that strictly follows the specified format between the `<json>` tokens. This JSON must represent the scene graph layout for objects placed on a tabletop.
-
-### INPUT PARAMETERS:
-1. **Tabletop Information:**
-   - The tabletop's dimensions are defined by the "item_placement_zone" with the following boundaries:  
-     **item_placement_zone**: <item_placement_zone>
-     Units are in centimeters (cm).
-
-2. **Placement Instructions:**
-   - Follow the natural language instructions to determine the placement of objects:  
-     **Instructions**: "<instructions>"
-
-3. **Objects Cluster:**
-   - The objects to be placed on the tabletop are listed below. Each object must have:  
-     - A **unique instance name**.
-     - **Reasonable dimensions** (width, depth, height in cm).
-     - A **position** within the specified tabletop boundaries.
-     - A **z_rotation** (rotation around the vertical axis in radians). If not specified, assume `z_rotation = 0.0`.
-     - A **short description** that explains the object's purpose or appearance.  
-     **Objects cluster**: <Objects cluster>
-
-### OUTPUT REQUIREMENTS:
-- You must output a **VALID JSON OBJECT** strictly between the `<json>` tokens.  
-  (not <json>xxx</json>)
-- The JSON must have the following structure:
-
-<json>
-{
-    "item_placement_zone": [
-        x_min,
-        x_max,
-        y_min,
-        y_max
-    ],
-    "objects": [
-        {
-            "instance": "unique_object_name",
-            "z_rotation": float,
-            "size": [width, depth, height],
-            "position": [x, y, z],
-            "description": "short description of the object"
-        },
-        ...
-    ]
-}
-<json>
-
-### DETAILED GUIDELINES:
-1. **Object Placement:**
-   - Ensure that all objects are placed within the boundaries of the `item_placement_zone`.
-   - Follow the placement logic specified in the instructions. For example:  
-     - If an object should be placed in a corner, position it near the respective boundary.  
-     - If objects need to be grouped closely, ensure their positions are adjacent within reasonable spacing (e.g., 2-5 cm).  
-
-2. **Object Properties:**
-   - Assign **realistic dimensions** to each object based on its type. For instance:  
-     - A woven basket might have dimensions like `[20.0, 15.0, 12.0]` (width, depth, height).  
-     - A lotion bottle might have dimensions like `[5.0, 5.0, 15.0]`.
-   - Use **intuitive and consistent instance names** (e.g., "woven_basket_0", "lotion_bottle_1").
-   - Set the `z_rotation` to `0.0` unless the object is explicitly rotated in the instructions.
-
-3. **Avoid Overlapping:**
-   - Ensure objects do not overlap or extend beyond the tabletop boundaries.
-   - Maintain logical spacing between objects unless the instructions specify otherwise.
-
-4. **Avoid Suspension:**
-    - Ensure that the items are firmly placed on the table. The position of each asset is the center coordinate, so the z value cannot be zero. If it is on the table, it should be half of the asset's height.
-    - If there is a stacking situation, the z coordinate of the upper asset should be the sum of the z coordinate of the lower asset and half of the height of both assets.
-
-5. **Output Validation:**
-   - Ensure the JSON is valid by checking for correct syntax (e.g., no trailing commas, proper nesting of keys and values).
-
-IMPORTANT:
-The JSON output MUST be placed between the <json> tokens.
-If you encounter ambiguity, use logical reasoning to infer the most likely placement or dimensions.
-DO NOT include any additional text or explanations outside the <json> tokens in the output."""  # noqa: E501, W291
-
-
-def objects_cluster(scene: Scene) -> list[dict]:
-    """The requested objects as MesaTask lists them: instance name and description (no poses)."""
-    return [{"instance": o.instance_id, "description": o.description or o.category.replace("_", " ")}
-            for o in scene.objects]
-
+__all__ = ["heuristic_place", "zero_shot_prompt"]
 
 def zero_shot_prompt(reference: Scene) -> str:
-    """Prompt 3 filled with the reference's zone, instruction and object cluster."""
-    zone = [round(v, 2) for v in reference.zone.to_list()]
-    return (PROMPT_3.replace("<item_placement_zone>", json.dumps(zone))
-            .replace("<instructions>", reference.instruction)
-            .replace("<Objects cluster>", json.dumps(objects_cluster(reference))))
+    """The paper's Prompt 3 (:func:`physcene.ctrc.zero_shot_prompt`) filled with the reference's
+    zone, instruction and object list."""
+    return ctrc.zero_shot_prompt(reference.instruction, reference.zone, reference.objects)
 
 
 def heuristic_place(reference: Scene, seed: int = 0, gap_cm: float = 1.0, cell_cm: float = 1.0) -> Scene:

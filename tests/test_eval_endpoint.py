@@ -176,7 +176,7 @@ def test_zero_shot_generator_uses_prompt_3_and_parses_flat_json(scene):
     with _ChatServer(reply="sorry, no layout today") as server:
         (bad,) = generate([item], f"endpoint:{server.url}", progress=False)
     prompt = server.requests[0]["body"]["messages"][0]["content"]
-    assert prompt == zero_shot_prompt(scene) and "<Objects cluster>" not in prompt and "1_laptop_0" in prompt
+    assert prompt == zero_shot_prompt(scene) and "<Objects cluster>" not in prompt and "laptop (1)" in prompt
     assert (
         sorted(o.category for o in out.objects) == ["laptop", "mug"] and out.instruction == scene.instruction
     )
