@@ -7,13 +7,14 @@ contains a path separator is read as a file path instead.
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Sequence
 from importlib import resources
 from pathlib import Path
 
 from omegaconf import DictConfig, OmegaConf
 
-__all__ = ["ConfigError", "config_path", "load_config", "split_overrides"]
+__all__ = ["ConfigError", "config_path", "load_config", "load_dataclass", "split_overrides"]
 
 
 class ConfigError(ValueError):
@@ -53,3 +54,46 @@ def split_overrides(args: Sequence[str]) -> tuple[list[str], list[str]]:
     overrides = [a for a in args if "=" in a and not a.startswith("-")]
     rest = [a for a in args if a not in overrides]
     return overrides, rest
+
+
+def _coerce(value, kind: type | None):
+    """``value`` as ``kind`` (the type of the field's default); None keeps it as it is."""
+    if kind is None or isinstance(value, kind) and not (kind is int and isinstance(value, bool)):
+        return value
+    if kind is bool:
+        if isinstance(value, str) and value.lower() in ("true", "false"):
+            return value.lower() == "true"
+        raise ValueError("expected true or false")
+    if kind is int:
+        as_float = float(value)
+        if not as_float.is_integer():
+            raise ValueError("expected an integer")
+        return int(as_float)
+    if kind is float:
+        if isinstance(value, bool):
+            raise ValueError("expected a number")
+        return float(value)
+    return kind(value)
+
+
+def load_dataclass(cls, name: str, overrides: Sequence[str] = ()):
+    """The flat config ``name`` (``configs/<name>.yaml`` + overrides) as an instance of ``cls``.
+
+    ``cls`` is a dataclass whose fields are the config's keys; a value is converted to the type of
+    the field's default. An unknown key, or a value of the wrong type, is a :class:`ConfigError`
+    naming the file, the key and the value.
+    """
+    cfg = OmegaConf.to_container(load_config(name, overrides), resolve=True)
+    known = {f.name: f for f in dataclasses.fields(cls)}
+    unknown = sorted(set(cfg) - set(known))
+    if unknown:
+        raise ConfigError(f"configs/{name}.yaml: unknown keys {unknown}; known: {sorted(known)}")
+    values = {}
+    for key, value in cfg.items():
+        default = known[key].default
+        kind = None if default is dataclasses.MISSING or default is None else type(default)
+        try:
+            values[key] = _coerce(value, kind)
+        except (TypeError, ValueError) as exc:
+            raise ConfigError(f"configs/{name}.yaml: {key}={value!r}: {exc}") from None
+    return cls(**values)

@@ -23,7 +23,7 @@ from itertools import chain
 import numpy as np
 import torch
 
-from physcene.config import load_config
+from physcene.config import load_dataclass
 from physcene.kernels.penetration import BUCKETS, launch_penetration, launch_support
 from physcene.scene import Scene
 
@@ -48,12 +48,7 @@ class PhysicsConfig:
 
     @classmethod
     def load(cls, overrides: Sequence[str] = ()) -> PhysicsConfig:
-        cfg = load_config("physics", overrides)
-        unknown = set(cfg) - set(cls.__dataclass_fields__)
-        if unknown:
-            raise ValueError(f"configs/physics.yaml: unknown keys {sorted(unknown)}")
-        types = {k: type(getattr(cls, k)) for k in cls.__dataclass_fields__}
-        return cls(**{k: types[k](v) for k, v in cfg.items()})
+        return load_dataclass(cls, "physics", overrides)
 
 
 @dataclass

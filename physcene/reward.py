@@ -20,7 +20,7 @@ from dataclasses import asdict, dataclass, replace
 import numpy as np
 import torch
 
-from physcene.config import load_config
+from physcene.config import load_dataclass
 from physcene.ctrc import ParseError, parse
 from physcene.scene import Scene
 
@@ -48,12 +48,7 @@ class RewardConfig:
 
     @classmethod
     def load(cls, overrides: Sequence[str] = ()) -> RewardConfig:
-        cfg = load_config("reward", overrides)
-        fields = {k: v for k, v in cfg.items()}
-        unknown = set(fields) - set(cls.__dataclass_fields__)
-        if unknown:
-            raise ValueError(f"configs/reward.yaml: unknown keys {sorted(unknown)}")
-        return cls(**fields)
+        return load_dataclass(cls, "reward", overrides)
 
 
 def completion_text_of(completion) -> str:

@@ -29,7 +29,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, field
 
 import numpy as np
 import torch
@@ -105,16 +105,9 @@ class TTOConfig:
     @classmethod
     def from_config(cls, overrides: Sequence[str] = ()) -> TTOConfig:
         """``configs/tto.yaml`` with ``key=value`` overrides."""
-        from omegaconf import OmegaConf
+        from physcene.config import ConfigError, load_dataclass
 
-        from physcene.config import ConfigError, load_config
-
-        cfg = OmegaConf.to_container(load_config("tto", list(overrides)))
-        known = {f.name: f for f in fields(cls)}
-        unknown = sorted(set(cfg) - set(known))
-        if unknown:
-            raise ConfigError(f"unknown tto option(s) {unknown}; known: {sorted(known)}")
-        config = cls(**cfg)
+        config = load_dataclass(cls, "tto", list(overrides))
         if config.in_children not in IN_MODES:
             raise ConfigError(f"tto: in_children must be one of {list(IN_MODES)}, got {config.in_children!r}")
         if config.steps < 0 or config.lr <= 0 or config.check_every < 1 or config.batch_size < 1:

@@ -82,7 +82,7 @@ def test_bad_jsonl_exits_2_naming_the_line(tmp_path, capsys, content, message):
 def test_bad_override_and_missing_input_exit_2(tmp_path, scenes, capsys):
     src = write_layout(scenes[0], tmp_path / "layout.json")
     assert main(["repair", str(src), "-o", str(tmp_path / "o.json"), "stepz=3"]) == 2
-    assert "unknown tto option" in capsys.readouterr().err
+    assert "tto.yaml: unknown keys ['stepz']" in capsys.readouterr().err
     assert main(["repair", str(tmp_path / "missing.json"), "-o", str(tmp_path / "o.json")]) == 2
     assert "does not exist" in capsys.readouterr().err
     assert not (tmp_path / "o.json").exists()

@@ -65,7 +65,7 @@ def test_config_defaults_are_the_papers_and_overrides_apply():
     cfg = TTOConfig.from_config()
     assert (cfg.steps, cfg.lr, cfg.lambda_sdf, cfg.lambda_rel, cfg.lambda_reg) == (100, 0.01, 10.0, 5.0, 1.0)
     assert TTOConfig.from_config(["steps=7", "lambda_rel=2.5"]).steps == 7
-    with pytest.raises(ConfigError, match="unknown tto option"):
+    with pytest.raises(ConfigError, match=r"tto.yaml: unknown keys \[.lamda_sdf.\]"):
         TTOConfig.from_config(["lamda_sdf=3"])
     with pytest.raises(ConfigError, match="lr > 0"):
         TTOConfig.from_config(["lr=0"])
