@@ -8,6 +8,7 @@ regular sampling of faces plus every corner and sharp edge, so penetration by a 
 from __future__ import annotations
 
 import numpy as np
+import trimesh
 
 from physcene.assets.asset import Asset, grid_coordinates
 
@@ -88,17 +89,11 @@ def primitive_asset(kind: str, resolution: int = 64, n_points: int = 1024) -> As
     g = grid_coordinates(resolution)
     q = np.stack(np.meshgrid(g, g, g, indexing="ij"), axis=-1)
     points = _POINTS[kind](n_points)
-    mesh = None
-    try:
-        import trimesh
-
-        mesh = {
-            "box": lambda: trimesh.creation.box(extents=(2.0, 2.0, 2.0)),
-            "cylinder": lambda: trimesh.creation.cylinder(radius=1.0, height=2.0, sections=64),
-            "sphere": lambda: trimesh.creation.icosphere(subdivisions=4, radius=1.0),
-        }[kind]()
-    except ImportError:  # trimesh is a core dependency; tolerate its absence for the grid alone
-        pass
+    mesh = {
+        "box": lambda: trimesh.creation.box(extents=(2.0, 2.0, 2.0)),
+        "cylinder": lambda: trimesh.creation.cylinder(radius=1.0, height=2.0, sections=64),
+        "sphere": lambda: trimesh.creation.icosphere(subdivisions=4, radius=1.0),
+    }[kind]()
     return Asset(asset_id=f"primitive:{kind}", category=kind, source="primitive",
                  sdf=_SDF[kind](q).astype(np.float32), points=points.astype(np.float32), mesh=mesh,
                  description=f"exact {kind} primitive")
