@@ -5,6 +5,10 @@ Relations (paper appendix A.1, DESIGN.md "Hierarchical scene graph"), priority i
 - ``in``  (A in B): vol(B)/vol(A) ≥ ``in_volume_ratio``, footprint overlap |A∩B|xy/|A|xy ≥
   ``in_footprint_overlap`` (yaw-aware polygon overlap), and at least ``in_height_fraction`` of
   A's height inside B's z-range. Several containers: the innermost (smallest volume) wins.
+  With ``in_requires_container`` (default), B must also be able to hold things: a category known
+  to :data:`physcene.assets.CATEGORY_PRIORS` must have the role ``container`` (a knife is never
+  *in* a cutting board, a lemon never *in* an orange); categories the priors do not know keep the
+  geometric rule alone (:func:`container_role`).
 - ``on``  (A on B): |zmin(A) − zmax(B)| < ``on_gap_cm`` and |A∩B|xy/|A|xy > ``on_footprint_overlap``.
   Several supports: the highest top wins (then the larger overlap).
 - ``near``: otherwise; the parent is the table (:data:`~physcene.scene.TABLE`). Its reference is the
@@ -16,6 +20,7 @@ cycle (possible only for degenerate, sub-centimetre boxes) is skipped for the ne
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass, fields
 
@@ -27,6 +32,8 @@ __all__ = [
     "GraphConfig",
     "anchor_order",
     "build_hierarchy",
+    "can_contain",
+    "container_role",
     "ensure_hierarchy",
     "footprint_overlap",
     "near_direction",
@@ -51,6 +58,9 @@ class GraphConfig:
     """|zmin(top) − zmax(support)| must be below this (cm)."""
     on_footprint_overlap: float = 0.3
     """|top ∩ support|xy / |top|xy must exceed this."""
+    in_requires_container: bool = True
+    """``in`` only into a parent whose category can contain (:func:`can_contain`); False = the
+    purely geometric rule of DESIGN.md."""
 
     @classmethod
     def from_config(cls, overrides=()) -> GraphConfig:
@@ -58,14 +68,52 @@ class GraphConfig:
         from physcene.config import ConfigError, load_config
 
         cfg = load_config("graph", list(overrides))
-        known = {f.name for f in fields(cls)}
-        unknown = sorted(set(cfg) - known)
+        known = {f.name: f for f in fields(cls)}
+        unknown = sorted(set(cfg) - set(known))
         if unknown:
             raise ConfigError(f"unknown graph setting(s) {unknown}; known: {sorted(known)}")
-        try:
-            return cls(**{k: float(v) for k, v in cfg.items()})
-        except (TypeError, ValueError) as exc:
-            raise ConfigError(f"graph settings must be numbers: {exc}") from None
+        values = {}
+        for key, value in cfg.items():
+            if known[key].type in (bool, "bool"):
+                if not isinstance(value, bool):  # omegaconf reads true/false/yes/no as bool
+                    raise ConfigError(f"graph setting {key} must be true or false, got {value!r}")
+                values[key] = value
+                continue
+            try:
+                values[key] = float(value)
+            except (TypeError, ValueError):
+                raise ConfigError(f"graph settings must be numbers: {key}={value!r}") from None
+        return cls(**values)
+
+
+@functools.lru_cache(maxsize=4096)
+def container_role(category: str) -> str | None:
+    """The hierarchy role (``container``/``support``/``object``) of ``category``, None if unknown.
+
+    The name is resolved as the asset library resolves it, without its fuzzy last resort:
+    lower_snake_case singular (:func:`physcene.assets.normalise_category`), then
+    :data:`~physcene.assets.CATEGORY_ALIASES`, then the longest trailing phrase (the head noun:
+    ``ceramic_bowl`` -> ``bowl``, ``kitchen_knife`` -> ``knife``). A name none of these finds in
+    :data:`~physcene.assets.CATEGORY_PRIORS` (an arbitrary MesaTask mesh category) is unknown.
+    """
+    # Imported here: physcene.assets pulls in trimesh (~1 s), which parsing CTRC text never needs.
+    from physcene.assets.categories import CATEGORY_ALIASES, CATEGORY_PRIORS
+    from physcene.assets.mesh_folder import normalise_category
+
+    key = normalise_category(category)
+    words = key.split("_") if key else []
+    for size in range(len(words), 0, -1):  # the whole name first, then ever shorter tails
+        tail = "_".join(words[-size:])
+        for candidate in (tail, CATEGORY_ALIASES.get(tail)):
+            if candidate in CATEGORY_PRIORS:
+                return CATEGORY_PRIORS[candidate].role
+    return None
+
+
+def can_contain(category: str) -> bool:
+    """Whether an object of ``category`` may be an ``in`` parent under ``in_requires_container``:
+    its prior's role is ``container``, or the priors do not know the category."""
+    return container_role(category) in ("container", None)
 
 
 def _polygon(o: SceneObject) -> Polygon:
@@ -102,12 +150,14 @@ def relation_candidates(scene: Scene, config: GraphConfig | None = None) -> dict
     """For every object, the (parent_id, relation) candidates in preference order.
 
     ``in`` candidates (innermost container first) come before ``on`` candidates (highest support
-    first); an object with none is ``near`` the table.
+    first); an object with none is ``near`` the table. With ``config.in_requires_container`` only
+    objects that :func:`can_contain` are ``in`` candidates.
     """
     config = config or GraphConfig()
     objs = list(scene.objects)
     boxes = [o.aabb().tolist() for o in objs]
     volumes = [o.volume() for o in objs]
+    holds = [not config.in_requires_container or can_contain(o.category) for o in objs]
     polys: dict[int, Polygon] = {}
 
     def poly(k: int) -> Polygon:
@@ -125,7 +175,7 @@ def relation_candidates(scene: Scene, config: GraphConfig | None = None) -> dict
             # The z tests are cheap; the footprint overlap is computed only when one of them holds.
             b_zmin, b_zmax = boxes[j][4], boxes[j][5]
             inside_z = min(a_zmax, b_zmax) - max(a_zmin, b_zmin)
-            could_in = (volumes[j] >= config.in_volume_ratio * volumes[i]
+            could_in = (holds[j] and volumes[j] >= config.in_volume_ratio * volumes[i]
                         and inside_z >= config.in_height_fraction * a_h)
             # A support starts below what stands on it: without this, of two stacked objects both
             # thinner than on_gap_cm, the lower one would also read as "on" the upper one.

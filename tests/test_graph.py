@@ -9,6 +9,8 @@ from physcene.graph import (
     GraphConfig,
     anchor_order,
     build_hierarchy,
+    can_contain,
+    container_role,
     footprint_overlap,
     near_direction,
     near_references,
@@ -138,3 +140,39 @@ def test_anchor_order_keeps_given_hierarchy_and_deep_stacks():
     scene = build_hierarchy(Scene(ZONE, objs))
     assert [o.parent for o in scene.objects[1:4]] == ["book_0", "book_1", "book_2"]
     assert anchor_order(scene) == [f"book_{k}" for k in range(120)]
+
+
+def test_in_requires_a_container_category():
+    # A knife sunk 0.6 cm into a cutting board (60 % of its height inside the board's z-range)
+    # passes the geometric in test; a cutting board is a support, so it is on, not in.
+    board, knife = box("cutting_board_0", 50, 30, 0, 35, 25, 2), box("knife_0", 50, 30, 1.4, 22, 2, 1)
+    assert relations(board, knife)["knife_0"] == ("cutting_board_0", "on")
+    geometric = GraphConfig(in_requires_container=False)
+    assert relations(board, knife, config=geometric)["knife_0"] == ("cutting_board_0", "in")
+    # Sunk deeper than the on gap: neither in nor on, so near the table.
+    deep = box("knife_0", 50, 30, 0.2, 22, 2, 1)
+    assert relations(board, deep)["knife_0"] == (TABLE, "near")
+    # A lemon nested in an orange in a bowl: the lemon goes in the bowl, the innermost container.
+    bowl = box("bowl_0", 70, 30, 0, 15, 15, 7)
+    orange = box("orange_0", 70, 30, 0.5, 9, 9, 8)
+    lemon = box("lemon_0", 70, 30, 1.0, 5, 4, 4)
+    rel = relations(bowl, orange, lemon)
+    assert rel["orange_0"] == ("bowl_0", "in") and rel["lemon_0"] == ("bowl_0", "in")
+
+
+def test_container_role_resolves_names_and_unknown_keeps_geometry():
+    assert container_role("Coffee Mugs") == "container"  # normalised, alias coffee_mug -> mug
+    assert container_role("pen_cup") == "container" and container_role("ceramic_bowl") == "container"
+    assert container_role("kitchen_knife") == "object" and container_role("cutting_board") == "support"
+    assert container_role("widget_holder") is None and can_contain("widget_holder")
+    assert not can_contain("notebook") and can_contain("tray")
+    # An unknown category (an arbitrary MesaTask mesh) is still a container by geometry alone.
+    rel = relations(box("crate_0", 50, 30, 0, 20, 20, 10), box("pear_0", 50, 30, 0.5, 6, 6, 7))
+    assert rel["pear_0"] == ("crate_0", "in")
+
+
+def test_in_requires_container_from_config():
+    assert GraphConfig.from_config().in_requires_container is True
+    assert GraphConfig.from_config(["in_requires_container=false"]).in_requires_container is False
+    with pytest.raises(ConfigError, match="in_requires_container"):
+        GraphConfig.from_config(["in_requires_container=2"])
