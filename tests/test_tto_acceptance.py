@@ -71,9 +71,9 @@ def test_acceptance_noisy_200(in_children):
 @slow
 @pytest.mark.parametrize("in_children", ["slide", "frozen"])
 def test_acceptance_synthetic_200(in_children):
-    """The issue asks >= 95 % collision-free (every pair); measured 88.0 % with ``slide`` and
-    66.5 % with ``frozen`` (docs/tto.md: most of the rest are contents the input's graph calls
-    ``in`` a solid slab, e.g. a knife sunk into a cutting board, which cannot be both ``in`` and
-    collision-free). The floors below are regression guards at the measured figures, not the
-    issue's target."""
-    _check(_synthetic(200, seed=0), 0.4, in_children, min_free=0.86 if in_children == "slide" else 0.6)
+    """The issue asks >= 95 % collision-free (every pair); measured 94.5 % with ``slide`` and
+    71.5 % with ``frozen`` since the graph's ``in`` needs a container category (88.0 % / 66.5 %
+    before, when a knife sunk into a cutting board read as ``in`` it; docs/tto.md: the rest are
+    contents a few mm too wide for their container and table-level clutter). The floors below
+    are regression guards at the measured figures, not the issue's target."""
+    _check(_synthetic(200, seed=0), 0.4, in_children, min_free=0.93 if in_children == "slide" else 0.7)
