@@ -200,12 +200,12 @@ def _run_coacd_isolated(vertices: np.ndarray, faces: np.ndarray, kwargs: dict):
     """CoACD's parts [(vertices, faces)], run in a child process; None when the child died.
 
     CoACD aborts (C++ ``std::logic_error``, SIGABRT) on some inputs, which would kill the whole
-    export; in a child process that is a value. Fork keeps the start cheap on Linux (CoACD's
-    OpenMP pool is never started in the parent, so forking is safe).
+    export; in a child process that is a value. The child is spawned, not forked: a parent that
+    has run torch (the engine, TTO) holds a live OpenMP pool, and CoACD's OpenMP in a forked copy
+    of it deadlocks (seen: a test run that scored scenes first hung in the child). Parts are cached
+    per asset, so the spawn's start-up is paid once.
     """
-    methods = multiprocessing.get_all_start_methods()
-    ctx = multiprocessing.get_context("fork" if "fork" in methods else "spawn")
-    with ProcessPoolExecutor(max_workers=1, mp_context=ctx) as pool:
+    with ProcessPoolExecutor(max_workers=1, mp_context=multiprocessing.get_context("spawn")) as pool:
         try:
             return pool.submit(_coacd_child, vertices, faces, kwargs).result()
         except BrokenProcessPool:

@@ -158,7 +158,9 @@ def test_gradient_matches_central_differences_on_exact_fields(field, cubic):
     for m in range(3):
         size = (8.0, 8.0, 8.0) if cubic else tuple(rng.uniform(5.0, 9.0, 3))
         center = (50.0 + rng.uniform(-6, 6), 30.0 + rng.uniform(-5, 5), 6 + rng.uniform(-3, 3))
-        objects.append(obj(f"p{m}", center, size, rng.uniform(-3, 3), "field" if m == 0 else "box"))
+        # every object carries the exact field: finite differences across the box SDF's kinks
+        # (edges, medial planes) compare nothing the engine could reproduce
+        objects.append(obj(f"p{m}", center, size, rng.uniform(-3, 3), "field"))
     batch = eng.pack([scene(*objects)])
     grad = eng.evaluate(batch, with_grad=True)["grad"].double()[0]
     poses = batch.poses.double()

@@ -82,18 +82,27 @@ def _sphere_points(n: int) -> np.ndarray:
 _POINTS = {"box": _box_points, "cylinder": _cylinder_points, "sphere": _sphere_points}
 
 
+def _exactly(structured: np.ndarray, n: int, mesh: trimesh.Trimesh) -> np.ndarray:
+    """``n`` points: the regular sampling (corners and edges first) cut to n, or topped up with
+    area-weighted samples of the surface (fixed seed, so the asset stays deterministic)."""
+    if len(structured) >= n:
+        return structured[np.linspace(0, len(structured) - 1, n).round().astype(int)]
+    extra, _ = trimesh.sample.sample_surface(mesh, n - len(structured), seed=0)
+    return np.concatenate([structured, extra])
+
+
 def primitive_asset(kind: str, resolution: int = 64, n_points: int = 1024) -> Asset:
     """The exact primitive ``kind`` with an analytic SDF grid and deterministic surface points."""
     if kind not in _SDF:
         raise ValueError(f"unknown primitive {kind!r}; expected one of {PRIMITIVES}")
     g = grid_coordinates(resolution)
     q = np.stack(np.meshgrid(g, g, g, indexing="ij"), axis=-1)
-    points = _POINTS[kind](n_points)
     mesh = {
         "box": lambda: trimesh.creation.box(extents=(2.0, 2.0, 2.0)),
         "cylinder": lambda: trimesh.creation.cylinder(radius=1.0, height=2.0, sections=64),
         "sphere": lambda: trimesh.creation.icosphere(subdivisions=4, radius=1.0),
     }[kind]()
+    points = _exactly(_POINTS[kind](n_points), n_points, mesh)
     return Asset(asset_id=f"primitive:{kind}", category=kind, source="primitive",
                  sdf=_SDF[kind](q).astype(np.float32), points=points.astype(np.float32), mesh=mesh,
                  description=f"exact {kind} primitive")
