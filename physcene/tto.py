@@ -75,6 +75,9 @@ class TTOConfig:
     """``slide``: an ``in`` child's (x, y, yaw) in its container's frame are parameters (z offset held,
     footprint kept inside the container's), so a content modelled into its container's wall can be
     fixed; ``frozen``: the paper's rigid container body (docs/tto.md, "in children")."""
+    in_lr_scale: float = 0.25
+    """``slide`` only: an ``in`` child's (u, v) take Adam steps of this fraction of ``lr`` (0.25 cm),
+    smaller than its container's clearance, so a content does not step into a wall."""
     in_lift_cm: float = 3.0
     """``slide`` only: a content may also rise by up to this much in its container (never so far that
     less than 55 % of its height stays inside the container's z-range, the graph's ``in`` test
@@ -110,6 +113,8 @@ class TTOConfig:
         config = load_dataclass(cls, "tto", list(overrides))
         if config.in_children not in IN_MODES:
             raise ConfigError(f"tto: in_children must be one of {list(IN_MODES)}, got {config.in_children!r}")
+        if not 0 < config.in_lr_scale <= 1:
+            raise ConfigError(f"tto: in_lr_scale must be in (0, 1], got {config.in_lr_scale}")
         if config.steps < 0 or config.lr <= 0 or config.check_every < 1 or config.batch_size < 1:
             raise ConfigError(f"tto: steps >= 0, lr > 0, check_every >= 1, batch_size >= 1 required, "
                               f"got steps={config.steps} lr={config.lr} check_every={config.check_every} "
@@ -552,8 +557,14 @@ def optimise(problem: TTOProblem, engine, config: TTOConfig) -> TTOSolution:
     # (S, N, 4): x, y, yaw of every free object; the lift only where it has room
     trainable = problem.trainable.unsqueeze(-1) & torch.cat(
         (torch.ones_like(xi0[..., :3], dtype=torch.bool), (problem.lift_max > 0).unsqueeze(-1)), dim=-1)
-    xi = xi0.clone().requires_grad_(True)
-    opt = torch.optim.Adam([xi], lr=config.lr, fused=xi.device.type == "cuda")  # one kernel per step
+    # Adam's first steps are about lr per coordinate whatever the gradient's size (1 cm): a sliding
+    # content's (u, v) are optimised in units scaled by in_lr_scale, so that one step cannot carry
+    # it through a container wall a few mm thick (it would then be pushed outwards, into the wall)
+    unit = torch.ones_like(xi0)
+    unit[..., :2] = torch.where(((problem.kind == IN) & problem.trainable).unsqueeze(-1),
+                                config.in_lr_scale, 1.0)
+    theta = (xi0 / unit).requires_grad_(True)  # (S, N, 4) Adam's parameter: ξ = θ · unit
+    opt = torch.optim.Adam([theta], lr=config.lr, fused=xi0.device.type == "cuda")  # one kernel per step
     n = problem.n_scene
     dev = xi0.device
     inf = torch.full((n,), math.inf, device=dev)
@@ -562,6 +573,7 @@ def optimise(problem: TTOProblem, engine, config: TTOConfig) -> TTOSolution:
     steps_taken = torch.full((n,), config.steps, dtype=torch.long, device=dev)
     on = problem.bounded
     for step in range(config.steps + 1):
+        xi = theta * unit
         xi_eff = torch.where(trainable, xi, xi0)  # frozen in children, held objects, padding stay put
         poses = forward_kinematics(problem, xi_eff)
         energy = penetration(engine, problem, poses)
@@ -593,11 +605,12 @@ def optimise(problem: TTOProblem, engine, config: TTOConfig) -> TTOSolution:
             1.0 + math.cos(math.pi * step / max(config.steps, 1)))
         opt.step()
         with torch.no_grad():
+            xi = theta * unit
             bound = _support_bounds(problem, xi)
             projected = torch.maximum(torch.minimum(xi[..., :2], bound), -bound)
             xi[..., :2] = torch.where(on.unsqueeze(-1), projected, xi[..., :2])
             xi[..., 3] = torch.minimum(xi[..., 3].clamp_min(0.0), problem.lift_max)
-            xi.copy_(torch.where(active[:, None, None], xi, best_xi))
+            theta.copy_(torch.where(active[:, None, None], xi, best_xi) / unit)
         if config.early_stop and (step + 1) % config.check_every == 0 and not bool(active.any()):
             break
     with torch.no_grad():

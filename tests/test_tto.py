@@ -108,6 +108,27 @@ def test_in_child_slides_out_of_its_containers_wall(engine):
     assert any("frozen by the hierarchy" in u for u in frozen.report["unsatisfied"])
 
 
+def test_contents_of_a_pushed_container_do_not_step_into_its_wall(engine):
+    """A toothbrush cup pushed away from a jar (synthetic test scene 19): Adam's first steps are
+    about lr per coordinate (1 cm at in_lr_scale=1), which carried the toothbrushes into the 3 mm
+    wall where the SDF pushed them outwards; at the default step (2.5 mm) they stay inside."""
+    scene = Scene(zone=Zone(0, 73, 0, 56), objects=(
+        _obj("toothbrush_cup_0", "toothbrush_cup", (51.3, 51.3, 5.6), (8.8, 7.0, 11.2),
+             parent=TABLE, relation="near"),
+        _obj("toothbrush_1", "toothbrush", (51.9, 50.45, 8.1), (2.0, 1.9, 14.4),
+             parent="toothbrush_cup_0", relation="in"),
+        _obj("toothbrush_2", "toothbrush", (49.25, 53.0, 8.25), (1.7, 1.6, 14.3), yaw=0.05,
+             parent="toothbrush_cup_0", relation="in"),
+        _obj("jar_3", "jar", (54.9, 49.0, 5.25), (6.0, 7.7, 10.5), parent=TABLE, relation="near"),
+    ))
+    assert engine.score([scene]).max_depth[0] > 1.0
+    [result] = repair([scene], TTOConfig(), engine)
+    assert result.report["collision_free"], result.report["unsatisfied"]
+    assert result.report["relations"]["in_on_kept"] == 1.0
+    with pytest.raises(ConfigError, match="in_lr_scale"):
+        TTOConfig.from_config(["in_lr_scale=0"])
+
+
 def test_forward_kinematics_reproduces_input_and_moves_subtrees_rigidly(engine):
     from physcene.graph import build_hierarchy
 
