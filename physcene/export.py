@@ -20,15 +20,14 @@ from __future__ import annotations
 import hashlib
 import json
 import math
-import multiprocessing
 import os
 import re
+import subprocess
+import sys
 import tempfile
 import warnings
 import xml.etree.ElementTree as ET
 from collections.abc import Sequence
-from concurrent.futures import ProcessPoolExecutor
-from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -189,27 +188,42 @@ def convex_parts(mesh: trimesh.Trimesh, settings: dict) -> list[trimesh.Trimesh]
     return parts
 
 
-def _coacd_child(vertices: np.ndarray, faces: np.ndarray, kwargs: dict) -> list[tuple[np.ndarray, ...]]:
-    import coacd
-
-    coacd.set_log_level("error")
-    return [(np.asarray(v), np.asarray(f)) for v, f in coacd.run_coacd(coacd.Mesh(vertices, faces), **kwargs)]
+# The child: a fresh interpreter that reads the mesh from an .npz, runs CoACD and writes the parts.
+_COACD_CHILD = """
+import json, sys
+import numpy as np
+import coacd
+coacd.set_log_level("error")
+data = np.load(sys.argv[1])
+parts = coacd.run_coacd(coacd.Mesh(data["vertices"], data["faces"]), **json.loads(sys.argv[3]))
+out = {}
+for k, (v, f) in enumerate(parts):
+    out[f"v{k}"], out[f"f{k}"] = np.asarray(v), np.asarray(f)
+np.savez(sys.argv[2], **out)
+"""
 
 
 def _run_coacd_isolated(vertices: np.ndarray, faces: np.ndarray, kwargs: dict):
-    """CoACD's parts [(vertices, faces)], run in a child process; None when the child died.
+    """CoACD's parts [(vertices, faces)], run in a child process; None when the child failed.
 
     CoACD aborts (C++ ``std::logic_error``, SIGABRT) on some inputs, which would kill the whole
-    export; in a child process that is a value. The child is spawned, not forked: a parent that
-    has run torch (the engine, TTO) holds a live OpenMP pool, and CoACD's OpenMP in a forked copy
-    of it deadlocks (seen: a test run that scored scenes first hung in the child). Parts are cached
-    per asset, so the spawn's start-up is paid once.
+    export; in a child process that is a value. The child is a fresh ``python -c`` interpreter,
+    not a multiprocessing worker: a forked copy of a parent that has run torch holds a live OpenMP
+    pool and CoACD's OpenMP deadlocks in it (seen in a test run), and a spawned worker re-imports
+    the parent's ``__main__``, which fails for stdin scripts and notebooks. Parts are cached per
+    asset, so the start-up is paid once.
     """
-    with ProcessPoolExecutor(max_workers=1, mp_context=multiprocessing.get_context("spawn")) as pool:
-        try:
-            return pool.submit(_coacd_child, vertices, faces, kwargs).result()
-        except BrokenProcessPool:
+    with tempfile.TemporaryDirectory(prefix="physcene-coacd-") as tmp:
+        src, dst = Path(tmp) / "mesh.npz", Path(tmp) / "parts.npz"
+        np.savez(src, vertices=np.asarray(vertices, dtype=np.float64),
+                 faces=np.asarray(faces, dtype=np.int64))
+        done = subprocess.run([sys.executable, "-c", _COACD_CHILD, str(src), str(dst), json.dumps(kwargs)],
+                              capture_output=True, text=True)
+        if done.returncode != 0 or not dst.exists():
             return None
+        with np.load(dst) as parts:
+            n = len(parts.files) // 2
+            return [(parts[f"v{k}"], parts[f"f{k}"]) for k in range(n)]
 
 
 def _unpack_parts(vertices: np.ndarray, faces: np.ndarray, offsets: np.ndarray) -> list[trimesh.Trimesh]:

@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import json
 import math
-import os
 from pathlib import Path
 
 import numpy as np
@@ -97,6 +96,8 @@ def test_collision_parts_keep_the_cavity_hollow(models):
 def test_decomposition_is_cached_on_disk(export_config, monkeypatch):
     import coacd
 
+    import physcene.export as export_module
+
     mesh = default_library().resolve("cup").asset.mesh
     first = convex_parts(mesh, export_config.decomposition)
     cache = list(Path(export_config.decomposition["cache_dir"]).glob("*"))
@@ -106,6 +107,7 @@ def test_decomposition_is_cached_on_disk(export_config, monkeypatch):
         raise AssertionError("CoACD ran although the parts were cached")
 
     monkeypatch.setattr(coacd, "run_coacd", forbidden)
+    monkeypatch.setattr(export_module, "_run_coacd_isolated", forbidden)  # CoACD runs in a child
     again = convex_parts(mesh, export_config.decomposition)
     assert len(again) == len(first)
     for a, b in zip(first, again):
@@ -194,18 +196,12 @@ def test_bad_input_is_named():
         ExportConfig.load(["density_kg_m3.book=-1"])
 
 
-def _abort(*args, **kwargs):
-    import faulthandler
-
-    faulthandler.disable()  # pytest's fault handler would dump the child's stack into the test log
-    os.abort()  # what CoACD's C++ std::logic_error does to the process
-
-
 def test_a_crashing_decomposition_does_not_kill_the_export(tmp_path, monkeypatch):
     """CoACD aborts the process on some meshes; the export survives and falls back to the hull."""
     import physcene.export as export_module
 
-    monkeypatch.setattr(export_module, "_coacd_child", _abort)
+    # the child aborts, as CoACD's C++ std::logic_error does to its process
+    monkeypatch.setattr(export_module, "_COACD_CHILD", "import os; os.abort()")
     mesh = default_library().resolve("bowl").asset.mesh
     settings = {**ExportConfig.load().decomposition, "cache_dir": str(tmp_path)}
     with pytest.warns(RuntimeWarning, match="CoACD failed"):
