@@ -71,9 +71,7 @@ def test_acceptance_noisy_200(in_children):
 @slow
 @pytest.mark.parametrize("in_children", ["slide", "frozen"])
 def test_acceptance_synthetic_200(in_children):
-    """The issue asks >= 95 % collision-free (every pair); measured 94.5 % with ``slide`` and
-    71.5 % with ``frozen`` since the graph's ``in`` needs a container category (88.0 % / 66.5 %
-    before, when a knife sunk into a cutting board read as ``in`` it; docs/tto.md: the rest are
-    contents a few mm too wide for their container and table-level clutter). The floors below
-    are regression guards at the measured figures, not the issue's target."""
-    _check(_synthetic(200, seed=0), 0.4, in_children, min_free=0.93 if in_children == "slide" else 0.7)
+    """The issue asks >= 95 % collision-free (every pair); measured 96.0 % with ``slide`` (the
+    default; the issue's floor is asserted) and 71.5 % with ``frozen`` (the paper's rigid
+    contents: a regression guard at the measured figure, docs/tto.md)."""
+    _check(_synthetic(200, seed=0), 0.4, in_children, min_free=0.95 if in_children == "slide" else 0.7)
