@@ -2,6 +2,7 @@
 
     physcene bench tto --device cuda                    # 512 noisy scenes x 16 objects, 100 steps
     physcene bench tto --device cpu --scenes 16 --json
+    physcene bench tto --device cuda in_lr_scale=1.0     # any configs/tto.yaml key=value override
 
 Scenes come from :func:`physcene.noisy_scenes.noisy_scenes` (stacks, containers, overlaps). Timed:
 ``optimise`` with every scene running all steps (no early stop: the worst case the target is
@@ -12,6 +13,7 @@ The quality figures of the timed optimisation come from one full :func:`physcene
 from __future__ import annotations
 
 import time
+from dataclasses import replace
 
 import torch
 
@@ -33,8 +35,10 @@ def run(args) -> dict:
     device = torch.device(args.device)
     engine = PhysicsEngine(device=device)
     scenes = noisy_scenes(args.scenes, args.objects, seed=args.seed)
-    full = TTOConfig(steps=args.steps, device=str(device), early_stop=False, batch_size=max(1, args.scenes))
-    early = TTOConfig(steps=args.steps, device=str(device), batch_size=max(1, args.scenes))
+    # configs/tto.yaml with the command's key=value overrides, sized for one batch
+    base = replace(TTOConfig.from_config(getattr(args, "overrides", [])), steps=args.steps,
+                   device=str(device), batch_size=max(1, args.scenes))
+    full, early = replace(base, early_stop=False), replace(base, early_stop=True)
     engine.pack(scenes)  # loads (or bakes) the assets once, outside the timings
     start = time.perf_counter()
     hier = [ensure_hierarchy(s) for s in scenes]
