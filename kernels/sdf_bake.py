@@ -111,6 +111,17 @@ def bake_fine_kernel(
         sdf_out[i, j, k] = _signed_distance(mesh, p, bound, method)
 
 
+def _warp_mesh(vertices: np.ndarray, faces: np.ndarray) -> wp.Mesh:
+    """The BVH mesh both kernels query (winding numbers enabled), on the current device."""
+    return wp.Mesh(
+        points=wp.array(vertices, dtype=wp.vec3),
+        indices=wp.array(faces.ravel(), dtype=wp.int32),
+        support_winding_number=True,
+        bvh_constructor=_BVH_CONSTRUCTOR,
+        bvh_leaf_size=_BVH_LEAF_SIZE,
+    )
+
+
 @wp.kernel
 def winding_ambiguity_kernel(
     mesh: wp.uint64,
@@ -143,13 +154,7 @@ def winding_ambiguity(
     """
     vertices, faces = _check_mesh(vertices, faces)
     with wp.ScopedDevice(device):
-        mesh = wp.Mesh(
-            points=wp.array(vertices, dtype=wp.vec3),
-            indices=wp.array(faces.ravel(), dtype=wp.int32),
-            support_winding_number=True,
-            bvh_constructor=_BVH_CONSTRUCTOR,
-            bvh_leaf_size=_BVH_LEAF_SIZE,
-        )
+        mesh = _warp_mesh(vertices, faces)
         flags = wp.empty((resolution,) * 3, dtype=wp.int32)
         wp.launch(
             winding_ambiguity_kernel,
@@ -219,13 +224,7 @@ def bake_sdf(
     rc = coarse_resolution or max(4, resolution // 3)
     method = {"parity": _PARITY, "winding": _WINDING, "shell": _UNSIGNED}[sign_method]
     with wp.ScopedDevice(device):
-        mesh = wp.Mesh(
-            points=wp.array(vertices, dtype=wp.vec3),
-            indices=wp.array(faces.ravel(), dtype=wp.int32),
-            support_winding_number=True,
-            bvh_constructor=_BVH_CONSTRUCTOR,
-            bvh_leaf_size=_BVH_LEAF_SIZE,
-        )
+        mesh = _warp_mesh(vertices, faces)
         coarse = wp.empty((rc, rc, rc), dtype=wp.float32)
         wp.launch(bake_coarse_kernel, dim=coarse.shape, inputs=[mesh.id, _MAX_DIST, method], outputs=[coarse])
         sdf = wp.empty((resolution,) * 3, dtype=wp.float32)

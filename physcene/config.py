@@ -72,7 +72,10 @@ def _coerce(value, kind: type | None):
     if kind is float:
         if isinstance(value, bool):
             raise ValueError("expected a number")
-        return float(value)
+        try:
+            return float(value)
+        except ValueError:
+            raise ValueError("expected a number") from None
     return kind(value)
 
 

@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import functools
 import math
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 
 from shapely.geometry import Polygon
 
@@ -65,25 +65,9 @@ class GraphConfig:
     @classmethod
     def from_config(cls, overrides=()) -> GraphConfig:
         """Read ``configs/graph.yaml`` with ``key=value`` overrides."""
-        from physcene.config import ConfigError, load_config
+        from physcene.config import load_dataclass
 
-        cfg = load_config("graph", list(overrides))
-        known = {f.name: f for f in fields(cls)}
-        unknown = sorted(set(cfg) - set(known))
-        if unknown:
-            raise ConfigError(f"unknown graph setting(s) {unknown}; known: {sorted(known)}")
-        values = {}
-        for key, value in cfg.items():
-            if known[key].type in (bool, "bool"):
-                if not isinstance(value, bool):  # omegaconf reads true/false/yes/no as bool
-                    raise ConfigError(f"graph setting {key} must be true or false, got {value!r}")
-                values[key] = value
-                continue
-            try:
-                values[key] = float(value)
-            except (TypeError, ValueError):
-                raise ConfigError(f"graph settings must be numbers: {key}={value!r}") from None
-        return cls(**values)
+        return load_dataclass(cls, "graph", list(overrides))
 
 
 @functools.lru_cache(maxsize=4096)

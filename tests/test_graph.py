@@ -89,7 +89,7 @@ def test_yaw_aware_footprint():
 def test_thresholds_from_config():
     with pytest.raises(ConfigError, match="on_gap"):
         GraphConfig.from_config(["on_gap=0.1"])  # a typo is an error, not silently ignored
-    with pytest.raises(ConfigError, match="numbers"):
+    with pytest.raises(ConfigError, match="on_gap_cm='wide': expected a number"):
         GraphConfig.from_config(["on_gap_cm=wide"])
     cfg = GraphConfig.from_config(["on_gap_cm=0.1"])
     assert cfg.on_gap_cm == 0.1 and cfg.in_volume_ratio == 1.5
