@@ -20,6 +20,7 @@ import functools
 import hashlib
 import io
 import math
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -60,10 +61,12 @@ def _object_mesh(category: str, library) -> trimesh.Trimesh:
     if library is not None:
         try:
             asset = library.resolve(category).asset
+        except (KeyError, ValueError) as exc:  # the render goes on; the object is drawn as its box
+            warnings.warn(f"render: no asset for {category!r} ({exc}); drawn as a box", RuntimeWarning,
+                          stacklevel=2)
+        else:
             if asset.mesh is not None:
                 return asset.mesh
-        except (KeyError, ValueError):
-            pass
     return _primitive_mesh("box")
 
 
