@@ -120,8 +120,11 @@ def _zero_shot(items: Sequence[BenchmarkItem], url: str, model: str, api_key_env
 
 def generate(items: Sequence[BenchmarkItem], generator: str, *, seed: int = 0, model: str = "gpt-4o",
              api_key_env: str = "PHYSCENE_GENERATOR_API_KEY", max_new_tokens: int = 4096,
-             progress: bool = True) -> list:
-    """One output per item: a Scene or a ParseError (model output that did not parse)."""
+             progress: bool = True, device: str | None = None) -> list:
+    """One output per item: a Scene or a ParseError (model output that did not parse).
+
+    ``device``: where a ``model:PATH`` generator runs (default: the first GPU, else CPU).
+    """
     from physcene.ctrc import ParseError
 
     if generator in ("reference", "tto"):
@@ -139,7 +142,8 @@ def generate(items: Sequence[BenchmarkItem], generator: str, *, seed: int = 0, m
             raise EvalError(f"generator {generator}: physcene.train.generate is unavailable ({exc})") from exc
         from physcene.ctrc import parse
 
-        texts = model_generate(generator[6:], [it.prompt for it in items], max_new_tokens=max_new_tokens)
+        texts = model_generate(generator[6:], [it.prompt for it in items], max_new_tokens=max_new_tokens,
+                               device=device)
         out = [parse(t, zone=it.reference.zone) for t, it in zip(texts, items)]
     elif generator.startswith("endpoint:"):
         out = _zero_shot(items, generator[9:], model, api_key_env, progress)

@@ -51,7 +51,14 @@ def _gpu() -> str:
 
 
 def _evaluate(cfg: DictConfig, models: dict[str, Path], budget_s: float) -> list[dict]:
-    """Rows for every model: generate once per model, TTO the SFT output for ``sft+tto``."""
+    """Rows for every model: generate once per model, TTO the SFT output for ``sft+tto``.
+
+    Under accelerate the test prompts are split between the processes for generation (the slow
+    part) and gathered in input order; the main process scores, repairs and reports, the others
+    return no rows.
+    """
+    from accelerate import PartialState
+    from accelerate.utils import gather_object
     from physcene.eval.harness import (
         generate,
         load_benchmark,
@@ -64,15 +71,20 @@ def _evaluate(cfg: DictConfig, models: dict[str, Path], budget_s: float) -> list
     from physcene.physics import PhysicsEngine
 
     a = cfg.ablation
+    state = PartialState()
     items = load_benchmark(str(a.test_split), n=int(a.n_test), seed=int(cfg.seed), progress=False)
     judge = make_judge("rule", [it.reference for it in items])
-    engine = PhysicsEngine(device="cuda" if __import__("torch").cuda.is_available() else "cpu")
+    engine = PhysicsEngine(device=str(state.device))
     rows, start = [], time.monotonic()
     for name in ROW_NAMES:
         if name == "sft+tto" or name not in models:
             continue
-        outputs = generate(items, f"model:{models[name]}", max_new_tokens=int(cfg.eval.max_new_tokens),
-                           progress=False)
+        with state.split_between_processes(list(range(len(items)))) as shard:
+            part = generate([items[i] for i in shard], f"model:{models[name]}", progress=False,
+                            max_new_tokens=int(cfg.eval.max_new_tokens), device=str(state.device))
+        outputs = gather_object(part)  # rank order = shard order = input order
+        if not state.is_main_process:
+            continue
         results = score_scenes(items, outputs, judge, engine, progress=False)
         rows.append(ablation_row(name, method_report(results, outputs)))
         if name == "sft":
@@ -82,6 +94,7 @@ def _evaluate(cfg: DictConfig, models: dict[str, Path], budget_s: float) -> list
             rows.append(ablation_row("sft+tto", method_report(results, repaired)))
         if time.monotonic() - start > budget_s:
             print(f"ablation: eval budget spent after {name}", file=sys.stderr)
+    state.wait_for_everyone()
     return rows
 
 
@@ -155,8 +168,11 @@ def run_ablation(cfg: DictConfig, budget_min: float | None = None) -> dict:
         "stages": stages,
         "anchors": json.loads(anchors_summary.read_text()) if anchors_summary.is_file() else None,
     }
-    out = Path(str(a.output))
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(result, indent=1))
-    out.with_suffix(".md").write_text(markdown_table(rows))
+    from accelerate import PartialState
+
+    if PartialState().is_main_process:
+        out = Path(str(a.output))
+        out.parent.mkdir(parents=True, exist_ok=True)
+        out.write_text(json.dumps(result, indent=1))
+        out.with_suffix(".md").write_text(markdown_table(rows))
     return result

@@ -15,6 +15,7 @@ import math
 import time
 from pathlib import Path
 
+import torch
 from omegaconf import DictConfig, OmegaConf
 from peft import LoraConfig
 from physcene.train.models import TrainingSetupError, prepare_model_and_tokenizer, torch_dtype, write_run_info
@@ -43,11 +44,23 @@ class TimeBudget(TrainerCallback):
         self.start = time.monotonic()
 
     def on_step_end(self, args, state, control, **kwargs):
-        if self.start is not None and time.monotonic() - self.start > self.seconds:
+        if self.start is not None and self._agreed(time.monotonic() - self.start > self.seconds, args):
             self.stopped_early = True
             control.should_training_stop = True
             control.should_save = True
         return control
+
+    @staticmethod
+    def _agreed(stop: bool, args) -> bool:
+        """Under DDP every rank must stop at the same step (a rank that goes on would wait forever
+        in the next all-reduce), so the ranks' clocks are OR-ed: one small all-reduce per step."""
+        import torch.distributed as dist
+
+        if not (dist.is_available() and dist.is_initialized()) or dist.get_world_size() == 1:
+            return stop
+        flag = torch.tensor([1.0 if stop else 0.0], device=args.device)
+        dist.all_reduce(flag, op=dist.ReduceOp.MAX)
+        return bool(flag.item())
 
 
 def time_budget_callbacks(stage_cfg) -> list[TimeBudget]:

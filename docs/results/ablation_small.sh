@@ -1,0 +1,45 @@
+#!/bin/bash
+# The `small` ablation (docs/results/ablation.json) on the GPUs of one host, every stage under
+# accelerate (DDP, one process per GPU), in about 20 minutes of 2 x H200:
+#
+#   bash docs/results/ablation_small.sh                       # all GPUs, runs/small, defaults below
+#   NPROC=1 SFT_MIN=30 PADA_MIN=10 bash docs/results/ablation_small.sh   # longer, one GPU
+#
+# Stages resume: rerunning continues SFT from its last checkpoint, keeps a complete anchor file
+# and reuses finished models (`ablation.reuse`). Step times land in each stage's train_log.json.
+set -euo pipefail
+NPROC=${NPROC:-$(python3 -c "import torch; print(max(1, torch.cuda.device_count()))")}
+CONFIG=${CONFIG:-small}
+RUN=${RUN:-runs/$CONFIG}
+DATA=${DATA:-data/train.jsonl}      # `synth` builds it; any CTRC JSONL works
+SFT_MIN=${SFT_MIN:-7}
+PADA_MIN=${PADA_MIN:-2.5}
+ANCHORS=${ANCHORS:-256}
+N_TEST=${N_TEST:-200}
+MAX_TOKENS=${MAX_TOKENS:-4096}      # test-split completions are 914-2,791 tokens
+PADA_BATCH=${PADA_BATCH:-64}        # completions per GPU per step (G = 4 -> 16 prompts)
+WORKERS=${WORKERS:-$(nproc)}
+LAUNCH=${LAUNCH:-"accelerate launch --config_file configs/accelerate/multi_gpu.yaml --num_processes $NPROC"}
+EXTRA=${EXTRA:-}                    # more key=value overrides for every stage
+
+stamp() { echo "[$(date +%T)] $*"; }
+common="output_dir=$RUN data.train=$DATA eval.max_new_tokens=$MAX_TOKENS anchors.max_new_tokens=$MAX_TOKENS"
+common="$common pada.max_completion_length=$MAX_TOKENS pada.per_device_batch_size=$PADA_BATCH"
+common="$common pada.global_batch_size=$((PADA_BATCH * NPROC)) ablation.n_test=$N_TEST $EXTRA"
+
+if [ ! -s "$DATA" ] && [[ "$DATA" != synth:* ]]; then
+  stamp "synth -> $DATA"
+  physcene data synth --split train --out "$(dirname "$DATA")" --workers "$WORKERS"
+fi
+stamp "sft ($NPROC processes, $SFT_MIN min)"
+$LAUNCH -m physcene.cli train sft --config "$CONFIG" $common sft.max_minutes="$SFT_MIN"
+stamp "anchors ($ANCHORS records)"
+$LAUNCH -m physcene.cli train anchors --config "$CONFIG" $common anchors.n_records="$ANCHORS"
+for variant in grpo pada_star pada; do
+  stamp "$variant ($PADA_MIN min)"
+  $LAUNCH -m physcene.cli train pada --config "$CONFIG" --variant "$variant" $common pada.max_minutes="$PADA_MIN" \
+    || stamp "$variant failed (the ablation retries it within its budget or reports it skipped)"
+done
+stamp "eval ($N_TEST test scenes)"
+$LAUNCH -m physcene.cli train ablation --config "$CONFIG" $common ablation.budget_min="$(python3 -c "print(10 * $PADA_MIN)")"
+stamp done
