@@ -13,6 +13,7 @@ Rates are fractions in [0, 1]; reports print them as percentages.
 
 from __future__ import annotations
 
+import re
 from collections import defaultdict
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
@@ -24,7 +25,8 @@ from physcene.scene import Scene
 
 __all__ = ["CRITERIA", "DIFFICULTY_LEVELS", "THRESHOLDS_CM", "ScenePhysics", "SceneResult", "breakdown",
            "collision_rates", "diversity", "floating_rate", "level_of", "out_of_zone",
-           "out_of_zone_rate", "physics_from_score", "qpr", "relation_preservation_rate", "summarize"]
+           "out_of_zone_rate", "parse_error_kinds", "physics_from_score", "qpr", "relation_preservation_rate",
+           "summarize"]
 
 # The paper's GPT-score criteria, in table order.
 CRITERIA = ("CwT", "OSR", "PPI", "LCR", "OV")
@@ -215,10 +217,26 @@ def summarize(results: Sequence[SceneResult], thresholds: Iterable[float] = THRE
     rel = [r.extra["relation_preservation"] for r in results if "relation_preservation" in r.extra]
     if rel:
         row["relation_preservation"] = _mean(rel)
-    parse_errors = sum(1 for r in results if r.extra.get("parse_error"))
-    if parse_errors:
-        row["parse_errors"] = parse_errors
+    reasons = [r.extra["parse_error"] for r in results if r.extra.get("parse_error")]
+    if reasons:
+        row["parse_errors"] = len(reasons)
+        row["parse_error_kinds"] = parse_error_kinds(reasons)
     return row
+
+
+def parse_error_kinds(reasons: Iterable[str], top: int = 8) -> list[tuple[str, int]]:
+    """The most common kinds of ParseError reason, most frequent first, as (kind, count).
+
+    A kind is the reason with quoted names and numbers blanked (``object '3_cup_1', field 'size':
+    ... got [1.0, -2.0, 3.0]`` -> ``object '…', field '…': ... got [#, #, #]``), so a model's
+    failure modes (truncation, unknown parent, bad extents, ...) group together.
+    """
+    counts: dict[str, int] = defaultdict(int)
+    for reason in reasons:
+        kind = re.sub(r"'[^']*'|\"[^\"]*\"", "'…'", str(reason))
+        kind = re.sub(r"-?\d+(\.\d+)?(e[-+]?\d+)?", "#", kind)
+        counts[kind[:120]] += 1
+    return sorted(counts.items(), key=lambda kv: (-kv[1], kv[0]))[:top]
 
 
 def breakdown(results: Sequence[SceneResult], key: Callable[[SceneResult], object] | str) -> dict:

@@ -112,3 +112,20 @@ def test_eval_on_cuda_matches_cpu(tmp_path):
         # TTO runs Adam in float32 on each device: the outcome agrees, not the trajectory.
         sa_, sb_ = rows["cpu"][method]["summary"], rows["cuda"][method]["summary"]
         assert abs(sa_["collision"]["0.5"]["SCR"] - sb_["collision"]["0.5"]["SCR"]) <= 0.25
+
+
+def test_parse_error_kinds_group_a_models_failure_modes():
+    from physcene.ctrc import parse
+    from physcene.eval.metrics import parse_error_kinds
+
+    texts = ['{"objects": [{"instance_id": "1_cup_0", "category": "cup", "parent_id": "root_zone", '
+             '"relation_type": "near", "relative_bbox": [0, 10, 0, 10, 0, 12], "relative_rotation_deg": 0}',
+             '{"objects": [{"instance_id": "2_mug_0", "category": "mug", "parent_id": "root_zone", '
+             '"relation_type": "near", "relative_bbox": [5, 9, 1, 7, 0, 9.5], "relative_rotation_deg": 0}',
+             "no layout here at all"]
+    reasons = [parse(t, zone=None).reason for t in texts]
+    kinds = parse_error_kinds(reasons)
+    assert sum(c for _, c in kinds) == 3
+    assert kinds[0][1] == 2, kinds  # the two truncations differ only in names and numbers
+    assert "1_cup_0" not in kinds[0][0] and "2_mug_0" not in kinds[0][0]
+    assert parse_error_kinds([]) == []

@@ -233,10 +233,10 @@ def test_ablation_row_and_table_from_an_eval_report():
 
     report = {"summary": {"n": 4, "parse_errors": 1, "QPR": {7.0: 0.25, 8.0: 0.0},
                           "collision": {0.0: {"SCR": 0.5, "ACR": 0.125}, 1.0: {"SCR": 0.0, "ACR": 0.0}},
-                          "judge": {"avg": 7.5}}}
+                          "judge": {"avg": 7.5}, "parse_error_kinds": [("truncated JSON at char #", 1)]}}
     row = ablation_row("pada", report)
     assert row == {"name": "pada", "scr": 0.5, "acr": 0.125, "qpr7": 0.25, "judge_avg": 7.5,
-                   "parse_rate": 0.75, "n": 4}
+                   "parse_rate": 0.75, "n": 4, "parse_error_kinds": [["truncated JSON at char #", 1]]}
     nan = float("nan")
     empty = ablation_row("sft", {"summary": {"n": 2, "parse_errors": 2, "QPR": {7.0: 0.0},
                                              "collision": {0.0: {"SCR": nan, "ACR": nan}},

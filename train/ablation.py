@@ -39,7 +39,8 @@ def ablation_row(name: str, report: dict) -> dict:
 
     return {"name": name, "scr": finite(collision.get("SCR")), "acr": finite(collision.get("ACR")),
             "qpr7": finite(qpr), "judge_avg": finite(s["judge"]["avg"]),
-            "parse_rate": (n - int(s.get("parse_errors", 0))) / max(n, 1), "n": n}
+            "parse_rate": (n - int(s.get("parse_errors", 0))) / max(n, 1), "n": n,
+            "parse_error_kinds": [list(k) for k in s.get("parse_error_kinds", [])]}
 
 
 def _gpu() -> str:

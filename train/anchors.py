@@ -78,9 +78,13 @@ def anchor_summary(rows: list[dict]) -> dict:
     before = [r["anchor_energy_before"] for r in parsed]
     after = [r["anchor_energy_after"] for r in parsed]
     mean = (lambda xs: sum(xs) / len(xs) if xs else None)  # noqa: E731
+    from physcene.eval.metrics import parse_error_kinds
+
     return {
         "n": len(rows),
         "parse_rate": len(parsed) / max(len(rows), 1),
+        "parse_error_kinds": parse_error_kinds(r["anchor_parse_error"] for r in rows
+                                               if r.get("anchor_parse_error")),
         "energy_before_mean_cm": mean(before),
         "energy_after_mean_cm": mean(after),
         "collision_free_before": mean([float(e <= 0.0) for e in before]),

@@ -131,6 +131,9 @@ def sft_arguments(cfg: DictConfig) -> SFTConfig:
         seed=int(cfg.seed),
         deepspeed=deepspeed,
         dataloader_num_workers=0,
+        # every trainable weight takes part in every forward (the 8B vision tower is frozen, so DDP
+        # skips it): the unused-parameter search would only add a graph traversal per step
+        ddp_find_unused_parameters=False,
         gradient_checkpointing=bool(s.get("gradient_checkpointing", False)),
         **_precision(cfg),
     )

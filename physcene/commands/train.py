@@ -42,6 +42,17 @@ def _main_process() -> bool:
 
 
 def run(args) -> int:
+    try:
+        return _run_stage(args)
+    finally:  # under accelerate: leave NCCL cleanly (no "destroy_process_group() was not called")
+        import sys
+
+        dist = sys.modules.get("torch.distributed")
+        if dist is not None and dist.is_available() and dist.is_initialized():
+            dist.destroy_process_group()
+
+
+def _run_stage(args) -> int:
     overrides = list(args.overrides)
     if args.variant:
         overrides.append(f"pada.variant={args.variant}")
