@@ -29,7 +29,6 @@ from __future__ import annotations
 import numpy as np
 import torch
 import warp as wp
-
 from physcene.kernels.penetration import _ct, _Launcher
 
 wp.config.log_level = max(wp.config.log_level, wp.LOG_WARNING)
@@ -287,6 +286,13 @@ def match_word(text: wp.array(dtype=wp.uint8), s: int, n: int, h: wp.uint64,
 
 
 @wp.func
+def is_word(text: wp.array(dtype=wp.uint8), s: int, n: int, h: wp.uint64, words: wp.array(dtype=wp.uint8),
+            word_start: wp.array(dtype=wp.int32), word_hash: wp.array(dtype=wp.uint64), k: int):
+    """1 if text[s:s+n] is known word k."""
+    return wp.where(match_word(text, s, n, h, words, word_start, word_hash, k, k + 1) >= 0, 1, 0)
+
+
+@wp.func
 def same_bytes(text: wp.array(dtype=wp.uint8), a: int, b: int, n: int):
     for i in range(n):
         if text[a + i] != text[b + i]:
@@ -340,8 +346,9 @@ def scan(text: wp.array(dtype=wp.uint8), offsets: wp.array(dtype=wp.int32),
     Scratch rows per entry: ent_f [box (6), rotation deg, 0] and world [cx, cy, cz, w, d, h, yaw]
     in ent_f[:, 8:15]; ent_i [parent slot, relation (0 in, 1 on, 2 near), id start, id len,
     parent start, parent len, done, asset slot, category start, category len]; n_read[c] the
-    objects of an accepted text or of one with an unknown category (status -9); ent_h [id hash, parent hash, category hash,
-    category check]. ``arr`` (per text, 8) holds the numbers of the array value being read.
+    objects of an accepted text or of one with an unknown category (status -9); ent_h [id hash,
+    parent hash, category hash, category check]. ``arr`` (per text, 8) holds the numbers of the
+    array value being read.
     """
     c = wp.tid()
     if flags[c] != 0 or marker[c] == 0:
@@ -585,7 +592,7 @@ def scan(text: wp.array(dtype=wp.uint8), offsets: wp.array(dtype=wp.int32),
                             bad = int(1)
                     elif key == K_PARENT:
                         if kind == V_STRING and vesc == 0:
-                            if match_word(text, vs, vn, vh, words, word_start, word_hash, W_ROOT, W_ROOT + 1) < 0:
+                            if is_word(text, vs, vn, vh, words, word_start, word_hash, W_ROOT) == 0:
                                 par_s = vs
                                 par_n = vn
                                 par_h = vh
@@ -617,7 +624,7 @@ def scan(text: wp.array(dtype=wp.uint8), offsets: wp.array(dtype=wp.int32),
                             bad = int(1)
                     elif key == K_TYPE:
                         if kind == V_STRING and vesc == 0:
-                            if match_word(text, vs, vn, vh, words, word_start, word_hash, W_ZONE, W_ZONE + 1) >= 0:
+                            if is_word(text, vs, vn, vh, words, word_start, word_hash, W_ZONE) == 1:
                                 is_zone_type = int(1)
                     elif key == K_BBOX:
                         if kind == V_ARRAY:
@@ -642,7 +649,7 @@ def scan(text: wp.array(dtype=wp.uint8), offsets: wp.array(dtype=wp.int32),
                 n_ent += 1
                 is_root = int(0)
                 if iid_s >= 0:
-                    if match_word(text, iid_s, iid_n, iid_h, words, word_start, word_hash, W_ROOT, W_ROOT + 1) >= 0:
+                    if is_word(text, iid_s, iid_n, iid_h, words, word_start, word_hash, W_ROOT) == 1:
                         is_root = int(1)
                 if is_zone_type == 1 or is_root == 1:
                     if zone_entry_seen == 0:  # ctrc._zone_from reads the FIRST zone entry only
@@ -874,8 +881,8 @@ def gather(src: wp.array(dtype=wp.int32), count: wp.array(dtype=wp.int32), n_slo
 
 # Launchers --------------------------------------------------------------------------------------
 def launch_scan(*, text: torch.Tensor, offsets: torch.Tensor, n_text: int, n_bytes: int,
-                words: dict[str, torch.Tensor], table: dict[str, torch.Tensor], buffers: dict[str, torch.Tensor]
-                ) -> None:
+                words: dict[str, torch.Tensor], table: dict[str, torch.Tensor],
+                buffers: dict[str, torch.Tensor]) -> None:
     """prescan + scan of ``n_text`` texts into ``buffers`` (see :func:`scan_buffers`); no sync.
 
     text (>= n_bytes,) uint8; offsets (n_text + 1,) int32; words: ``bytes``, ``start``, ``hash``

@@ -204,7 +204,9 @@ class TextPacker:
             both = torch.cat([buffers["status"][:n], buffers["n_read"][:n]]).cpu().numpy()  # one sync
             status, n_read = both[:n], both[n:]
             unknown = np.nonzero(status == _UNKNOWN_CATEGORY)[0]
-            if attempt == 1 or unknown.size == 0 or not self._learn_categories(data, unknown, n_read[unknown]):
+            if attempt == 1 or unknown.size == 0:
+                break
+            if not self._learn_categories(data, unknown, n_read[unknown]):
                 break
         return status.copy(), data
 
