@@ -15,6 +15,7 @@ import numpy as np
 import pytest
 import torch
 from hypothesis import HealthCheck, given, settings
+from physcene.kernels.ctrc_scan import MAX_ENTRIES, category_hash
 from test_ctrc import layouts
 from test_ctrc_fuzz import ALPHABET, _base_completions, _mutate, _random_json, _split
 
@@ -23,7 +24,6 @@ from physcene.commands.bench import bench_scenes
 from physcene.ctrc import ParseError, completion_text, parse
 from physcene.data import synthesize
 from physcene.graph import build_hierarchy
-from physcene.kernels.ctrc_scan import MAX_ENTRIES, category_hash
 from physcene.layout import load_layout
 from physcene.physics import PhysicsEngine
 from physcene.reward import PhysicsReward, RewardConfig
@@ -120,6 +120,7 @@ def _variants(text: str) -> dict[str, str]:
     entries = [e for e in data["objects"] if e.get("instance_id") != "root_zone"]
     e = entries[-1]
     iid = entries[0]["instance_id"]
+    escaped = f"\\u{ord(iid[0]):04x}{iid[1:]}"  # the same id, its first letter as a \u escape
 
     def dump(d):
         return head + json.dumps(d)
@@ -131,8 +132,8 @@ def _variants(text: str) -> dict[str, str]:
 
     body = text.split(MARK)[1]
     return {
-        "exponent": dump(data).replace(str(e["relative_bbox"][1]) + ",", "%.6e," % e["relative_bbox"][1], 1),
-        "escape in id": dump(data).replace(f'"instance_id": "{iid}"', f'"instance_id": "\\u{ord(iid[0]):04x}{iid[1:]}"', 1),
+        "exponent": dump(data).replace(str(e["relative_bbox"][1]) + ",", f"{e['relative_bbox'][1]:.6e},", 1),
+        "escape in id": dump(data).replace(f'"instance_id": "{iid}"', f'"instance_id": "{escaped}"', 1),
         "alias relation": edit(lambda d, es: es[0].update(relation_type="on_table")),
         "unknown key": edit(lambda d, es: es[0].update(colour="red")),
         "asset id": edit(lambda d, es: es[0].update(asset_id="box")),
@@ -211,7 +212,8 @@ def test_new_categories_are_learned_and_hash_collisions_fall_back():
     first = engine.pack_texts([text])
     assert first.fast.all()  # unknown categories resolved on the host, then rescanned
     packer = engine._text_packer
-    assert {name for _, _, name in packer._categories.values()} == {o.category for o in _stack_scene().objects}
+    learned = {name for _, _, name in packer._categories.values()}
+    assert learned == {o.category for o in _stack_scene().objects}
     # a foreign name posing under mug's hash: mug's own occurrences no longer check out
     key, check = category_hash(b"mug")
     packer._categories[key] = (check + 1, 0, "not-a-mug")
