@@ -92,12 +92,11 @@ def category_hash(data: bytes) -> tuple[int, int]:
     return h, (len(data) << 32) | h2
 
 
-def keyword_table() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(bytes uint8, starts int32 (K+1,), FNV-1a hashes uint64 (K,)) of every known word."""
+def keyword_table() -> tuple[np.ndarray, np.ndarray]:
+    """(bytes uint8, starts int32 (K+1,)) of every word the scanner compares against."""
     words = [w.encode() for w in (*ENTRY_KEYS, *TOP_KEYS, *_EXTRA_WORDS)]
     starts = np.concatenate([[0], np.cumsum([len(w) for w in words])]).astype(np.int32)
-    hashes = np.array([category_hash(w)[0] for w in words], dtype=np.uint64)
-    return np.frombuffer(b"".join(words), np.uint8).copy(), starts, hashes
+    return np.frombuffer(b"".join(words), np.uint8).copy(), starts
 
 
 # Prescan ----------------------------------------------------------------------------------------
@@ -168,44 +167,59 @@ def hex_digit(b: int):
 
 @wp.func
 def scan_string(text: wp.array(dtype=wp.uint8), p: int, end: int):
-    """A JSON string at p (the opening quote). Returns (position after it or -1, FNV-1a hash,
-    31-polynomial hash, 1 if it holds escapes, 1 if it has a visible ASCII byte).
+    """A JSON string at p (the opening quote): (position after it or -1, 1 if it holds escapes).
 
     strict=False JSON: raw control bytes are allowed; escapes are validated (\\uXXXX needs 4 hex
-    digits) but not decoded, so a string with escapes cannot be compared or hashed by content.
+    digits) but not decoded, so a string with escapes is never compared or hashed by content.
+    Nothing else per byte: strings whose content matters are hashed afterwards (hash_span).
     """
-    h = _FNV_OFFSET
-    h2 = wp.uint32(0)
     escaped = int(0)
-    visible = int(0)
     q = p + 1
     while q < end:
         b = int(text[q])
         if b == 34:
-            return q + 1, h, h2, escaped, visible
+            return q + 1, escaped
         if b == 92:
             escaped = int(1)
             if q + 1 >= end:
-                return -1, h, h2, escaped, visible
+                return -1, escaped
             e = int(text[q + 1])
             if e == 117:
                 if q + 5 >= end:
-                    return -1, h, h2, escaped, visible
+                    return -1, escaped
                 if not (hex_digit(int(text[q + 2])) and hex_digit(int(text[q + 3]))
                         and hex_digit(int(text[q + 4])) and hex_digit(int(text[q + 5]))):
-                    return -1, h, h2, escaped, visible
+                    return -1, escaped
                 q += 6
             elif e == 34 or e == 92 or e == 47 or e == 98 or e == 102 or e == 110 or e == 114 or e == 116:
                 q += 2
             else:
-                return -1, h, h2, escaped, visible
+                return -1, escaped
         else:
-            h = (h ^ wp.uint64(b)) * _FNV_PRIME
-            h2 = h2 * wp.uint32(31) + wp.uint32(b)
-            if b > 32 and b < 127:
-                visible = int(1)
             q += 1
-    return -1, h, h2, escaped, visible
+    return -1, escaped
+
+
+@wp.func
+def hash_span(text: wp.array(dtype=wp.uint8), s: int, n: int):
+    """(FNV-1a 64-bit hash, 31-polynomial 32-bit hash) of text[s:s+n] (category_hash on the host)."""
+    h = _FNV_OFFSET
+    h2 = wp.uint32(0)
+    for i in range(n):
+        b = text[s + i]
+        h = (h ^ wp.uint64(b)) * _FNV_PRIME
+        h2 = h2 * wp.uint32(31) + wp.uint32(b)
+    return h, h2
+
+
+@wp.func
+def visible_ascii(text: wp.array(dtype=wp.uint8), s: int, n: int):
+    """1 if text[s:s+n] has a visible ASCII byte (then str.strip() cannot leave it empty)."""
+    for i in range(n):
+        b = int(text[s + i])
+        if b > 32 and b < 127:
+            return 1
+    return 0
 
 
 @wp.func
@@ -269,27 +283,27 @@ def scan_number(text: wp.array(dtype=wp.uint8), p: int, end: int):
 
 
 @wp.func
-def match_word(text: wp.array(dtype=wp.uint8), s: int, n: int, h: wp.uint64,
-               words: wp.array(dtype=wp.uint8), word_start: wp.array(dtype=wp.int32),
-               word_hash: wp.array(dtype=wp.uint64), first: int, last: int):
-    """Index in [first, last) of the known word equal to text[s:s+n] (hash, length, bytes), or -1."""
+def match_word(text: wp.array(dtype=wp.uint8), s: int, n: int, words: wp.array(dtype=wp.uint8),
+               word_start: wp.array(dtype=wp.int32), first: int, last: int):
+    """Index in [first, last) of the known word equal to text[s:s+n] (length, then bytes), or -1."""
     for k in range(first, last):
         ws = word_start[k]
-        if word_hash[k] == h and word_start[k + 1] - ws == n:
+        if word_start[k + 1] - ws == n:
             same = int(1)
             for i in range(n):
                 if text[s + i] != words[ws + i]:
                     same = int(0)
+                    break
             if same == 1:
                 return k
     return -1
 
 
 @wp.func
-def is_word(text: wp.array(dtype=wp.uint8), s: int, n: int, h: wp.uint64, words: wp.array(dtype=wp.uint8),
-            word_start: wp.array(dtype=wp.int32), word_hash: wp.array(dtype=wp.uint64), k: int):
+def is_word(text: wp.array(dtype=wp.uint8), s: int, n: int, words: wp.array(dtype=wp.uint8),
+            word_start: wp.array(dtype=wp.int32), k: int):
     """1 if text[s:s+n] is known word k."""
-    return wp.where(match_word(text, s, n, h, words, word_start, word_hash, k, k + 1) >= 0, 1, 0)
+    return wp.where(match_word(text, s, n, words, word_start, k, k + 1) >= 0, 1, 0)
 
 
 @wp.func
@@ -332,7 +346,6 @@ def lookup_slot(key: wp.uint64, check: wp.uint64, table_key: wp.array(dtype=wp.u
 def scan(text: wp.array(dtype=wp.uint8), offsets: wp.array(dtype=wp.int32),
          flags: wp.array(dtype=wp.int32), marker: wp.array(dtype=wp.int32),
          words: wp.array(dtype=wp.uint8), word_start: wp.array(dtype=wp.int32),
-         word_hash: wp.array(dtype=wp.uint64),
          table_key: wp.array(dtype=wp.uint64), table_check: wp.array(dtype=wp.uint64),
          table_slot: wp.array(dtype=wp.int32), n_table: int,
          ent_f: wp.array2d(dtype=wp.float64), ent_i: wp.array2d(dtype=wp.int32),
@@ -383,11 +396,11 @@ def scan(text: wp.array(dtype=wp.uint8), offsets: wp.array(dtype=wp.int32),
         if b != 34:
             status[c] = _S_SYNTAX
             return
-        q, kh, kh2, kesc, kvis = scan_string(text, p, end)
+        q, kesc = scan_string(text, p, end)
         if q < 0 or kesc == 1:
             status[c] = _S_SYNTAX
             return
-        key = match_word(text, p + 1, q - p - 2, kh, words, word_start, word_hash, K_OBJECTS, K_ZONE + 1)
+        key = match_word(text, p + 1, q - p - 2, words, word_start, K_OBJECTS, K_ZONE + 1)
         if key < 0 or (top_seen & (1 << (key - K_OBJECTS))) != 0:
             status[c] = _S_KEY
             return
@@ -481,11 +494,11 @@ def scan(text: wp.array(dtype=wp.uint8), offsets: wp.array(dtype=wp.int32),
                     if b != 34:
                         status[c] = _S_SYNTAX
                         return
-                    q, kh, kh2, kesc, kvis = scan_string(text, p, end)
+                    q, kesc = scan_string(text, p, end)
                     if q < 0 or kesc == 1:
                         status[c] = _S_SYNTAX
                         return
-                    key = match_word(text, p + 1, q - p - 2, kh, words, word_start, word_hash, 0, K_ZROT + 1)
+                    key = match_word(text, p + 1, q - p - 2, words, word_start, 0, K_ZROT + 1)
                     if key < 0 or (seen & (1 << key)) != 0:
                         status[c] = _S_KEY
                         return
@@ -504,13 +517,10 @@ def scan(text: wp.array(dtype=wp.uint8), offsets: wp.array(dtype=wp.int32),
                     v = wp.float64(0.0)
                     vs = int(0)
                     vn = int(0)
-                    vh = wp.uint64(0)
-                    vh2 = wp.uint32(0)
                     vesc = int(0)
-                    vvis = int(0)
                     an = int(0)
                     if b == 34:
-                        q, vh, vh2, vesc, vvis = scan_string(text, p, end)
+                        q, vesc = scan_string(text, p, end)
                         if q < 0:
                             status[c] = _S_SYNTAX
                             return
@@ -579,28 +589,28 @@ def scan(text: wp.array(dtype=wp.uint8), offsets: wp.array(dtype=wp.int32),
                             return
                         iid_s = vs
                         iid_n = vn
-                        iid_h = vh
-                        iid_vis = vvis
+                        iid_h, iid_h2 = hash_span(text, vs, vn)
+                        iid_vis = visible_ascii(text, vs, vn)
                     elif key == K_CAT:
                         if kind == V_STRING and vesc == 0 and vn > 0:
                             cat_ok = int(1)
                             cat_s = vs
                             cat_n = vn
-                            cat_h = vh
-                            cat_chk = (wp.uint64(vn) << wp.uint64(32)) | wp.uint64(vh2)
+                            cat_h, cat_h2 = hash_span(text, vs, vn)
+                            cat_chk = (wp.uint64(vn) << wp.uint64(32)) | wp.uint64(cat_h2)
                         else:
                             bad = int(1)
                     elif key == K_PARENT:
                         if kind == V_STRING and vesc == 0:
-                            if is_word(text, vs, vn, vh, words, word_start, word_hash, W_ROOT) == 0:
+                            if is_word(text, vs, vn, words, word_start, W_ROOT) == 0:
                                 par_s = vs
                                 par_n = vn
-                                par_h = vh
+                                par_h, par_h2 = hash_span(text, vs, vn)
                         elif kind != V_NULL:
                             bad = int(1)
                     elif key == K_REL:
                         if kind == V_STRING and vesc == 0:
-                            w = match_word(text, vs, vn, vh, words, word_start, word_hash, W_IN, W_NEAR + 1)
+                            w = match_word(text, vs, vn, words, word_start, W_IN, W_NEAR + 1)
                             if w < 0:
                                 bad = 1  # an alias or an unknown relation: the Python parser decides
                             else:
@@ -624,7 +634,7 @@ def scan(text: wp.array(dtype=wp.uint8), offsets: wp.array(dtype=wp.int32),
                             bad = int(1)
                     elif key == K_TYPE:
                         if kind == V_STRING and vesc == 0:
-                            if is_word(text, vs, vn, vh, words, word_start, word_hash, W_ZONE) == 1:
+                            if is_word(text, vs, vn, words, word_start, W_ZONE) == 1:
                                 is_zone_type = int(1)
                     elif key == K_BBOX:
                         if kind == V_ARRAY:
@@ -649,7 +659,7 @@ def scan(text: wp.array(dtype=wp.uint8), offsets: wp.array(dtype=wp.int32),
                 n_ent += 1
                 is_root = int(0)
                 if iid_s >= 0:
-                    if is_word(text, iid_s, iid_n, iid_h, words, word_start, word_hash, W_ROOT) == 1:
+                    if is_word(text, iid_s, iid_n, words, word_start, W_ROOT) == 1:
                         is_root = int(1)
                 if is_zone_type == 1 or is_root == 1:
                     if zone_entry_seen == 0:  # ctrc._zone_from reads the FIRST zone entry only
@@ -885,7 +895,7 @@ def launch_scan(*, text: torch.Tensor, offsets: torch.Tensor, n_text: int, n_byt
                 buffers: dict[str, torch.Tensor]) -> None:
     """prescan + scan of ``n_text`` texts into ``buffers`` (see :func:`scan_buffers`); no sync.
 
-    text (>= n_bytes,) uint8; offsets (n_text + 1,) int32; words: ``bytes``, ``start``, ``hash``
+    text (>= n_bytes,) uint8; offsets (n_text + 1,) int32; words: ``bytes``, ``start``
     of :func:`keyword_table`; table: ``key``, ``check`` (uint64 as int64), ``slot`` (int32),
     sorted by key as unsigned.
     """
@@ -900,7 +910,7 @@ def launch_scan(*, text: torch.Tensor, offsets: torch.Tensor, n_text: int, n_byt
     n_table = int(table["key"].shape[0])
     launch(scan, n_text, [
         w_text, w_off, w_flags, w_marker,
-        _ct(words["bytes"], wp.uint8), _ct(words["start"]), _ct(words["hash"], wp.uint64),
+        _ct(words["bytes"], wp.uint8), _ct(words["start"]),
         _ct(table["key"], wp.uint64), _ct(table["check"], wp.uint64), _ct(table["slot"]), n_table,
         _ct(b["ent_f"]), _ct(b["ent_i"]), _ct(b["ent_h"], wp.uint64), _ct(b["arr"]),
         _ct(b["pose"]), _ct(b["asset"]), _ct(b["zone"]), _ct(b["status"][:n_text]),

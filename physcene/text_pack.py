@@ -96,10 +96,9 @@ class TextPacker:
     def __init__(self, engine):
         self.engine = engine
         self.device = engine.device
-        words, starts, hashes = keyword_table()
+        words, starts = keyword_table()
         self._words = {"bytes": torch.from_numpy(words).to(self.device),
-                       "start": torch.from_numpy(starts).to(self.device),
-                       "hash": torch.from_numpy(hashes.view(np.int64)).to(self.device)}
+                       "start": torch.from_numpy(starts).to(self.device)}
         self._categories: dict[int, tuple[int, int, str]] = {}  # FNV hash -> (check, slot, name)
         self._table = self._upload_table()
         self._staging: torch.Tensor | None = None  # host (pinned on CUDA)
