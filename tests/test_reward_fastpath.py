@@ -264,6 +264,60 @@ def test_fuzz_corpus_rewards_identical(engine):
     _rewards_both(engine, texts)
 
 
+def _number(rng: random.Random, v: float) -> str:
+    """v written as JSON the way a model might: int, trailing zeros, many decimals, -0."""
+    style = rng.randrange(5)
+    if style == 0 and float(v).is_integer():
+        return str(int(v)) if v != 0 or rng.random() < 0.5 else "-0"
+    if style == 1:
+        return f"{v:.7f}"
+    if style == 2:
+        return f"{v:.3f}"
+    if style == 3:
+        return repr(float(v))  # up to 17 significant digits: beyond 15 the scanner defers
+    return f"{v:.5f}"
+
+
+def _rewrite(rng: random.Random, head: str, data: dict) -> str:
+    """The same layout re-serialised with random key order, whitespace and number formats."""
+    ws = ["", " ", "\n", "\t", "\r\n  "]
+
+    def value(v) -> str:
+        if isinstance(v, (bool, int)) or v is None:  # ints stay ints: "layer" must be one
+            return json.dumps(v)
+        if isinstance(v, float):
+            return _number(rng, v)
+        if isinstance(v, list):
+            return "[" + ",".join(rng.choice(ws) + value(x) for x in v) + rng.choice(ws) + "]"
+        if isinstance(v, dict):
+            items = list(v.items())
+            rng.shuffle(items)
+            pairs = [f"{rng.choice(ws)}{json.dumps(k)}{rng.choice(ws)}:{rng.choice(ws)}{value(x)}"
+                     for k, x in items]
+            return "{" + ",".join(pairs) + rng.choice(ws) + "}"
+        return json.dumps(v, ensure_ascii=rng.random() < 0.5)
+
+    return head + value(data) + rng.choice(["", "\n", "\nThat is the layout."])
+
+
+def test_reserialised_layouts_match_the_python_parser(engine):
+    """Acceptance side of the fuzzing: valid layouts in many spellings (both paths must agree)."""
+    rng = random.Random(77)
+    bases = [_split(t) for t in _real_texts()[:12] + [completion_text(_stack_scene())]]
+    descriptions = ['say "hi"', "tab\there", "Über 10° ☕", "back\\slash", "{[,]}"]
+    for _, data in bases:
+        for e in data["objects"]:
+            if rng.random() < 0.3:
+                e["description"] = rng.choice(descriptions)
+    texts = [_rewrite(rng, *rng.choice(bases)) for _ in range(120)]
+    pack = engine.pack_texts(texts)
+    assert pack.fast.mean() > 0.5, pack.status
+    slow, parsed = _python_pack(engine, texts)
+    assert all(isinstance(p, Scene) for p in parsed)
+    assert_batches_equal(pack.batch, slow)
+    _rewards_both(engine, texts)
+
+
 @settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.too_slow,
                                                                   HealthCheck.function_scoped_fixture])
 @given(layouts())
