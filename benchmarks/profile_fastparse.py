@@ -58,13 +58,14 @@ def main() -> None:
     texts = [completion_text(s) for s in bench_scenes(args.scenes, args.objects)]
     pack = engine.pack_texts(texts)  # JIT, categories learned
     packer = engine._text_packer
-    data, offsets = packer._encode(texts)
-    text_t, offsets_t = packer._stage(data, offsets)
-    buffers = packer._scan_buffers(len(texts))
+    data, header = packer._encode(texts)
+    n, n_chunks = len(texts), int(header[-1])
+    text_t, header_t = packer._stage(data, header)
+    buffers = packer._scan_buffers(n, n_chunks)
 
     def kernels_only():
-        launch_scan(text=text_t, offsets=offsets_t, n_text=len(texts), n_bytes=len(data),
-                    words=packer._words, table=packer._table, buffers=buffers)
+        launch_scan(text=text_t, offsets=header_t[:n + 1], chunk_start=header_t[n + 1:], n_text=n,
+                    n_chunks=n_chunks, words=packer._words, table=packer._table, buffers=buffers)
 
     reward = PhysicsReward(RewardConfig(device=str(device)), engine=engine)
     batch = pack.batch
@@ -74,8 +75,8 @@ def main() -> None:
         "scenes": args.scenes, "objects": args.objects, "bytes": len(data),
         "accepted": float(pack.fast.mean()),
         "encode_ms": wall_ms(lambda: packer._encode(texts), device, r),
-        "stage_upload_ms": wall_ms(lambda: packer._stage(data, offsets), device, r),
-        "prescan_scan_ms": wall_ms(kernels_only, device, r),
+        "stage_upload_ms": wall_ms(lambda: packer._stage(data, header), device, r),
+        "scan_kernels_ms": wall_ms(kernels_only, device, r),
         "scan_with_status_sync_ms": wall_ms(lambda: packer.scan(texts), device, r),
         "pack_texts_ms": wall_ms(lambda: engine.pack_texts(texts), device, r),
         "engine_evaluate_ms": wall_ms(lambda: engine.evaluate(batch), device, r),

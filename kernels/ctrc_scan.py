@@ -82,6 +82,7 @@ STATUS = {
     -9: "category not in the engine's table yet (resolved on the host, then rescanned)",
 }
 _S_MARKER, _S_SYNTAX, _S_KEY, _S_NUMBER, _S_VALUE, _S_TREE, _S_MANY, _S_ZONE, _S_CATEGORY = range(-1, -10, -1)
+_E_NONE = wp.constant(-100)  # entries kernel: no candidate in this slot
 
 # Value kinds of the generic value reader.
 V_STRING, V_INT, V_FLOAT, V_NULL, V_BOOL, V_ARRAY = range(6)
@@ -118,36 +119,116 @@ def text_of(offsets: wp.array(dtype=wp.int32), n_text: int, p: int):
     return lo
 
 
+@wp.func
+def ws_byte(b: int):
+    return b == 32 or b == 10 or b == 13 or b == 9
+
+
+@wp.func
+def is_candidate(text: wp.array(dtype=wp.uint8), p: int, start: int):
+    """1 if the '{' at p follows '[' or ',' (JSON whitespace between): where an entry can begin."""
+    q = p - 1
+    while q >= start and ws_byte(int(text[q])):
+        q -= 1
+    if q >= start:
+        b = int(text[q])
+        if b == 91 or b == 44:
+            return 1
+    return 0
+
+
+@wp.func
+def chunk_range(offsets: wp.array(dtype=wp.int32), chunk_start: wp.array(dtype=wp.int32), n_text: int,
+                t: int):
+    """(text c, first byte, end byte) of chunk t; every text has its own CHUNK-byte chunks."""
+    c = text_of(chunk_start, n_text, t)
+    p = offsets[c] + (t - chunk_start[c]) * CHUNK
+    return c, p, wp.min(p + CHUNK, offsets[c + 1])
+
+
 @wp.kernel
-def prescan(text: wp.array(dtype=wp.uint8), offsets: wp.array(dtype=wp.int32), n_text: int,
-            flags: wp.array(dtype=wp.int32), marker: wp.array(dtype=wp.int32)):
-    """flags[c] = 1 for texts with a fence or <j/</ token; marker[c] = 1 + last 'Scene Layout'."""
+def prescan(text: wp.array(dtype=wp.uint8), offsets: wp.array(dtype=wp.int32),
+            chunk_start: wp.array(dtype=wp.int32), n_text: int, flags: wp.array(dtype=wp.int32),
+            marker: wp.array(dtype=wp.int32), cand_count: wp.array(dtype=wp.int32)):
+    """Per chunk t: flags[c] = 1 if text c holds a fence or a <j / </ token, marker[c] = 1 + the
+    last 'Scene Layout', cand_count[t] = entry candidates ('{' after '[' or ',') in the chunk."""
     t = wp.tid()
-    total = offsets[n_text]
-    p = t * CHUNK
-    end = wp.min(p + CHUNK, total)
+    c, p, end = chunk_range(offsets, chunk_start, n_text, t)
+    start = offsets[c]
+    stop = offsets[c + 1]
+    count = int(0)
     while p < end:
         b = int(text[p])
-        if b == 96 or b == 60 or b == 83:  # '`', '<', 'S': the only bytes a pattern starts with
-            c = text_of(offsets, n_text, p)
-            stop = offsets[c + 1]
-            if b == 96:
-                if p + 2 < stop:
-                    if int(text[p + 1]) == 96 and int(text[p + 2]) == 96:
-                        flags[c] = 1
-            elif b == 60:
-                if p + 1 < stop:
-                    n = int(text[p + 1])
-                    if n == 106 or n == 74 or n == 47:  # j J /
-                        flags[c] = 1
-            elif p + 12 <= stop:
-                # "Scene Layout"
-                if (int(text[p + 1]) == 99 and int(text[p + 2]) == 101 and int(text[p + 3]) == 110
-                        and int(text[p + 4]) == 101 and int(text[p + 5]) == 32 and int(text[p + 6]) == 76
-                        and int(text[p + 7]) == 97 and int(text[p + 8]) == 121 and int(text[p + 9]) == 111
-                        and int(text[p + 10]) == 117 and int(text[p + 11]) == 116):
-                    wp.atomic_max(marker, c, p - offsets[c] + 1)
+        if b == 123:
+            count += is_candidate(text, p, start)
+        elif b == 96:
+            if p + 2 < stop:
+                if int(text[p + 1]) == 96 and int(text[p + 2]) == 96:
+                    flags[c] = 1
+        elif b == 60:
+            if p + 1 < stop:
+                n = int(text[p + 1])
+                if n == 106 or n == 74 or n == 47:  # j J /
+                    flags[c] = 1
+        elif b == 83 and p + 12 <= stop:
+            # "Scene Layout"
+            if (int(text[p + 1]) == 99 and int(text[p + 2]) == 101 and int(text[p + 3]) == 110
+                    and int(text[p + 4]) == 101 and int(text[p + 5]) == 32 and int(text[p + 6]) == 76
+                    and int(text[p + 7]) == 97 and int(text[p + 8]) == 121 and int(text[p + 9]) == 111
+                    and int(text[p + 10]) == 117 and int(text[p + 11]) == 116):
+                wp.atomic_max(marker, c, p - start + 1)
         p += 1
+    cand_count[t] = count
+
+
+@wp.func
+def first_candidate(chunk_start: wp.array(dtype=wp.int32), cand_count: wp.array(dtype=wp.int32),
+                    cand_end: wp.array(dtype=wp.int32), c: int):
+    """Global index of text c's first entry candidate (cand_end: inclusive cumsum of cand_count)."""
+    t0 = chunk_start[c]
+    return cand_end[t0] - cand_count[t0]
+
+
+@wp.func
+def n_candidates(chunk_start: wp.array(dtype=wp.int32), cand_count: wp.array(dtype=wp.int32),
+                 cand_end: wp.array(dtype=wp.int32), c: int):
+    """Entry candidates of text c kept (at most MAX_ENTRIES: later ones cannot be needed)."""
+    n = cand_end[chunk_start[c + 1] - 1] - first_candidate(chunk_start, cand_count, cand_end, c)
+    return wp.min(n, MAX_ENTRIES)
+
+
+@wp.kernel
+def emit(text: wp.array(dtype=wp.uint8), offsets: wp.array(dtype=wp.int32),
+         chunk_start: wp.array(dtype=wp.int32), n_text: int, cand_count: wp.array(dtype=wp.int32),
+         cand_end: wp.array(dtype=wp.int32), cand_pos: wp.array(dtype=wp.int32)):
+    """cand_pos[c * MAX_ENTRIES + k] = byte position of text c's k-th entry candidate (ascending)."""
+    t = wp.tid()
+    c, p, end = chunk_range(offsets, chunk_start, n_text, t)
+    start = offsets[c]
+    k = cand_end[t] - cand_count[t] - first_candidate(chunk_start, cand_count, cand_end, c)
+    while p < end and k < MAX_ENTRIES:
+        if int(text[p]) == 123:
+            if is_candidate(text, p, start) == 1:
+                cand_pos[c * MAX_ENTRIES + k] = p
+                k += 1
+        p += 1
+
+
+@wp.func
+def find_candidate(cand_pos: wp.array(dtype=wp.int32), row0: int, n: int, p: int):
+    """Row of the candidate at byte p among cand_pos[row0:row0+n] (ascending), or -1."""
+    lo = int(0)
+    hi = n
+    while lo < hi:
+        mid = (lo + hi) // 2
+        if cand_pos[row0 + mid] < p:
+            lo = mid + 1
+        else:
+            hi = mid
+    if lo < n:
+        if cand_pos[row0 + lo] == p:
+            return row0 + lo
+    return -1
 
 
 # Lexing helpers ---------------------------------------------------------------------------------
@@ -347,25 +428,307 @@ def lookup_slot(key: wp.uint64, check: wp.uint64, table_key: wp.array(dtype=wp.u
 
 # Scan -------------------------------------------------------------------------------------------
 @wp.kernel
-def scan(text: wp.array(dtype=wp.uint8), offsets: wp.array(dtype=wp.int32),
-         flags: wp.array(dtype=wp.int32), marker: wp.array(dtype=wp.int32),
+def entries(text: wp.array(dtype=wp.uint8), offsets: wp.array(dtype=wp.int32),
+            chunk_start: wp.array(dtype=wp.int32), flags: wp.array(dtype=wp.int32),
+            marker: wp.array(dtype=wp.int32), cand_count: wp.array(dtype=wp.int32),
+            cand_end: wp.array(dtype=wp.int32), cand_pos: wp.array(dtype=wp.int32),
+            words: wp.array(dtype=wp.uint8), word_start: wp.array(dtype=wp.int32),
+            table_key: wp.array(dtype=wp.uint64), table_check: wp.array(dtype=wp.uint64),
+            table_slot: wp.array(dtype=wp.int32), n_table: int,
+            ent_f: wp.array2d(dtype=wp.float64), ent_i: wp.array2d(dtype=wp.int32),
+            ent_h: wp.array2d(dtype=wp.uint64), arr: wp.array2d(dtype=wp.float64),
+            e_stat: wp.array(dtype=wp.int32), e_end: wp.array(dtype=wp.int32)):
+    """Candidate entry s = c * MAX_ENTRIES + k of text c, read on its own (speculatively).
+
+    e_stat[s]: 0 an object entry ctrc.decode accepts (its fields in row s of ent_f / ent_i /
+    ent_h, see ``walk``), 1 a zone entry (bbox[:4] in ent_f[s, 8:12], its length in ent_i[s, 6]),
+    a negative STATUS code, or _E_NONE when there is no candidate; e_end[s] the position after
+    its closing brace. Whether the candidate is really an entry is decided by ``walk``.
+    """
+    s = wp.tid()
+    c = s // MAX_ENTRIES
+    ke = s - c * MAX_ENTRIES
+    e_stat[s] = _E_NONE
+    if flags[c] != 0 or marker[c] == 0:
+        return
+    if ke >= n_candidates(chunk_start, cand_count, cand_end, c):
+        return
+    p = cand_pos[s]
+    if p < offsets[c] + marker[c] - 1:
+        return  # before the layout's marker: never part of it
+    end = offsets[c + 1]
+    p += 1
+    seen = int(0)
+    iid_s = int(-1)
+    iid_n = int(0)
+    iid_h = wp.uint64(0)
+    iid_vis = int(0)
+    cat_ok = int(0)
+    cat_s = int(0)
+    cat_n = int(0)
+    cat_h = wp.uint64(0)
+    cat_chk = wp.uint64(0)
+    par_s = int(-1)
+    par_n = int(0)
+    par_h = wp.uint64(0)
+    rel = int(-1)
+    is_zone_type = int(0)
+    bad = int(0)          # a value Python would refuse for an object entry
+    box_ok = int(0)
+    bbox_n = int(0)
+    rot = wp.float64(0.0)
+    slot = s
+    efirst = int(1)
+    while True:
+        p = skip_ws(text, p, end)
+        if p >= end:
+            e_stat[s] = _S_SYNTAX
+            return
+        b = int(text[p])
+        if b == 125 and efirst == 1:
+            p += 1
+            break
+        efirst = int(0)
+        if b != 34:
+            e_stat[s] = _S_SYNTAX
+            return
+        q, kesc = scan_string(text, p, end)
+        if q < 0 or kesc == 1:
+            e_stat[s] = _S_SYNTAX
+            return
+        key = match_word(text, p + 1, q - p - 2, words, word_start, 0, K_ZROT + 1)
+        if key < 0 or (seen & (1 << key)) != 0:
+            e_stat[s] = _S_KEY
+            return
+        seen = seen | (1 << key)
+        p = skip_ws(text, q, end)
+        if p >= end or int(text[p]) != 58:
+            e_stat[s] = _S_SYNTAX
+            return
+        p = skip_ws(text, p + 1, end)
+        if p >= end:
+            e_stat[s] = _S_SYNTAX
+            return
+        # generic value
+        b = int(text[p])
+        kind = int(-1)
+        v = wp.float64(0.0)
+        vs = int(0)
+        vn = int(0)
+        vesc = int(0)
+        an = int(0)
+        if b == 34:
+            q, vesc = scan_string(text, p, end)
+            if q < 0:
+                e_stat[s] = _S_SYNTAX
+                return
+            kind = V_STRING
+            vs = p + 1
+            vn = q - p - 2
+            p = q
+        elif b == 91:
+            kind = V_ARRAY
+            p = skip_ws(text, p + 1, end)
+            if p < end and int(text[p]) == 93:
+                p += 1
+            else:
+                while True:
+                    p = skip_ws(text, p, end)
+                    q, av, akind, st = scan_number(text, p, end)
+                    if st != 0:
+                        e_stat[s] = st
+                        return
+                    if an < 8:
+                        arr[s, an] = av
+                    an += 1
+                    p = skip_ws(text, q, end)
+                    if p >= end:
+                        e_stat[s] = _S_SYNTAX
+                        return
+                    b = int(text[p])
+                    p += 1
+                    if b == 93:
+                        break
+                    if b != 44:
+                        e_stat[s] = _S_SYNTAX
+                        return
+        elif b == 45 or (b >= 48 and b <= 57):
+            q, v, kind, st = scan_number(text, p, end)
+            if st != 0:
+                e_stat[s] = st
+                return
+            p = q
+        elif b == 110 and p + 4 <= end:
+            if int(text[p + 1]) == 117 and int(text[p + 2]) == 108 and int(text[p + 3]) == 108:
+                kind = V_NULL
+                p += 4
+        elif b == 116 and p + 4 <= end:
+            if int(text[p + 1]) == 114 and int(text[p + 2]) == 117 and int(text[p + 3]) == 101:
+                kind = V_BOOL
+                p += 4
+        elif b == 102 and p + 5 <= end:
+            if (int(text[p + 1]) == 97 and int(text[p + 2]) == 108 and int(text[p + 3]) == 115
+                    and int(text[p + 4]) == 101):
+                kind = V_BOOL
+                p += 5
+        if kind < 0:
+            e_stat[s] = _S_SYNTAX
+            return
+        # what the key makes of the value (object-entry rules; zone entries ignore them)
+        if key == K_LAYER:
+            if kind == V_INT:
+                if v < wp.float64(0.0):
+                    bad = int(1)
+            elif kind != V_NULL:
+                bad = int(1)
+        elif key == K_IID:
+            if kind != V_STRING or vesc == 1:
+                e_stat[s] = _S_VALUE  # also decides zone-ness: must be readable
+                return
+            iid_s = vs
+            iid_n = vn
+            iid_h, iid_h2 = hash_span(text, vs, vn)
+            iid_vis = visible_ascii(text, vs, vn)
+        elif key == K_CAT:
+            if kind == V_STRING and vesc == 0 and vn > 0:
+                cat_ok = int(1)
+                cat_s = vs
+                cat_n = vn
+                cat_h, cat_h2 = hash_span(text, vs, vn)
+                cat_chk = (wp.uint64(vn) << wp.uint64(32)) | wp.uint64(cat_h2)
+            else:
+                bad = int(1)
+        elif key == K_PARENT:
+            if kind == V_STRING and vesc == 0:
+                if is_word(text, vs, vn, words, word_start, W_ROOT) == 0:
+                    par_s = vs
+                    par_n = vn
+                    par_h, par_h2 = hash_span(text, vs, vn)
+            elif kind != V_NULL:
+                bad = int(1)
+        elif key == K_REL:
+            if kind == V_STRING and vesc == 0:
+                w = match_word(text, vs, vn, words, word_start, W_IN, W_NEAR + 1)
+                if w < 0:
+                    bad = 1  # an alias or an unknown relation: the Python parser decides
+                else:
+                    rel = w - W_IN
+            elif kind != V_NULL:
+                bad = int(1)
+        elif key == K_DESC:
+            if kind != V_STRING and kind != V_NULL:
+                bad = int(1)
+        elif key == K_BOX:
+            if kind == V_ARRAY and an == 6:
+                box_ok = int(1)
+                for k in range(6):
+                    ent_f[slot, k] = arr[s, k]
+            else:
+                bad = int(1)
+        elif key == K_ROT:
+            if kind == V_INT or kind == V_FLOAT:
+                rot = v
+            elif kind != V_NULL:
+                bad = int(1)
+        elif key == K_TYPE:
+            if kind == V_STRING and vesc == 0:
+                if is_word(text, vs, vn, words, word_start, W_ZONE) == 1:
+                    is_zone_type = int(1)
+        elif key == K_BBOX:
+            if kind == V_ARRAY:
+                bbox_n = an
+                for k in range(4):
+                    if k < an:
+                        ent_f[s, 8 + k] = arr[s, k]
+            else:
+                bbox_n = int(-1)
+        p = skip_ws(text, p, end)
+        if p >= end:
+            e_stat[s] = _S_SYNTAX
+            return
+        b = int(text[p])
+        p += 1
+        if b == 125:
+            break
+        if b != 44:
+            e_stat[s] = _S_SYNTAX
+            return
+    # end of entry: zone entry or object?
+    e_end[s] = p
+    is_root = int(0)
+    if iid_s >= 0:
+        if is_word(text, iid_s, iid_n, words, word_start, W_ROOT) == 1:
+            is_root = int(1)
+    if is_zone_type == 1 or is_root == 1:
+        ent_i[s, 6] = bbox_n  # the walk reads the first zone entry's bbox (ctrc._zone_from)
+        e_stat[s] = 1
+        return
+    else:
+        if (seen & (1 << K_TYPE)) != 0:
+            e_stat[s] = _S_KEY  # a "type" other than zone on an object: not canonical
+            return
+        if iid_s < 0 or iid_vis == 0 or cat_ok == 0 or box_ok == 0 or bad == 1:
+            e_stat[s] = _S_VALUE
+            return
+        # relation rules of ctrc._relation
+        if par_s < 0:
+            if rel == 0:
+                e_stat[s] = _S_VALUE
+                return
+            rel = int(2)
+        else:
+            if rel < 0 or rel == 2:
+                e_stat[s] = _S_VALUE
+                return
+        for k in range(6):
+            if wp.abs(ent_f[slot, k]) > _MAX_ABS:
+                e_stat[s] = _S_NUMBER
+                return
+        if wp.abs(rot) > _MAX_ABS:
+            e_stat[s] = _S_NUMBER
+            return
+        if not (ent_f[slot, 1] > ent_f[slot, 0] and ent_f[slot, 3] > ent_f[slot, 2]
+                and ent_f[slot, 5] > ent_f[slot, 4]):
+            e_stat[s] = _S_VALUE
+            return
+        ent_f[slot, 6] = rot
+        ent_i[slot, 1] = rel
+        ent_i[slot, 2] = iid_s
+        ent_i[slot, 3] = iid_n
+        ent_i[slot, 4] = par_s
+        ent_i[slot, 5] = par_n
+        ent_i[slot, 7] = lookup_slot(cat_h, cat_chk, table_key, table_check, table_slot, n_table)
+        ent_i[slot, 8] = cat_s
+        ent_i[slot, 9] = cat_n
+        ent_h[slot, 0] = iid_h
+        ent_h[slot, 1] = par_h
+        ent_h[slot, 2] = cat_h
+        ent_h[slot, 3] = cat_chk
+        e_stat[s] = 0
+
+
+@wp.kernel
+def walk(text: wp.array(dtype=wp.uint8), offsets: wp.array(dtype=wp.int32),
+         chunk_start: wp.array(dtype=wp.int32), flags: wp.array(dtype=wp.int32),
+         marker: wp.array(dtype=wp.int32), cand_count: wp.array(dtype=wp.int32),
+         cand_end: wp.array(dtype=wp.int32), cand_pos: wp.array(dtype=wp.int32),
+         e_stat: wp.array(dtype=wp.int32), e_end: wp.array(dtype=wp.int32),
          words: wp.array(dtype=wp.uint8), word_start: wp.array(dtype=wp.int32),
-         table_key: wp.array(dtype=wp.uint64), table_check: wp.array(dtype=wp.uint64),
-         table_slot: wp.array(dtype=wp.int32), n_table: int,
          ent_f: wp.array2d(dtype=wp.float64), ent_i: wp.array2d(dtype=wp.int32),
-         ent_h: wp.array2d(dtype=wp.uint64), arr: wp.array2d(dtype=wp.float64),
+         ent_h: wp.array2d(dtype=wp.uint64),
          out_pose: wp.array2d(dtype=wp.float32), out_asset: wp.array(dtype=wp.int32),
          out_zone: wp.array2d(dtype=wp.float64), status: wp.array(dtype=wp.int32),
          n_read: wp.array(dtype=wp.int32)):
     """Text c -> status[c] (objects read, or a negative fallback code) and, per object slot k of
     c (row c * MAX_ENTRIES + k): out_pose [x, y, z, yaw, w, d, h, 0] (cm, rad), out_asset.
 
-    Scratch rows per entry: ent_f [box (6), rotation deg, 0] and world [cx, cy, cz, w, d, h, yaw]
-    in ent_f[:, 8:15]; ent_i [parent slot, relation (0 in, 1 on, 2 near), id start, id len,
-    parent start, parent len, done, asset slot, category start, category len]; n_read[c] the
-    objects of an accepted text or of one with an unknown category (status -9); ent_h [id hash,
-    parent hash, category hash, category check]. ``arr`` (per text, 8) holds the numbers of the
-    array value being read.
+    Reads the top level serially and takes each entry from the ``entries`` kernel's candidate at
+    its '{' (the chain of candidates it walks is exactly the serial parse), then checks the
+    hierarchy and composes the world poses. Object rows (moved down to slots 0..n-1): ent_f [box
+    (6), rotation deg, 0, world cx, cy, cz, w, d, h, yaw]; ent_i [parent slot, relation (0 in,
+    1 on, 2 near), id start, id len, parent start, parent len, done, asset slot, category start,
+    category len]; ent_h [id hash, parent hash, category hash, category check]. n_read[c]: the
+    objects of an accepted text or of one with an unknown category (status -9).
     """
     c = wp.tid()
     if flags[c] != 0 or marker[c] == 0:
@@ -374,6 +737,7 @@ def scan(text: wp.array(dtype=wp.uint8), offsets: wp.array(dtype=wp.int32),
     base = offsets[c]
     end = offsets[c + 1]
     row0 = c * MAX_ENTRIES
+    n_cand = n_candidates(chunk_start, cand_count, cand_end, c)
     p = base + marker[c] - 1 + 12
     while p < end and int(text[p]) != 123:
         p += 1
@@ -463,258 +827,36 @@ def scan(text: wp.array(dtype=wp.uint8), offsets: wp.array(dtype=wp.int32),
                 if n_ent >= MAX_ENTRIES:
                     status[c] = _S_MANY
                     return
-                p += 1
-                seen = int(0)
-                iid_s = int(-1)
-                iid_n = int(0)
-                iid_h = wp.uint64(0)
-                iid_vis = int(0)
-                cat_ok = int(0)
-                cat_s = int(0)
-                cat_n = int(0)
-                cat_h = wp.uint64(0)
-                cat_chk = wp.uint64(0)
-                par_s = int(-1)
-                par_n = int(0)
-                par_h = wp.uint64(0)
-                rel = int(-1)
-                is_zone_type = int(0)
-                bad = int(0)          # a value Python would refuse for an object entry
-                box_ok = int(0)
-                bbox_n = int(0)
-                rot = wp.float64(0.0)
-                slot = row0 + n_obj
-                efirst = int(1)
-                while True:
-                    p = skip_ws(text, p, end)
-                    if p >= end:
-                        status[c] = _S_SYNTAX
-                        return
-                    b = int(text[p])
-                    if b == 125 and efirst == 1:
-                        p += 1
-                        break
-                    efirst = int(0)
-                    if b != 34:
-                        status[c] = _S_SYNTAX
-                        return
-                    q, kesc = scan_string(text, p, end)
-                    if q < 0 or kesc == 1:
-                        status[c] = _S_SYNTAX
-                        return
-                    key = match_word(text, p + 1, q - p - 2, words, word_start, 0, K_ZROT + 1)
-                    if key < 0 or (seen & (1 << key)) != 0:
-                        status[c] = _S_KEY
-                        return
-                    seen = seen | (1 << key)
-                    p = skip_ws(text, q, end)
-                    if p >= end or int(text[p]) != 58:
-                        status[c] = _S_SYNTAX
-                        return
-                    p = skip_ws(text, p + 1, end)
-                    if p >= end:
-                        status[c] = _S_SYNTAX
-                        return
-                    # generic value
-                    b = int(text[p])
-                    kind = int(-1)
-                    v = wp.float64(0.0)
-                    vs = int(0)
-                    vn = int(0)
-                    vesc = int(0)
-                    an = int(0)
-                    if b == 34:
-                        q, vesc = scan_string(text, p, end)
-                        if q < 0:
-                            status[c] = _S_SYNTAX
-                            return
-                        kind = V_STRING
-                        vs = p + 1
-                        vn = q - p - 2
-                        p = q
-                    elif b == 91:
-                        kind = V_ARRAY
-                        p = skip_ws(text, p + 1, end)
-                        if p < end and int(text[p]) == 93:
-                            p += 1
-                        else:
-                            while True:
-                                p = skip_ws(text, p, end)
-                                q, av, akind, st = scan_number(text, p, end)
-                                if st != 0:
-                                    status[c] = st
-                                    return
-                                if an < 8:
-                                    arr[c, an] = av
-                                an += 1
-                                p = skip_ws(text, q, end)
-                                if p >= end:
-                                    status[c] = _S_SYNTAX
-                                    return
-                                b = int(text[p])
-                                p += 1
-                                if b == 93:
-                                    break
-                                if b != 44:
-                                    status[c] = _S_SYNTAX
-                                    return
-                    elif b == 45 or (b >= 48 and b <= 57):
-                        q, v, kind, st = scan_number(text, p, end)
-                        if st != 0:
-                            status[c] = st
-                            return
-                        p = q
-                    elif b == 110 and p + 4 <= end:
-                        if int(text[p + 1]) == 117 and int(text[p + 2]) == 108 and int(text[p + 3]) == 108:
-                            kind = V_NULL
-                            p += 4
-                    elif b == 116 and p + 4 <= end:
-                        if int(text[p + 1]) == 114 and int(text[p + 2]) == 117 and int(text[p + 3]) == 101:
-                            kind = V_BOOL
-                            p += 4
-                    elif b == 102 and p + 5 <= end:
-                        if (int(text[p + 1]) == 97 and int(text[p + 2]) == 108 and int(text[p + 3]) == 115
-                                and int(text[p + 4]) == 101):
-                            kind = V_BOOL
-                            p += 5
-                    if kind < 0:
-                        status[c] = _S_SYNTAX
-                        return
-                    # what the key makes of the value (object-entry rules; zone entries ignore them)
-                    if key == K_LAYER:
-                        if kind == V_INT:
-                            if v < wp.float64(0.0):
-                                bad = int(1)
-                        elif kind != V_NULL:
-                            bad = int(1)
-                    elif key == K_IID:
-                        if kind != V_STRING or vesc == 1:
-                            status[c] = _S_VALUE  # also decides zone-ness: must be readable
-                            return
-                        iid_s = vs
-                        iid_n = vn
-                        iid_h, iid_h2 = hash_span(text, vs, vn)
-                        iid_vis = visible_ascii(text, vs, vn)
-                    elif key == K_CAT:
-                        if kind == V_STRING and vesc == 0 and vn > 0:
-                            cat_ok = int(1)
-                            cat_s = vs
-                            cat_n = vn
-                            cat_h, cat_h2 = hash_span(text, vs, vn)
-                            cat_chk = (wp.uint64(vn) << wp.uint64(32)) | wp.uint64(cat_h2)
-                        else:
-                            bad = int(1)
-                    elif key == K_PARENT:
-                        if kind == V_STRING and vesc == 0:
-                            if is_word(text, vs, vn, words, word_start, W_ROOT) == 0:
-                                par_s = vs
-                                par_n = vn
-                                par_h, par_h2 = hash_span(text, vs, vn)
-                        elif kind != V_NULL:
-                            bad = int(1)
-                    elif key == K_REL:
-                        if kind == V_STRING and vesc == 0:
-                            w = match_word(text, vs, vn, words, word_start, W_IN, W_NEAR + 1)
-                            if w < 0:
-                                bad = 1  # an alias or an unknown relation: the Python parser decides
-                            else:
-                                rel = w - W_IN
-                        elif kind != V_NULL:
-                            bad = int(1)
-                    elif key == K_DESC:
-                        if kind != V_STRING and kind != V_NULL:
-                            bad = int(1)
-                    elif key == K_BOX:
-                        if kind == V_ARRAY and an == 6:
-                            box_ok = int(1)
-                            for k in range(6):
-                                ent_f[slot, k] = arr[c, k]
-                        else:
-                            bad = int(1)
-                    elif key == K_ROT:
-                        if kind == V_INT or kind == V_FLOAT:
-                            rot = v
-                        elif kind != V_NULL:
-                            bad = int(1)
-                    elif key == K_TYPE:
-                        if kind == V_STRING and vesc == 0:
-                            if is_word(text, vs, vn, words, word_start, W_ZONE) == 1:
-                                is_zone_type = int(1)
-                    elif key == K_BBOX:
-                        if kind == V_ARRAY:
-                            bbox_n = an
-                            for k in range(4):
-                                if k < an:
-                                    out_zone[c, 4 + k] = arr[c, k]
-                        else:
-                            bbox_n = int(-1)
-                    p = skip_ws(text, p, end)
-                    if p >= end:
-                        status[c] = _S_SYNTAX
-                        return
-                    b = int(text[p])
-                    p += 1
-                    if b == 125:
-                        break
-                    if b != 44:
-                        status[c] = _S_SYNTAX
-                        return
-                # end of entry: zone entry or object?
+                # the entries kernel read this entry: find it among the text's candidates
+                e = find_candidate(cand_pos, row0, n_cand, p)
+                if e < 0:
+                    status[c] = _S_MANY  # more '{' candidates than MAX_ENTRIES before this one
+                    return
+                st = e_stat[e]
+                if st < 0:
+                    status[c] = st
+                    return
+                p = e_end[e]
                 n_ent += 1
-                is_root = int(0)
-                if iid_s >= 0:
-                    if is_word(text, iid_s, iid_n, words, word_start, W_ROOT) == 1:
-                        is_root = int(1)
-                if is_zone_type == 1 or is_root == 1:
+                if st == 1:
                     if zone_entry_seen == 0:  # ctrc._zone_from reads the FIRST zone entry only
                         zone_entry_seen = int(1)
-                        if bbox_n >= 4:
+                        if ent_i[e, 6] >= 4:
                             entry_zone_ok = int(1)
                             for k in range(4):
-                                out_zone[c, 8 + k] = out_zone[c, 4 + k]
+                                out_zone[c, 8 + k] = ent_f[e, 8 + k]
                 else:
-                    if (seen & (1 << K_TYPE)) != 0:
-                        status[c] = _S_KEY  # a "type" other than zone on an object: not canonical
-                        return
-                    if iid_s < 0 or iid_vis == 0 or cat_ok == 0 or box_ok == 0 or bad == 1:
-                        status[c] = _S_VALUE
-                        return
-                    # relation rules of ctrc._relation
-                    if par_s < 0:
-                        if rel == 0:
-                            status[c] = _S_VALUE
-                            return
-                        rel = int(2)
-                    else:
-                        if rel < 0 or rel == 2:
-                            status[c] = _S_VALUE
-                            return
-                    for k in range(6):
-                        if wp.abs(ent_f[slot, k]) > _MAX_ABS:
-                            status[c] = _S_NUMBER
-                            return
-                    if wp.abs(rot) > _MAX_ABS:
-                        status[c] = _S_NUMBER
-                        return
-                    if not (ent_f[slot, 1] > ent_f[slot, 0] and ent_f[slot, 3] > ent_f[slot, 2]
-                            and ent_f[slot, 5] > ent_f[slot, 4]):
-                        status[c] = _S_VALUE
-                        return
-                    ent_f[slot, 6] = rot
+                    # objects move down to slots 0..n_obj-1 (slot <= e: nothing unread is overwritten)
+                    slot = row0 + n_obj
+                    if slot != e:
+                        for k in range(7):
+                            ent_f[slot, k] = ent_f[e, k]
+                        for k in range(10):
+                            ent_i[slot, k] = ent_i[e, k]
+                        for k in range(4):
+                            ent_h[slot, k] = ent_h[e, k]
                     ent_i[slot, 0] = -1
-                    ent_i[slot, 1] = rel
-                    ent_i[slot, 2] = iid_s
-                    ent_i[slot, 3] = iid_n
-                    ent_i[slot, 4] = par_s
-                    ent_i[slot, 5] = par_n
                     ent_i[slot, 6] = 0
-                    ent_i[slot, 7] = lookup_slot(cat_h, cat_chk, table_key, table_check, table_slot, n_table)
-                    ent_i[slot, 8] = cat_s
-                    ent_i[slot, 9] = cat_n
-                    ent_h[slot, 0] = iid_h
-                    ent_h[slot, 1] = par_h
-                    ent_h[slot, 2] = cat_h
-                    ent_h[slot, 3] = cat_chk
                     n_obj += 1
                 p = skip_ws(text, p, end)
                 if p >= end:
@@ -894,43 +1036,56 @@ def gather(src: wp.array(dtype=wp.int32), count: wp.array(dtype=wp.int32), n_slo
 
 
 # Launchers --------------------------------------------------------------------------------------
-def launch_scan(*, text: torch.Tensor, offsets: torch.Tensor, n_text: int, n_bytes: int,
-                words: dict[str, torch.Tensor], table: dict[str, torch.Tensor],
+def launch_scan(*, text: torch.Tensor, offsets: torch.Tensor, chunk_start: torch.Tensor, n_text: int,
+                n_chunks: int, words: dict[str, torch.Tensor], table: dict[str, torch.Tensor],
                 buffers: dict[str, torch.Tensor]) -> None:
-    """prescan + scan of ``n_text`` texts into ``buffers`` (see :func:`scan_buffers`); no sync.
+    """prescan → cumsum → emit → entries → walk of ``n_text`` texts into ``buffers``; no sync.
 
-    text (>= n_bytes,) uint8; offsets (n_text + 1,) int32; words: ``bytes``, ``start``
+    text (>= offsets[-1],) uint8; offsets (n_text + 1,) int32; chunk_start (n_text + 1,) int32:
+    each text's first CHUNK-byte chunk (n_chunks = chunk_start[-1]); words: ``bytes``, ``start``
     of :func:`keyword_table`; table: ``key``, ``check`` (uint64 as int64), ``slot`` (int32),
-    sorted by key as unsigned.
+    sorted by key as unsigned. ``buffers``: :func:`scan_buffers` for >= n_text texts and
+    >= n_chunks chunks.
     """
     launch = _Launcher(text.device)
     b = buffers
     flags, marker = b["pre"][:n_text], b["pre"][n_text:2 * n_text]
     b["pre"][:2 * n_text].zero_()
-    w_text, w_off = _ct(text, wp.uint8), _ct(offsets)
-    w_flags, w_marker = _ct(flags), _ct(marker)
-    if n_bytes > 0:
-        launch(prescan, (n_bytes + CHUNK - 1) // CHUNK, [w_text, w_off, n_text, w_flags, w_marker])
+    cand_count, cand_end = b["cand_count"][:n_chunks], b["cand_end"][:n_chunks]
+    w_text, w_off, w_chunk = _ct(text, wp.uint8), _ct(offsets), _ct(chunk_start)
+    w_flags, w_marker, w_count, w_end = _ct(flags), _ct(marker), _ct(cand_count), _ct(cand_end)
+    w_pos = _ct(b["cand_pos"])
+    launch(prescan, n_chunks, [w_text, w_off, w_chunk, n_text, w_flags, w_marker, w_count])
+    torch.cumsum(cand_count, 0, out=cand_end)
+    launch(emit, n_chunks, [w_text, w_off, w_chunk, n_text, w_count, w_end, w_pos])
+    w_ent = [_ct(b["ent_f"]), _ct(b["ent_i"]), _ct(b["ent_h"], wp.uint64)]
+    w_e = [_ct(b["e_stat"]), _ct(b["e_end"])]
+    w_words = [_ct(words["bytes"], wp.uint8), _ct(words["start"])]
     n_table = int(table["key"].shape[0])
-    launch(scan, n_text, [
-        w_text, w_off, w_flags, w_marker,
-        _ct(words["bytes"], wp.uint8), _ct(words["start"]),
+    launch(entries, n_text * MAX_ENTRIES, [
+        w_text, w_off, w_chunk, w_flags, w_marker, w_count, w_end, w_pos, *w_words,
         _ct(table["key"], wp.uint64), _ct(table["check"], wp.uint64), _ct(table["slot"]), n_table,
-        _ct(b["ent_f"]), _ct(b["ent_i"]), _ct(b["ent_h"], wp.uint64), _ct(b["arr"]),
+        *w_ent, _ct(b["arr"]), *w_e])
+    launch(walk, n_text, [
+        w_text, w_off, w_chunk, w_flags, w_marker, w_count, w_end, w_pos, *w_e, *w_words, *w_ent,
         _ct(b["pose"]), _ct(b["asset"]), _ct(b["zone"]), _ct(b["status"][:n_text]),
         _ct(b["n_read"][:n_text])])
 
 
-
-def scan_buffers(n_text: int, device: torch.device) -> dict[str, torch.Tensor]:
-    """Scratch and output tensors of :func:`launch_scan` for up to ``n_text`` texts."""
+def scan_buffers(n_text: int, n_chunks: int, device: torch.device) -> dict[str, torch.Tensor]:
+    """Scratch and output tensors of :func:`launch_scan` for up to ``n_text`` texts, ``n_chunks`` chunks."""
     rows = n_text * MAX_ENTRIES
     return {
         "pre": torch.zeros(2 * n_text, dtype=torch.int32, device=device),
+        "cand_count": torch.empty(n_chunks, dtype=torch.int32, device=device),
+        "cand_end": torch.empty(n_chunks, dtype=torch.int32, device=device),
+        "cand_pos": torch.empty(rows, dtype=torch.int32, device=device),
+        "e_stat": torch.empty(rows, dtype=torch.int32, device=device),
+        "e_end": torch.empty(rows, dtype=torch.int32, device=device),
         "ent_f": torch.empty(rows, 16, dtype=torch.float64, device=device),
         "ent_i": torch.empty(rows, 10, dtype=torch.int32, device=device),
         "ent_h": torch.empty(rows, 4, dtype=torch.int64, device=device),
-        "arr": torch.empty(n_text, 8, dtype=torch.float64, device=device),
+        "arr": torch.empty(rows, 8, dtype=torch.float64, device=device),
         "pose": torch.empty(rows, 8, dtype=torch.float32, device=device),
         "asset": torch.empty(rows, dtype=torch.int32, device=device),
         "zone": torch.empty(n_text, 12, dtype=torch.float64, device=device),

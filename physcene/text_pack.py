@@ -24,6 +24,7 @@ import numpy as np
 import torch
 
 from physcene.kernels.ctrc_scan import (
+    CHUNK,
     MAX_ENTRIES,
     STATUS,
     category_hash,
@@ -104,7 +105,7 @@ class TextPacker:
         self._staging: torch.Tensor | None = None  # host (pinned on CUDA)
         self._device_bytes: torch.Tensor | None = None
         self._buffers: dict[str, torch.Tensor] | None = None
-        self._capacity = 0
+        self._capacity = (0, 0)  # texts, chunks
 
     # Buffers -----------------------------------------------------------------------------------
     def _upload_table(self) -> dict[str, torch.Tensor]:
@@ -116,7 +117,7 @@ class TextPacker:
                 "slot": torch.from_numpy(slot).to(self.device)}
 
     def _stage(self, data: bytes, offsets: np.ndarray) -> tuple[torch.Tensor, torch.Tensor]:
-        """(text bytes, offsets) on the device through one staging buffer and one copy."""
+        """(text bytes, int32 header) on the device through one staging buffer and one copy."""
         n_off = 4 * offsets.size
         head = (n_off + 15) // 16 * 16
         size = head + len(data)
@@ -134,10 +135,11 @@ class TextPacker:
             dev[:size].copy_(self._staging[:size], non_blocking=True)
         return dev[head:size], dev[:n_off].view(torch.int32)
 
-    def _scan_buffers(self, n_text: int) -> dict[str, torch.Tensor]:
-        if self._buffers is None or self._capacity < n_text:
-            self._capacity = max(n_text, int(1.25 * self._capacity))
-            self._buffers = scan_buffers(self._capacity, self.device)
+    def _scan_buffers(self, n_text: int, n_chunks: int) -> dict[str, torch.Tensor]:
+        if self._buffers is None or self._capacity[0] < n_text or self._capacity[1] < n_chunks:
+            self._capacity = (max(n_text, int(1.25 * self._capacity[0])),
+                              max(n_chunks, int(1.25 * self._capacity[1])))
+            self._buffers = scan_buffers(*self._capacity, self.device)
         return self._buffers
 
     # Categories --------------------------------------------------------------------------------
@@ -167,6 +169,7 @@ class TextPacker:
 
     # Packing -----------------------------------------------------------------------------------
     def _encode(self, texts: Sequence[str]) -> tuple[bytes, np.ndarray] | None:
+        """(bytes, int32 header [offsets (n+1), chunk_start (n+1)]) of the texts, None if too big."""
         n = len(texts)
         joined = "".join(texts)
         if joined.isascii():  # O(1) in CPython: the string's kind
@@ -178,9 +181,10 @@ class TextPacker:
             lengths = np.fromiter(map(len, parts), np.int64, count=n)
         if len(data) > _MAX_BYTES:
             return None
-        offsets = np.zeros(n + 1, np.int32)
-        np.cumsum(lengths, out=offsets[1:])
-        return data, offsets
+        header = np.zeros(2 * (n + 1), np.int32)
+        np.cumsum(lengths, out=header[1:n + 1])
+        np.cumsum(np.maximum(1, -(-lengths // CHUNK)), out=header[n + 2:])  # each text's own chunks
+        return data, header
 
     def scan(self, texts: Sequence[str]) -> tuple[np.ndarray, bytes | None]:
         """Scanner status per text ((n,) int32, objects read or a negative STATUS code), and the bytes.
@@ -194,12 +198,13 @@ class TextPacker:
         encoded = self._encode(texts) if strings else None
         if encoded is None:
             return np.full(n, -2, np.int32), None
-        data, offsets = encoded
-        buffers = self._scan_buffers(n)
-        text_t, offsets_t = self._stage(data, offsets)
+        data, header = encoded
+        n_chunks = int(header[-1])
+        buffers = self._scan_buffers(n, n_chunks)
+        text_t, header_t = self._stage(data, header)
         for attempt in range(2):
-            launch_scan(text=text_t, offsets=offsets_t, n_text=n, n_bytes=len(data), words=self._words,
-                        table=self._table, buffers=buffers)
+            launch_scan(text=text_t, offsets=header_t[:n + 1], chunk_start=header_t[n + 1:], n_text=n,
+                        n_chunks=n_chunks, words=self._words, table=self._table, buffers=buffers)
             both = torch.cat([buffers["status"][:n], buffers["n_read"][:n]]).cpu().numpy()  # one sync
             status, n_read = both[:n], both[n:]
             unknown = np.nonzero(status == _UNKNOWN_CATEGORY)[0]
