@@ -1,18 +1,27 @@
-"""Compiled reader of canonical CTRC completions: UTF-8 bytes -> world poses, one thread per text.
+"""Compiled reader of canonical CTRC completions: UTF-8 bytes -> world poses, no Python per object.
 
 The reward's fast path (physcene.physics.PhysicsEngine.pack_texts). All completions of a batch
-are concatenated into one uint8 array with int32 offsets (text c = bytes[offsets[c]:offsets[c+1]]).
+are concatenated into one uint8 array with int32 offsets (text c = bytes[offsets[c]:offsets[c+1]]),
+each text cut into its own CHUNK-byte chunks (chunk_start). Four launches and a cumsum, no sync:
 
-1. ``prescan`` (one thread per CHUNK bytes, fully parallel): flags every text containing
-   something that would make :func:`physcene.ctrc.parse` look elsewhere for the JSON (a code
-   fence ```` ``` ````, a ``<json>`` token, anything starting ``<j``, ``<J`` or ``</``) and
-   records the LAST ``Scene Layout`` (the parser reads from its ``rfind``).
-2. ``scan`` (one thread per text): from the first ``{`` after that marker, a strict JSON reader
-   of the layered layout ({"objects": [...], "item_placement_zone": [...]}, keys in any order),
-   the rules of ``ctrc.decode`` (ids, parents, relations, extents, magnitudes, cycles), the world
-   pose of every object composed through its parent chain in float64 exactly as ``ctrc._absolute``
-   does, and the category's engine asset slot from a sorted hash table.
+1. ``prescan`` (one thread per chunk): flags every text containing something that would make
+   :func:`physcene.ctrc.parse` look elsewhere for the JSON (a code fence ```` ``` ````, a
+   ``<json>`` token, anything starting ``<j``, ``<J`` or ``</``), records the LAST
+   ``Scene Layout`` (the parser reads from its ``rfind``) and counts entry candidates: '{' bytes
+   whose previous non-blank byte is '[' or ','.
+2. ``torch.cumsum`` of the counts, then ``emit`` (one thread per chunk) writes each text's first
+   MAX_ENTRIES candidate positions, ascending.
+3. ``entries`` (one thread per candidate): reads the JSON object at the candidate as a layered
+   CTRC entry (keys in any order, the value rules of ``ctrc.decode``), speculatively: a '{'
+   inside a description is a candidate too, and simply never gets used.
+4. ``walk`` (one thread per text): from the first ``{`` after the marker, the strict reader of
+   the top level ({"objects": [...], "item_placement_zone": [...]}); at each entry it takes the
+   candidate that starts at that byte and continues after its end, so the chain it follows is
+   exactly what a serial parse reads. Then ids, parents, relations, cycles, and the world pose of
+   every object composed through its parent chain in float64 exactly as ``ctrc._absolute`` does;
+   the category's engine asset slot comes from a sorted hash table (looked up in ``entries``).
 
+The per-text serial work is the top level and the hierarchy; the bytes are read in parallel.
 A text the scanner does not fully understand gets a negative ``status`` (the reason code) and is
 left to the Python parser: the scanner never decides that a completion is unparsable. Numbers are
 exact: the decimal mantissa is accumulated as an integer (at most 15 significant digits, so it is
@@ -32,10 +41,9 @@ import warp as wp
 from physcene.kernels.penetration import _ct, _Launcher
 
 wp.config.log_level = max(wp.config.log_level, wp.LOG_WARNING)
-# One thread per text is serial, latency-bound work: small CUDA blocks spread the texts over the
-# SMs (512 texts -> 128 blocks on an H100/H200's 132 SMs, <= 4 divergent texts per warp) where
-# Warp's default of 256 would put them on two SMs, 32 per warp. One block size for the whole
-# module: Warp compiles a module once per block size.
+# Small CUDA blocks: the per-text ``walk`` is serial, latency-bound work (512 texts -> 128 blocks
+# on an H100/H200's 132 SMs, where Warp's default of 256 would put them on two), and a text's
+# entries share a warp. One block size for the whole module: Warp compiles a module per size.
 wp.set_module_options({"enable_backward": False, "block_dim": 4})
 wp.init()
 
