@@ -148,7 +148,7 @@ class TextPacker:
         b = self._buffers
         rows = (texts[:, None] * MAX_ENTRIES + np.arange(MAX_ENTRIES)[None, :]).reshape(-1)
         rows_t = torch.from_numpy(rows).to(self.device)
-        info = b["ent_i"][rows_t][:, 7:10].cpu().numpy().reshape(len(texts), MAX_ENTRIES, 3)
+        info = b["ent_i"].index_select(0, rows_t)[:, 7:10].cpu().numpy().reshape(len(texts), MAX_ENTRIES, 3)
         names: set[bytes] = set()
         for k, n in enumerate(n_read.tolist()):
             for slot, start, length in info[k, :n].tolist():
@@ -264,13 +264,15 @@ class TextPacker:
             slow_batch = engine.pack(list(scenes.values()))
             rows_t = torch.from_numpy(fb_rows).to(device)
             width = slow_batch.poses.shape[1]
-            poses_t[rows_t, :width] = slow_batch.poses
-            sizes_t[rows_t, :width] = slow_batch.sizes
-            asset_t[rows_t, :width] = slow_batch.asset_index
+            poses_t[:, :width].index_copy_(0, rows_t, slow_batch.poses)
+            sizes_t[:, :width].index_copy_(0, rows_t, slow_batch.sizes)
+            asset_t[:, :width].index_copy_(0, rows_t, slow_batch.asset_index)
             scene_ids = {int(r): s.ids() for r, s in zip(fb_rows.tolist(), scenes.values())}
         fast_rows = row[fast]
         fast_src = torch.from_numpy(np.nonzero(fast)[0]).to(device)
-        spans = self._buffers["ent_i"].view(-1, MAX_ENTRIES, 10)[fast_src, :n_slot, 2:4]
+        # a copy (the scan buffers are reused by the next call); index_select, not advanced
+        # indexing, which is ~100x slower on CPU tensors here
+        spans = self._buffers["ent_i"].view(-1, MAX_ENTRIES, 10)[:, :n_slot, 2:4].index_select(0, fast_src)
         ids = _LazyIds(data or b"", spans, counts, fast_rows, scene_ids)
         batch = SceneBatch(
             poses=poses_t, sizes=sizes_t,
