@@ -251,13 +251,22 @@ class TextPacker:
         if pair_start[-1] >= 2**31 // 64:
             raise ValueError(f"batch has {pair_start[-1]} object pairs; split it into smaller batches")
         src = np.where(fast[ok_idx], ok_idx, -1)
-        ints = torch.from_numpy(np.concatenate([src, counts, pair_start]).astype(np.int32)).to(device)
-        src_t, count_t, pair_start_t = ints[:n_row], ints[n_row:2 * n_row], ints[2 * n_row:]
+        fast_idx = np.nonzero(fast)[0]
+        # one upload: row sources, counts, CSR pair offsets, scanned texts (for the lazy ids)
+        ints = np.concatenate([src, counts, pair_start, fast_idx]).astype(np.int32)
+        ints = torch.from_numpy(ints).to(device)
+        src_t, count_t = ints[:n_row], ints[n_row:2 * n_row]
+        pair_start_t, fast_src = ints[2 * n_row:3 * n_row + 1], ints[3 * n_row + 1:]
         poses_t = torch.empty(n_row, n_slot, 4, dtype=torch.float32, device=device)
         sizes_t = torch.empty(n_row, n_slot, 3, dtype=torch.float32, device=device)
         asset_t = torch.empty(n_row, n_slot, dtype=torch.int32, device=device)
-        launch_gather(src=src_t, count=count_t, n_slot=n_slot, buffers=self._buffers, poses=poses_t,
-                      sizes=sizes_t, asset=asset_t)
+        if fast_idx.size:  # every slot: scanned objects, padding elsewhere
+            launch_gather(src=src_t, count=count_t, n_slot=n_slot, buffers=self._buffers, poses=poses_t,
+                          sizes=sizes_t, asset=asset_t)
+        else:  # nothing scanned (no scan buffers yet, maybe): padding, the fallback rows below
+            poses_t.zero_()
+            sizes_t.fill_(1.0)
+            asset_t.zero_()
         scene_ids: dict[int, list[str]] = {}
         if scenes:
             fb_rows = row[list(scenes)]
@@ -269,10 +278,12 @@ class TextPacker:
             asset_t[:, :width].index_copy_(0, rows_t, slow_batch.asset_index)
             scene_ids = {int(r): s.ids() for r, s in zip(fb_rows.tolist(), scenes.values())}
         fast_rows = row[fast]
-        fast_src = torch.from_numpy(np.nonzero(fast)[0]).to(device)
-        # a copy (the scan buffers are reused by the next call); index_select, not advanced
-        # indexing, which is ~100x slower on CPU tensors here
-        spans = self._buffers["ent_i"].view(-1, MAX_ENTRIES, 10)[:, :n_slot, 2:4].index_select(0, fast_src)
+        spans = torch.zeros(0, n_slot, 2, dtype=torch.int32, device=device)
+        if fast_idx.size:
+            # a copy (the scan buffers are reused by the next call); index_select, not advanced
+            # indexing, which is ~100x slower on CPU tensors here
+            entry_ints = self._buffers["ent_i"].view(-1, MAX_ENTRIES, 10)
+            spans = entry_ints[:, :n_slot, 2:4].index_select(0, fast_src.long())
         ids = _LazyIds(data or b"", spans, counts, fast_rows, scene_ids)
         batch = SceneBatch(
             poses=poses_t, sizes=sizes_t,

@@ -204,6 +204,17 @@ def test_too_many_entries_and_non_ascii_text(engine):
     _rewards_both(engine, texts)
 
 
+def test_non_string_items_send_the_batch_to_the_python_parser():
+    library = AssetLibrary(resolution=16, n_points=64)
+    library.add_primitives()
+    engine = PhysicsEngine(library)  # fresh: no scan has run yet
+    text = completion_text(_stack_scene())
+    pack = engine.pack_texts([text, 5, None])
+    assert pack.status.tolist() == [-2, -2, -2] and pack.row.tolist() == [0, -1, -1]
+    assert "string" in pack.errors[1] and pack.errors[0] is None
+    assert_batches_equal(pack.batch, engine.pack([parse(text)]))
+
+
 def test_new_categories_are_learned_and_hash_collisions_fall_back():
     library = AssetLibrary(resolution=16, n_points=64)
     library.add_primitives()
