@@ -194,7 +194,7 @@ class TextPacker:
         n = len(texts)
         if n == 0:
             return np.zeros(0, np.int32), b""
-        strings = all(type(t) is str for t in texts)
+        strings = set(map(type, texts)) == {str}
         encoded = self._encode(texts) if strings else None
         if encoded is None:
             return np.full(n, -2, np.int32), None
