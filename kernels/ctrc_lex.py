@@ -147,9 +147,14 @@ def prescan(text: wp.array(dtype=wp.uint8), offsets: wp.array(dtype=wp.int32),
                 if int(text[p + 1]) == 96 and int(text[p + 2]) == 96:
                     flags[c] = 1
         elif b == 60:
-            if p + 1 < stop:
-                n = int(text[p + 1])
-                if n == 106 or n == 74 or n == 47:  # j J /
+            # ctrc's </?json> token is re.I: '<' or '</' then j/J (no other character folds to j);
+            # an end-of-text tag such as </s> stays on the fast path
+            q = p + 1
+            if q < stop and int(text[q]) == 47:
+                q += 1
+            if q < stop:
+                n = int(text[q])
+                if n == 106 or n == 74:
                     flags[c] = 1
         elif b == 83 and p + 12 <= stop:
             # "Scene Layout"

@@ -7,7 +7,7 @@ each text cut into its own CHUNK-byte chunks (chunk_start). Four launches and a 
 
 1. ``prescan`` (one thread per chunk): flags every text containing something that would make
    :func:`physcene.ctrc.parse` look elsewhere for the JSON (a code fence ```` ``` ````, a
-   ``<json>`` token, anything starting ``<j``, ``<J`` or ``</``), records the LAST
+   ``<json>`` token, anything starting ``<j``, ``<J``, ``</j`` or ``</J``), records the LAST
    ``Scene Layout`` (the parser reads from its ``rfind``) and counts entry candidates: '{' bytes
    whose previous non-blank byte is '[' or ','.
 2. ``torch.cumsum`` of the counts, then ``emit`` (one thread per chunk) writes each text's first

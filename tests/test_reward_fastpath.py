@@ -184,7 +184,8 @@ def test_key_order_whitespace_and_zone_entry(engine):
         entry.pop("layer")
         entry.pop("description", None)
     texts = [head + json.dumps(shuffled, indent=3), head + json.dumps(no_zone, separators=(",", ":")),
-             head + json.dumps(minimal) + "\nDone. Trailing words after the JSON are ignored."]
+             head + json.dumps(minimal) + "\nDone. Trailing words after the JSON are ignored.",
+             base + "</s>", "<s>" + base]
     pack = engine.pack_texts(texts)
     assert pack.fast.all(), pack.status
     assert_batches_equal(pack.batch, _python_pack(engine, texts)[0])
