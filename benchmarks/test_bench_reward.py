@@ -59,10 +59,14 @@ def test_bench_reference(benchmark, setup, with_grad):
     assert out["energy"].shape == (len(scenes),)
 
 
-def test_bench_whole_reward(benchmark, setup):
-    """Prepared completion texts -> rewards: parse, pack, one engine call, the reward formula."""
+@pytest.mark.parametrize("fast_parse", [True, False], ids=["fast-parse", "python-parse"])
+def test_bench_whole_reward(benchmark, setup, fast_parse):
+    """Prepared completion texts -> rewards: parse, pack, one engine call, the reward formula.
+
+    fast-parse: the compiled CTRC scanner (PhysicsEngine.pack_texts); python-parse: ctrc.parse.
+    """
     device, engine, scenes, batch = setup
-    reward = PhysicsReward(RewardConfig(device=str(device)), engine=engine)
+    reward = PhysicsReward(RewardConfig(device=str(device), fast_parse=fast_parse), engine=engine)
     texts = [completion_text(s) for s in scenes]
     rewards = benchmark.pedantic(synchronized(lambda: reward.score_texts(texts), device), rounds=3,
                                  iterations=1, warmup_rounds=1)
@@ -70,3 +74,15 @@ def test_bench_whole_reward(benchmark, setup):
     if benchmark.enabled and device.type == "cpu":
         rate = len(scenes) / benchmark.stats.stats.median
         assert rate >= 500, f"reward on 12-object scenes: {rate:.0f} scenes/s < 500"
+    if benchmark.enabled and device.type == "cuda" and fast_parse:
+        ms = benchmark.stats.stats.median * 1e3
+        assert ms <= 3.0, f"whole reward of 512 x 16-object completions: {ms:.2f} ms > 3 ms"
+
+
+def test_bench_pack_texts(benchmark, setup):
+    """Completion texts -> SceneBatch by the compiled scanner alone (no engine call)."""
+    device, engine, scenes, batch = setup
+    texts = [completion_text(s) for s in scenes]
+    pack = benchmark.pedantic(synchronized(lambda: engine.pack_texts(texts), device),
+                              rounds=20 if device.type == "cuda" else 3, iterations=1, warmup_rounds=1)
+    assert pack.fast.all() and pack.batch.n_scene == len(scenes)

@@ -220,6 +220,7 @@ class PhysicsEngine:
         self._asset_slot: dict[str, int] = {}
         self._resolved: dict[tuple[str, str | None], tuple[int, str, str | None]] = {}
         self._packed: tuple[int, dict[str, torch.Tensor]] | None = None
+        self._text_packer = None  # physcene.text_pack.TextPacker, built on the first pack_texts
 
     # Assets ------------------------------------------------------------------------------------
     def _resolve(self, category: str, asset_id: str | None) -> tuple[int, str, str | None]:
@@ -284,6 +285,20 @@ class PhysicsEngine:
             _resolved=resolved,
             _bounds=np.concatenate([[0], np.cumsum(counts)]),
         )
+
+    def pack_texts(self, texts: Sequence[str], fallback=None):
+        """Completion texts → a :class:`~physcene.text_pack.TextPack` (batch, row per text, errors).
+
+        Canonical CTRC (what ``ctrc.completion_text`` writes, keys in any order) is read by the
+        compiled scanner of kernels/ctrc_scan.py straight into the batch; every other text goes
+        to ``fallback`` (default :func:`physcene.ctrc.parse`), whose Scenes are packed into the same
+        batch and whose ParseErrors are the texts that do not parse. Rows follow the input order.
+        """
+        if self._text_packer is None:
+            from physcene.text_pack import TextPacker
+
+            self._text_packer = TextPacker(self)
+        return self._text_packer.pack(texts, fallback)
 
     # Evaluation --------------------------------------------------------------------------------
     def _poses(self, batch: SceneBatch, poses: torch.Tensor | None) -> torch.Tensor:

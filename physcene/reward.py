@@ -6,8 +6,10 @@ with E_pen = Σ_{i<j} pen(i, j) in MILLIMETRES over pairs deeper than the tolera
 >>> reward = PhysicsReward(RewardConfig(device="cuda"))
 >>> trainer = GRPOTrainer(..., reward_funcs=[reward])        # reward.last_metrics after each call
 
-Each completion is parsed once (:func:`physcene.ctrc.parse`), every parsed scene of the batch is
-scored in ONE engine call, and unparsable completions never touch the engine. The zone of the
+Each completion is parsed once, every parsed scene of the batch is scored in ONE engine call,
+and unparsable completions never touch the engine. Canonical CTRC is read by the compiled
+scanner (``PhysicsEngine.pack_texts``, config ``fast_parse``); :func:`physcene.ctrc.parse` reads
+the rest and decides which completions are unparsable. The zone of the
 task is not needed: penetration does not change when a whole layout is translated.
 """
 
@@ -45,6 +47,9 @@ class RewardConfig:
     """Also add each object's depth below the table top (mm, deeper than the tolerance) to E_pen."""
     device: str = "cpu"
     """Engine device, ``cpu`` or ``cuda[:N]``."""
+    fast_parse: bool = True
+    """Read canonical CTRC completions with the compiled scanner (PhysicsEngine.pack_texts);
+    the others, and every completion when False, with :func:`physcene.ctrc.parse`."""
 
     @classmethod
     def load(cls, overrides: Sequence[str] = ()) -> RewardConfig:
@@ -104,22 +109,34 @@ class PhysicsReward:
         return self.score_texts([completion_text_of(c) for c in completions])
 
     def score_texts(self, texts: Sequence[str]) -> list[float]:
-        """Rewards for completion texts, in order (one parse each, one engine call)."""
-        parsed = [parse(t) for t in texts]
-        return self.score_parsed(parsed)
+        """Rewards for completion texts, in order (one parse each, one engine call).
+
+        With ``fast_parse`` the compiled scanner reads canonical CTRC straight into the engine
+        batch and :func:`physcene.ctrc.parse` reads the rest; the rewards, metrics and
+        ``last_parse_errors`` are those of parsing every text with :func:`parse`.
+        """
+        engine = self.engine
+        if not self.config.fast_parse or not hasattr(engine, "pack_texts"):  # duck-typed engines
+            return self.score_parsed([parse(t) for t in texts])
+        pack = engine.pack_texts(texts, parse)
+        return self._score(pack.batch, np.nonzero(pack.row >= 0)[0], pack.errors)
 
     def score_parsed(self, parsed: Sequence[Scene | ParseError]) -> list[float]:
         """Rewards for already parsed completions (a Scene or a ParseError each)."""
-        cfg = self.config
-        rewards = np.full(len(parsed), cfg.unparsable, dtype=np.float64)
         ok = [k for k, p in enumerate(parsed) if isinstance(p, Scene)]
+        batch = self.engine.pack([parsed[k] for k in ok]) if ok else None
+        errors = [p.reason if isinstance(p, ParseError) else None for p in parsed]
+        return self._score(batch, np.asarray(ok, dtype=np.int64), errors)
+
+    def _score(self, batch, ok: np.ndarray, errors: list[str | None]) -> list[float]:
+        """Rewards of n = len(errors) completions; ``batch`` row r scores completion ok[r]."""
+        cfg = self.config
+        n_text = len(errors)
+        rewards = np.full(n_text, cfg.unparsable, dtype=np.float64)
         e_mm = np.zeros(0)
         depth_mm = np.zeros(0)
-        if ok:
-            scenes = [parsed[k] for k in ok]
-            engine = self.engine
-            batch = engine.pack(scenes)
-            out = engine.evaluate(batch, tolerance=cfg.tolerance_mm / 10.0)
+        if ok.size:
+            out = self.engine.evaluate(batch, tolerance=cfg.tolerance_mm / 10.0)
             e = out["depth_sum"]
             if cfg.table_term:
                 table = out["table_depth"]
@@ -127,14 +144,14 @@ class PhysicsReward:
             both = (torch.stack([e, out["max_depth"]]) * 10.0).cpu().numpy().astype(np.float64)  # one sync
             e_mm, depth_mm = both[0], both[1]
             rewards[ok] = reward_from_energy(e_mm, cfg)
-        n = max(len(parsed), 1)
-        self.last_parse_errors = [p.reason if isinstance(p, ParseError) else None for p in parsed]
+        n = max(n_text, 1)
+        self.last_parse_errors = list(errors)
         self.last_metrics = {
-            "parse_failure_rate": (len(parsed) - len(ok)) / n,
-            "mean_energy_mm": float(e_mm.mean()) if ok else 0.0,
-            "collision_free_rate": float((e_mm == 0).mean()) if ok else 0.0,
-            "mean_max_depth_mm": float(depth_mm.mean()) if ok else 0.0,
-            "mean_reward": float(rewards.mean()) if len(parsed) else 0.0,
+            "parse_failure_rate": (n_text - ok.size) / n,
+            "mean_energy_mm": float(e_mm.mean()) if ok.size else 0.0,
+            "collision_free_rate": float((e_mm == 0).mean()) if ok.size else 0.0,
+            "mean_max_depth_mm": float(depth_mm.mean()) if ok.size else 0.0,
+            "mean_reward": float(rewards.mean()) if n_text else 0.0,
         }
         return rewards.tolist()
 

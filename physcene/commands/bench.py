@@ -163,16 +163,29 @@ def bench_reward(args) -> dict:
         result["speedup_forward"] = result["reference_forward"]["seconds"] / result["warp_forward"]["seconds"]
         result["speedup_grad"] = result["reference_grad"]["seconds"] / result["warp_grad"]["seconds"]
     reward = PhysicsReward(RewardConfig(device=str(device)), engine=engine)
+    python_reward = PhysicsReward(RewardConfig(device=str(device), fast_parse=False), engine=engine)
     texts = [completion_text(s) for s in scenes]
     parsed = list(scenes)
-    whole = timed(lambda: reward.score_texts(texts), device, max(1, repeat // 2), 1)
+    result["text_bytes"] = sum(len(t.encode()) for t in texts)
+    result["fast_parse_accepted"] = float(engine.pack_texts(texts).fast.mean())
+    # the whole reward from text: compiled scanner (fast_parse) and pure-Python parse, same run
+    whole = timed(lambda: reward.score_texts(texts), device, repeat)
     whole_cpu = timed.last_cpu_seconds
+    result["pack_texts"] = _seconds(timed(lambda: engine.pack_texts(texts), device, repeat), args.scenes)
+    whole_python = timed(lambda: python_reward.score_texts(texts), device, max(1, repeat // 4), 1)
+    result["reward_from_text_python"] = {"seconds": whole_python, "cpu_seconds": timed.last_cpu_seconds,
+                                         "scenes_per_s": args.scenes / whole_python}
     from_scenes = timed(lambda: reward.score_parsed(parsed), device, repeat)
     result["reward_from_text"] = {"seconds": whole, "cpu_seconds": whole_cpu,
                                   "scenes_per_s": args.scenes / whole}
+    result["fast_parse_speedup"] = whole_python / whole
     result["reward_from_scenes"] = {"seconds": from_scenes, "cpu_seconds": timed.last_cpu_seconds,
                                     "scenes_per_s": args.scenes / from_scenes}
     return result
+
+
+def _seconds(seconds: float, n_scene: int) -> dict:
+    return {"seconds": seconds, "cpu_seconds": timed.last_cpu_seconds, "scenes_per_s": n_scene / seconds}
 
 
 def _reward_summary(r: dict) -> str:
@@ -193,10 +206,18 @@ def _reward_summary(r: dict) -> str:
         lines.append(f"warp / reference: forward {r['speedup_forward']:.1f}x, "
                      f"forward+grad {r['speedup_grad']:.1f}x")
     for key, label in (("reward_from_text", "whole reward (text -> rewards)"),
+                       ("reward_from_text_python", "  same, pure-Python parse"),
+                       ("pack_texts", "  of which text -> batch"),
                        ("reward_from_scenes", "reward from parsed scenes")):
+        if key not in r:
+            continue
         f = r[key]
         lines.append(f"{label:30s} {f['seconds'] * 1e3:9.3f} ms ({f['cpu_seconds'] * 1e3:9.3f} ms CPU)  "
                      f"{f['scenes_per_s']:12.1f} scenes/s")
+    if "fast_parse_speedup" in r:
+        lines.append(f"fast parse: {r['fast_parse_accepted']:.0%} of {r['text_bytes'] / 1e6:.2f} MB of "
+                     f"completions read by the compiled scanner, whole reward {r['fast_parse_speedup']:.1f}x "
+                     "the pure-Python parse")
     return "\n".join(lines)
 
 
