@@ -115,8 +115,9 @@ def test_eval_on_cuda_matches_cpu(tmp_path):
 
 
 def test_parse_error_kinds_group_a_models_failure_modes():
-    from physcene.ctrc import parse
     from physcene.eval.metrics import parse_error_kinds
+
+    from physcene.ctrc import parse
 
     texts = ['{"objects": [{"instance_id": "1_cup_0", "category": "cup", "parent_id": "root_zone", '
              '"relation_type": "near", "relative_bbox": [0, 10, 0, 10, 0, 12], "relative_rotation_deg": 0}',
