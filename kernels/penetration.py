@@ -225,6 +225,33 @@ def find_scene(pair_start: wp.array(dtype=wp.int32), n_scene: int, k: int):
     return lo
 
 
+@wp.func
+def decode_pair(pair_start: wp.array(dtype=wp.int32), count: wp.array(dtype=wp.int32), n_slot: int, k: int):
+    """Slots (a, b) of CSR pair k: scene by binary search, then the row-major (i < j) of its pairs."""
+    s = find_scene(pair_start, count.shape[0], k)
+    n = int(count[s])
+    r = k - int(pair_start[s])
+    # row-major (i < j): row i starts at i*n - i*(i+1)/2; float guess, then exact integer fix-up
+    i = int(float(n) - 0.5 - wp.sqrt((float(n) - 0.5) * (float(n) - 0.5) - 2.0 * float(r)))
+    i = wp.clamp(i, 0, n - 2)
+    while i > 0 and i * n - i * (i + 1) // 2 > r:
+        i -= 1
+    while (i + 1) * n - (i + 1) * (i + 2) // 2 <= r:
+        i += 1
+    j = r - (i * n - i * (i + 1) // 2) + i + 1
+    return s * n_slot + i, s * n_slot + j
+
+
+@wp.func
+def boxes_meet(pa: wp.vec4, ha: wp.vec3, pb: wp.vec4, hb: wp.vec3, margin: float):
+    """1 if the two yawed boxes (half sizes ha, hb), inflated by margin, overlap, else 0."""
+    hit = int(0)
+    if wp.abs(pa[2] - pb[2]) <= ha[2] + hb[2] + margin:
+        if footprint_gap(pa, ha, pb, hb) <= margin:
+            hit = 1
+    return hit
+
+
 @wp.kernel
 def broadphase(
     pair_start: wp.array(dtype=wp.int32),  # (S+1,)
@@ -238,34 +265,14 @@ def broadphase(
     pair_hit_out: wp.array(dtype=wp.int32),  # (T,) 1 if the inflated boxes overlap
 ):
     k = wp.tid()
-    s = find_scene(pair_start, count.shape[0], k)
-    n = int(count[s])
-    r = k - int(pair_start[s])
-    # row-major (i < j): row i starts at i*n - i*(i+1)/2; float guess, then exact integer fix-up
-    i = int(float(n) - 0.5 - wp.sqrt((float(n) - 0.5) * (float(n) - 0.5) - 2.0 * float(r)))
-    i = wp.clamp(i, 0, n - 2)
-    while i > 0 and i * n - i * (i + 1) // 2 > r:
-        i -= 1
-    while (i + 1) * n - (i + 1) * (i + 2) // 2 <= r:
-        i += 1
-    j = r - (i * n - i * (i + 1) // 2) + i + 1
-    a = s * n_slot + i
-    b = s * n_slot + j
+    a, b = decode_pair(pair_start, count, n_slot, k)
     pair_a_out[k] = a
     pair_b_out[k] = b
-    pa = poses[a]
-    pb = poses[b]
-    ha = sizes[a] * 0.5
-    hb = sizes[b] * 0.5
-    hit = int(0)
-    if wp.abs(pa[2] - pb[2]) <= ha[2] + hb[2] + margin:
-        if footprint_gap(pa, ha, pb, hb) <= margin:
-            hit = 1
-    pair_hit_out[k] = hit
+    pair_hit_out[k] = boxes_meet(poses[a], sizes[a] * 0.5, poses[b], sizes[b] * 0.5, margin)
 
 
 @wp.kernel
-def narrowphase(
+def narrowphase_buckets(
     pair_a: wp.array(dtype=wp.int32),
     pair_b: wp.array(dtype=wp.int32),
     pair_hit: wp.array(dtype=wp.int32),
@@ -372,6 +379,8 @@ def reduce_pairs(
     part_depth: wp.array(dtype=float),
     part_gu: wp.array(dtype=wp.vec3),
     part_yaw: wp.array(dtype=wp.vec2),
+    pair_item: wp.array(dtype=wp.int32),  # (T,) worklist: first of the pair's two items; else unused
+    compact: int,  # 1: partials of item k at k*lanes (worklist), 0: of pair p at p*2*lanes (buckets)
     with_grad: int,
     lanes: int,
     pair_energy_out: wp.array(dtype=float),  # (T,) cm
@@ -385,6 +394,8 @@ def reduce_pairs(
     gb = wp.vec4(0.0, 0.0, 0.0, 0.0)
     if pair_hit[pair] != 0:
         base = pair * 2 * lanes
+        if compact != 0:
+            base = pair_item[pair] * lanes  # the pair's two items are consecutive: direction 0, 1
         for k in range(2 * lanes):
             energy += part_energy[base + k]
             depth = wp.max(depth, part_depth[base + k])
@@ -475,19 +486,25 @@ def table_contact(
     points: wp.array(dtype=wp.vec3),
     pt_start: wp.array(dtype=wp.int32),
     pt_count: wp.array(dtype=wp.int32),
+    pt_zmin: wp.array(dtype=float),  # (A,) lowest normalised z of each asset's points
+    counter_out: wp.array(dtype=wp.int32),  # (1,) zeroed here for the worklist's append (one launch less)
     depth_out: wp.array(dtype=float),  # (S*N,) deepest surface point below z = 0, cm
     energy_out: wp.array(dtype=float),  # (S*N,) Σ ReLU(−z) over surface points, cm
     below_out: wp.array(dtype=float),  # (S*N,) number of points below z = 0 (= −∂E/∂z)
 ):
     slot = wp.tid()
+    if slot == 0:
+        counter_out[0] = 0
     s = slot // n_slot
     depth = float(0.0)
     energy = float(0.0)
     below = float(0.0)
-    if slot - s * n_slot < int(count[s]):
-        pose = poses[slot]
-        half = sizes[slot] * 0.5
-        a = obj_asset[slot]
+    pose = poses[slot]
+    half = sizes[slot] * 0.5
+    a = obj_asset[slot]
+    # z + p_z h_z is monotone in p_z (rounding too): if the lowest point is not below z = 0, none
+    # is, and an object resting on the table skips its points exactly
+    if slot - s * n_slot < int(count[s]) and pose[2] + pt_zmin[a] * half[2] < 0.0:
         p0 = pt_start[a]
         for p in range(pt_count[a]):
             # yaw does not change z: z = z_c + p_z * h_z
@@ -569,6 +586,24 @@ class _Launcher:
         wp.launch(kernel, dim=dim, inputs=inputs, device=self.device, stream=self.stream)
 
 
+NARROWPHASES = ("buckets", "worklist")
+# CUDA work-list launch: at most this many waves of resident threads; each thread loops over items.
+_WORKLIST_WAVES = 4
+
+
+def _resident_threads(device: torch.device) -> int:
+    """Threads a CUDA device keeps resident at once (SMs x threads per SM), memoised."""
+    key = str(device)
+    n = _RESIDENT.get(key)
+    if n is None:
+        props = torch.cuda.get_device_properties(device)
+        n = _RESIDENT[key] = props.multi_processor_count * props.max_threads_per_multi_processor
+    return n
+
+
+_RESIDENT: dict = {}
+
+
 def launch_penetration(
     *,
     pair_start: torch.Tensor,
@@ -582,44 +617,55 @@ def launch_penetration(
     tolerance: float,
     with_grad: bool,
     lanes: int | None = None,
+    narrowphase: str = "worklist",
 ) -> dict[str, torch.Tensor]:
     """Run broadphase → narrowphase → reductions on torch tensors (zero-copy, torch's stream).
 
     Inputs: pair_start (S+1,) int32; count (S,) int32; poses (S, N, 4) float32 contiguous;
     sizes (S, N, 3) float32; obj_asset (S, N) int32; ``assets`` the packed arrays (``sdf``,
     ``rays``, ``sdf_start``, ``sdf_res``, ``points`` (K, 3), ``pt_start``, ``pt_count``,
-    ``pt_bucket``).
+    ``pt_zmin``, ``pt_bucket``).
     Returns torch tensors: ``energy``, ``max_depth``, ``depth_sum`` (S,); ``pair_a``, ``pair_b``
     (T,) slots; ``pair_hit`` (T,); ``pair_energy``, ``pair_depth`` (T,); ``table_depth``,
     ``table_energy``, ``table_below`` (S, N); ``grad`` (S, N, 4) when ``with_grad``.
     ``lanes``: threads per (pair, direction), default ``DEFAULT_LANES`` of the device type.
-    No host synchronisation: every size is known from the arguments.
+    ``narrowphase``: ``"worklist"`` (kernels/narrowphase.py: threads only for pairs that pass the
+    broadphase) or ``"buckets"`` (every pair's threads launched); same results up to float
+    summation order. No host synchronisation on CUDA: every launch size is known from the
+    arguments (the work list's length stays on the device).
     """
     device = poses.device
     lanes = DEFAULT_LANES[device.type] if lanes is None else int(lanes)
     if lanes < 1:
         raise ValueError(f"lanes must be >= 1, got {lanes}")
+    if narrowphase not in NARROWPHASES:
+        raise ValueError(f"narrowphase {narrowphase!r}: expected one of {', '.join(NARROWPHASES)}")
+    worklist = narrowphase == "worklist"
     launch = _Launcher(device)
     n_scene, n_slot = poses.shape[0], poses.shape[1]
     n_obj = n_scene * n_slot
     # one allocation for the float outputs, one for the int ones: views are cheap, allocations not
     floats = torch.empty(3 * n_scene + 2 * n_pairs + 3 * n_obj + (4 * n_obj if with_grad else 0),
                          dtype=torch.float32, device=device)
-    ints = torch.empty(3 * n_pairs, dtype=torch.int32, device=device)
+    # pair_a, pair_b, pair_hit, then (work list) pair_item, items (2T), the item counter
+    ints = torch.empty(3 * n_pairs + (3 * n_pairs + 1 if worklist else 1), dtype=torch.int32, device=device)
     sizes_f = [n_scene, n_scene, n_scene, n_pairs, n_pairs, n_obj, n_obj, n_obj]
     views = list(torch.split(floats, sizes_f + ([4 * n_obj] if with_grad else [])))
     out = dict(zip(("energy", "max_depth", "depth_sum", "pair_energy", "pair_depth"), views[:5]))
     for key, view in zip(("table_depth", "table_energy", "table_below"), views[5:8]):
         out[key] = view.view(n_scene, n_slot)
-    out["pair_a"], out["pair_b"], out["pair_hit"] = torch.split(ints, [n_pairs] * 3)
+    out["pair_a"], out["pair_b"], out["pair_hit"] = torch.split(ints[:3 * n_pairs], [n_pairs] * 3)
+    n_item = ints[-1:]
     w_poses = _ct(poses.reshape(n_obj, 4), wp.vec4)
     w_sizes = _ct(sizes.reshape(n_obj, 3), wp.vec3)
     w_asset = _ct(obj_asset.reshape(n_obj))
     w_pair_start, w_count = _ct(pair_start), _ct(count)
     w_points = _ct(assets["points"], wp.vec3)
     w_pt_start, w_pt_count = _ct(assets["pt_start"]), _ct(assets["pt_count"])
+    w_n_item = _ct(n_item)
     launch(table_contact, n_obj, [w_count, n_slot, w_poses, w_sizes, w_asset, w_points, w_pt_start,
-                                  w_pt_count, _ct(views[5]), _ct(views[6]), _ct(views[7])])
+                                  w_pt_count, _ct(assets["pt_zmin"]), w_n_item,
+                                  _ct(views[5]), _ct(views[6]), _ct(views[7])])
     if with_grad:
         out["grad"] = views[8].view(n_scene, n_slot, 4)
     if n_pairs == 0:
@@ -628,9 +674,23 @@ def launch_penetration(
             out["grad"].zero_()
         return out
     w_pair_a, w_pair_b, w_hit = _ct(out["pair_a"]), _ct(out["pair_b"]), _ct(out["pair_hit"])
-    launch(broadphase, n_pairs, [w_pair_start, w_count, n_slot, w_poses, w_sizes, float(margin),
-                                 w_pair_a, w_pair_b, w_hit])
-    n_part = n_pairs * 2 * lanes
+    w_pair_item = w_hit
+    if worklist:
+        from physcene.kernels.narrowphase import broadphase_items, narrowphase_items
+
+        pair_item, items = ints[3 * n_pairs:4 * n_pairs], ints[4 * n_pairs:6 * n_pairs]
+        w_pair_item, w_items = _ct(pair_item), _ct(items)
+        launch(broadphase_items, n_pairs, [w_pair_start, w_count, n_slot, w_poses, w_sizes, float(margin),
+                                           w_pair_a, w_pair_b, w_hit, w_pair_item, w_n_item, w_items])
+        if device.type == "cuda":  # the count stays on the device: grid-stride over an upper bound
+            n_thread = min(2 * n_pairs, max(1, _WORKLIST_WAVES * _resident_threads(device) // lanes)) * lanes
+            n_part = 2 * n_pairs * lanes
+        else:  # the CPU is synchronous: reading the count costs nothing, launch exactly the work
+            n_thread = n_part = int(n_item.item()) * lanes
+    else:
+        launch(broadphase, n_pairs, [w_pair_start, w_count, n_slot, w_poses, w_sizes, float(margin),
+                                     w_pair_a, w_pair_b, w_hit])
+        n_thread = n_part = n_pairs * 2 * lanes
     if with_grad:
         part = torch.empty(7 * n_part + 8 * n_pairs, dtype=torch.float32, device=device)
         pe, pd, pg, py, pair_grad = torch.split(part, [n_part, n_part, 3 * n_part, 2 * n_part, 8 * n_pairs])
@@ -641,13 +701,17 @@ def launch_penetration(
         pg, py, pair_grad = spare[:3].view(1, 3), spare[3:5].view(1, 2), spare.view(1, 2, 4)
     w_part = [_ct(pe), _ct(pd), _ct(pg, wp.vec3), _ct(py, wp.vec2)]
     w_pair_grad = _ct(pair_grad, wp.vec4)
-    launch(narrowphase, n_part, [w_pair_a, w_pair_b, w_hit, w_poses, w_sizes, w_asset,
-                                 _ct(assets["sdf"]), _ct(assets["rays"]), _ct(assets["sdf_start"]),
-                                 _ct(assets["sdf_res"]), w_points, _ct(assets["pt_bucket"]), int(with_grad),
-                                 lanes, *w_part])
+    w_fields = [w_poses, w_sizes, w_asset, _ct(assets["sdf"]), _ct(assets["rays"]), _ct(assets["sdf_start"]),
+                _ct(assets["sdf_res"]), w_points, _ct(assets["pt_bucket"]), int(with_grad)]
+    if worklist:
+        if n_thread > 0:
+            launch(narrowphase_items, n_thread, [w_items, w_n_item, n_thread, lanes, w_pair_a, w_pair_b,
+                                                 *w_fields, *w_part])
+    else:
+        launch(narrowphase_buckets, n_thread, [w_pair_a, w_pair_b, w_hit, *w_fields, lanes, *w_part])
     w_pair_energy, w_pair_depth = _ct(out["pair_energy"]), _ct(out["pair_depth"])
-    launch(reduce_pairs, n_pairs, [w_pair_a, w_pair_b, w_hit, w_poses, *w_part, int(with_grad), lanes,
-                                   w_pair_energy, w_pair_depth, w_pair_grad])
+    launch(reduce_pairs, n_pairs, [w_pair_a, w_pair_b, w_hit, w_poses, *w_part, w_pair_item, int(worklist),
+                                   int(with_grad), lanes, w_pair_energy, w_pair_depth, w_pair_grad])
     launch(reduce_scenes, n_scene, [w_pair_start, w_pair_energy, w_pair_depth, float(tolerance),
                                     _ct(out["energy"]), _ct(out["max_depth"]), _ct(out["depth_sum"])])
     if with_grad:

@@ -23,8 +23,8 @@ from itertools import chain
 import numpy as np
 import torch
 
-from physcene.config import load_dataclass
-from physcene.kernels.penetration import BUCKETS, launch_penetration, launch_support
+from physcene.config import ConfigError, load_dataclass
+from physcene.kernels.penetration import BUCKETS, NARROWPHASES, launch_penetration, launch_support
 from physcene.scene import Scene
 
 __all__ = ["PhysicsConfig", "PhysicsEngine", "SceneBatch", "Score", "axis_ray_distances", "bucket_points",
@@ -45,6 +45,15 @@ class PhysicsConfig:
     """Narrowphase threads per (pair, direction) on the CPU."""
     lanes_cuda: int = 32
     """Narrowphase threads per (pair, direction) on CUDA (more lanes fill the GPU)."""
+    narrowphase: str = "worklist"
+    """``worklist``: threads only for the (pair, direction) items that pass the broadphase
+    (kernels/narrowphase.py); ``buckets``: threads for every pair, most exiting at once. Same
+    results up to float summation order (docs/physics.md)."""
+
+    def __post_init__(self):
+        if self.narrowphase not in NARROWPHASES:
+            raise ConfigError(f"configs/physics.yaml: narrowphase={self.narrowphase!r}: expected one of "
+                              f"{', '.join(NARROWPHASES)}")
 
     @classmethod
     def load(cls, overrides: Sequence[str] = ()) -> PhysicsConfig:
@@ -192,6 +201,8 @@ def pack_assets(assets: Sequence, device: torch.device) -> dict[str, torch.Tenso
         "points": np.concatenate([b[0] for b in bucketed]).astype(np.float32).reshape(-1, 3),
         "pt_start": pt_start.astype(np.int32),
         "pt_count": n_pt,
+        # lowest normalised z of each asset's points: table_contact skips objects resting on z = 0
+        "pt_zmin": np.array([a.points[:, 2].min() if len(a.points) else 0.0 for a in assets], np.float32),
         "pt_bucket": np.concatenate([b[1] + start for b, start in zip(bucketed, pt_start)]).astype(np.int32),
     }
     if arrays["sdf"].size >= 2**31:
@@ -300,7 +311,7 @@ class PhysicsEngine:
             pair_start=batch.pair_start, count=batch.count, n_pairs=batch.n_pairs,
             poses=self._poses(batch, poses), sizes=batch.sizes, obj_asset=batch.asset_index,
             assets=self.packed_assets(), margin=self.config.margin_cm, tolerance=tolerance,
-            with_grad=with_grad,
+            with_grad=with_grad, narrowphase=self.config.narrowphase,
             lanes=self.config.lanes_cuda if self.device.type == "cuda" else self.config.lanes_cpu)
 
     def support_gap(self, batch: SceneBatch, poses: torch.Tensor | None = None) -> torch.Tensor:
