@@ -1,6 +1,7 @@
 """Where the time of one engine call goes: GPU kernel time vs host (launch) overhead.
 
     python benchmarks/profile_engine.py --device cuda --scenes 512 --objects 16
+    python benchmarks/profile_engine.py --narrowphase buckets worklist --lanes 8 16 32 64
 
 Runs ``PhysicsEngine.evaluate`` (forward, and forward + gradient) on the bench scenes of
 ``physcene bench reward`` under ``torch.profiler`` and prints, per Warp kernel, the summed device
@@ -55,20 +56,22 @@ def main() -> None:
     parser.add_argument("--repeat", type=int, default=50)
     parser.add_argument("--lanes", type=int, nargs="+", default=[16, 32, 64, 128],
                         help="narrowphase threads per (pair, direction) to compare")
+    parser.add_argument("--narrowphase", nargs="+", default=["buckets", "worklist"],
+                        help="narrowphase variants to compare (configs/physics.yaml: narrowphase)")
     args = parser.parse_args()
     library = AssetLibrary(n_points=args.points)
     library.add_primitives()
     engine = PhysicsEngine(library, args.device)
     batch = engine.pack(bench_scenes(args.scenes, args.objects))
     report = {}
-    for lanes in args.lanes:
-        engine.config = replace(engine.config, lanes_cuda=lanes, lanes_cpu=lanes)
+    for narrowphase, lanes in ((n, k) for n in args.narrowphase for k in args.lanes):
+        engine.config = replace(engine.config, lanes_cuda=lanes, lanes_cpu=lanes, narrowphase=narrowphase)
         for name, grad in (("forward", False), ("forward+grad", True)):
             fn = lambda grad=grad: engine.evaluate(batch, with_grad=grad)  # noqa: E731
             for _ in range(3):
                 fn()
             kernels = kernel_times(fn, args.repeat)
-            report[f"lanes={lanes} {name}"] = {
+            report[f"{narrowphase} lanes={lanes} {name}"] = {
                 "wall_ms": wall_ms(fn, args.repeat), "kernel_ms_total": sum(kernels.values()),
                 "kernels_ms": dict(sorted(kernels.items(), key=lambda kv: -kv[1]))}
     print(json.dumps(report, indent=1))

@@ -41,7 +41,7 @@ class PhysicsConfig:
     """An object whose bottom is more than this above every support under it is floating."""
     footprint_overlap_cm: float = 0.01
     """Two footprints must overlap by more than this to count as one standing on the other."""
-    lanes_cpu: int = 16
+    lanes_cpu: int = 4
     """Narrowphase threads per (pair, direction) on the CPU."""
     lanes_cuda: int = 32
     """Narrowphase threads per (pair, direction) on CUDA (more lanes fill the GPU)."""
