@@ -5,16 +5,24 @@ for i < count[s]), and the assets packed into flat arrays (one 1-D float array o
 per-asset start + resolution, one array of surface points with per-asset start + count).
 
 Pairs are enumerated per scene as CSR: scene s owns pair indices [pair_start[s], pair_start[s+1])
-= its count*(count-1)/2 pairs (i < j) in row-major order. Stages (one launch each, no host sync):
+= its count*(count-1)/2 pairs (i < j) in row-major order. Stages (one launch each, no host sync
+on CUDA):
 
+0. ``table_contact``: per object, the surface points below the table top z = 0.
 1. ``broadphase``: per pair, decode (i, j), test the slightly inflated yawed boxes (z interval +
    2-D separating axes of the two footprints) and write ``pair_hit``.
-2. ``narrowphase``: one thread per (pair, direction, lane): ``lanes`` threads share the points of
-   one object of the pair and query the other's field; each writes its partial sums. ``lanes`` is
-   a launch argument: few on the CPU (every thread is a loop iteration there, idle ones included),
-   many on CUDA (a 16-object batch has only a few thousand candidate pairs, and more lanes are
-   what fills the GPU). No atomics: the
-   partials are reduced in a fixed order, so results are bit-for-bit repeatable.
+2. the narrowphase, one of two (``narrowphase=`` of :func:`launch_penetration`, same maths, same
+   results up to float summation order):
+
+   - ``worklist`` (default; kernels/narrowphase.py): the broadphase appends the (pair, direction)
+     items of the pairs that pass to a dense list, and ``lanes`` threads per *item* stride over
+     the owner's points in the buckets that meet the other object's box;
+   - ``buckets`` (``narrowphase_buckets`` below): ``lanes`` threads for *every* (pair,
+     direction), most exiting at once when the pair failed the broadphase.
+
+   Either way the lanes query the other object's field and each writes its partial sums. No
+   atomics on values: the partials are reduced in a fixed order, so results are bit-for-bit
+   repeatable.
 3. ``reduce_pairs``: per pair energy Σ ReLU(−φ), depth max(−φ), and the pose gradient of both
    objects (4-vectors), from the partials of step 2.
 4. ``reduce_scenes`` / ``reduce_objects``: per scene energy and depths, per object gradient, each a
