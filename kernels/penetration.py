@@ -49,7 +49,7 @@ wp.init()
 __all__ = ["DEFAULT_LANES", "launch_penetration", "launch_support"]
 
 # Threads sharing one (pair, direction), per device type (see the module docstring).
-DEFAULT_LANES = {"cpu": 4, "cuda": 32}
+DEFAULT_LANES = {"cpu": 1, "cuda": 32}
 # Gradients of the normalised field smaller than this are "vanished": fall back to h_min.
 _GRAD_EPS = wp.constant(1.0e-6)
 # Surface points are sorted into BUCKETS^3 cells of the normalised cube (physics.pack_assets), so

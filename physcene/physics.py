@@ -41,8 +41,8 @@ class PhysicsConfig:
     """An object whose bottom is more than this above every support under it is floating."""
     footprint_overlap_cm: float = 0.01
     """Two footprints must overlap by more than this to count as one standing on the other."""
-    lanes_cpu: int = 4
-    """Narrowphase threads per (pair, direction) on the CPU."""
+    lanes_cpu: int = 1
+    """Narrowphase threads per (pair, direction) on the CPU (run one after another: 1 is fastest)."""
     lanes_cuda: int = 32
     """Narrowphase threads per (pair, direction) on CUDA (more lanes fill the GPU)."""
     narrowphase: str = "worklist"
