@@ -18,9 +18,9 @@ Here, with the same maths and the same per-point code:
    the other object's box form at most 16 contiguous runs (the (kx, ky) columns, kz range
    contiguous in the bucket-sorted points); the lanes stride over their concatenation, so every
    lane has a point on every iteration but the last. Partial sums go to ``item * lanes + lane``.
-   The item count stays on the device: on CUDA the launch covers min(2T, a few resident waves)
-   x lanes threads that loop over the items (grid-stride), so no host synchronisation; on the
-   CPU (synchronous anyway) the count is read and exactly count x lanes threads run.
+   The item count stays on the device (no host synchronisation): on CUDA the launch covers
+   min(2T, a few resident waves) x lanes threads that loop over the items (grid-stride); on the
+   CPU, whose threads run one after another, one group of lanes threads loops over all items.
 3. ``reduce_pairs`` (``compact=1``) then sums each pair's 2 x lanes partials in a fixed order,
    and the scene / object reductions are the buckets path's.
 """

@@ -719,11 +719,13 @@ def launch_penetration(
         w_pair_item, w_items = _ct(pair_item), _ct(items)
         launch(broadphase_items, n_pairs, [w_pair_start, w_count, n_slot, w_poses, w_sizes, float(margin),
                                            w_pair_a, w_pair_b, w_hit, w_pair_item, w_n_item, w_items])
-        if device.type == "cuda":  # the count stays on the device: grid-stride over an upper bound
+        # the count stays on the device: each group of lanes threads loops over items (grid-stride);
+        # the partials are sized for the upper bound 2T (only the first count are written)
+        n_part = 2 * n_pairs * lanes
+        if device.type == "cuda":  # a few waves of resident threads
             n_thread = min(2 * n_pairs, max(1, _WORKLIST_WAVES * _resident_threads(device) // lanes)) * lanes
-            n_part = 2 * n_pairs * lanes
-        else:  # the CPU is synchronous: reading the count costs nothing, launch exactly the work
-            n_thread = n_part = int(n_item.item()) * lanes
+        else:  # the CPU runs threads one after another: one group of lanes does every item
+            n_thread = lanes
     else:
         launch(broadphase, n_pairs, [w_pair_start, w_count, n_slot, w_poses, w_sizes, float(margin),
                                      w_pair_a, w_pair_b, w_hit])
@@ -741,9 +743,8 @@ def launch_penetration(
     w_fields = [w_poses, w_sizes, w_asset, _ct(assets["sdf"]), _ct(assets["rays"]), _ct(assets["sdf_start"]),
                 _ct(assets["sdf_res"]), w_points, _ct(assets["pt_bucket"]), int(with_grad)]
     if worklist:
-        if n_thread > 0:
-            launch(narrowphase_items, n_thread, [w_items, w_n_item, n_thread, lanes, w_pair_a, w_pair_b,
-                                                 *w_fields, *w_part])
+        launch(narrowphase_items, n_thread, [w_items, w_n_item, n_thread, lanes, w_pair_a, w_pair_b,
+                                             *w_fields, *w_part])
     else:
         launch(narrowphase_buckets, n_thread, [w_pair_a, w_pair_b, w_hit, *w_fields, lanes, *w_part])
     w_pair_energy, w_pair_depth = _ct(out["pair_energy"]), _ct(out["pair_depth"])
