@@ -37,6 +37,8 @@ float64 torch oracle is physcene/physics_reference.py and must stay the same mat
 
 from __future__ import annotations
 
+from collections import OrderedDict
+
 import torch
 import warp as wp
 
@@ -655,6 +657,7 @@ def launch_penetration(
     with_grad: bool,
     lanes: int | None = None,
     narrowphase: str = "worklist",
+    graph: bool = False,
 ) -> dict[str, torch.Tensor]:
     """Run broadphase → narrowphase → reductions on torch tensors (zero-copy, torch's stream).
 
@@ -668,8 +671,12 @@ def launch_penetration(
     ``lanes``: threads per (pair, direction), default ``DEFAULT_LANES`` of the device type.
     ``narrowphase``: ``"worklist"`` (kernels/narrowphase.py: threads only for pairs that pass the
     broadphase) or ``"buckets"`` (every pair's threads launched); same results up to float
-    summation order. No host synchronisation on CUDA: every launch size is known from the
-    arguments (the work list's length stays on the device).
+    summation order. No host synchronisation: every launch size is known from the arguments (the
+    work list's length stays on the device).
+    ``graph``: capture the launches of a batch layout (the same arrays, sizes and settings) the
+    second time it is run (a CUDA graph; a Warp CPU graph on the CPU) and replay them from the
+    third: the poses are copied into the graph's own buffer and the outputs cloned out of it,
+    so callers get fresh tensors as without.
     """
     device = poses.device
     lanes = DEFAULT_LANES[device.type] if lanes is None else int(lanes)
@@ -677,85 +684,185 @@ def launch_penetration(
         raise ValueError(f"lanes must be >= 1, got {lanes}")
     if narrowphase not in NARROWPHASES:
         raise ValueError(f"narrowphase {narrowphase!r}: expected one of {', '.join(NARROWPHASES)}")
-    worklist = narrowphase == "worklist"
-    launch = _Launcher(device)
-    n_scene, n_slot = poses.shape[0], poses.shape[1]
-    n_obj = n_scene * n_slot
+    launcher = _Launcher(device)
+    args = dict(pair_start=pair_start, count=count, n_pairs=n_pairs, sizes=sizes, obj_asset=obj_asset,
+                assets=assets, margin=float(margin), tolerance=float(tolerance), with_grad=bool(with_grad),
+                lanes=lanes, worklist=narrowphase == "worklist")
+    if not graph or n_pairs == 0:
+        return _penetration(launcher, _ct, poses=poses, buffers=_allocate(poses, **args), **args)
+    key = _Plan.key(launcher, poses, args)
+    plan = _PLANS.get(key)
+    if plan is not None:
+        _PLANS.move_to_end(key)
+        return plan.replay(poses, launcher)
+    # run directly (this also loads the kernels); capture only a layout seen before, so a stream of
+    # new batches (the reward's) never pays for captures it would not replay
+    out = _penetration(launcher, _ct, poses=poses, buffers=_allocate(poses, **args), **args)
+    if _SEEN.pop(key, None) is None:
+        _SEEN[key] = True
+        if len(_SEEN) > 64:
+            _SEEN.pop(next(iter(_SEEN)))
+    else:
+        if len(_PLANS) >= _MAX_PLANS:
+            _PLANS.pop(next(iter(_PLANS)))  # the least recently used
+        _PLANS[key] = _Plan(launcher, poses, args)
+    return out
+
+
+def _partials(n_pairs: int, lanes: int) -> int:
+    """Partial-sum slots of the narrowphase: 2 directions x lanes per pair (work list: upper bound)."""
+    return 2 * n_pairs * lanes
+
+
+def _allocate(poses: torch.Tensor, *, n_pairs: int, with_grad: bool, lanes: int, worklist: bool,
+              **_) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """(floats, ints, part): one allocation per kind for every output and scratch array of a call."""
+    device = poses.device
+    n_scene, n_obj = poses.shape[0], poses.shape[0] * poses.shape[1]
     # one allocation for the float outputs, one for the int ones: views are cheap, allocations not
     floats = torch.empty(3 * n_scene + 2 * n_pairs + 3 * n_obj + (4 * n_obj if with_grad else 0),
                          dtype=torch.float32, device=device)
     # pair_a, pair_b, pair_hit, then (work list) pair_item, items (2T), the item counter
     ints = torch.empty(3 * n_pairs + (3 * n_pairs + 1 if worklist else 1), dtype=torch.int32, device=device)
+    n_part = _partials(n_pairs, lanes)
+    # the gradient partials are never touched without with_grad: 8 spare floats stand in for them
+    part = torch.empty((7 * n_part + 8 * n_pairs if with_grad else 2 * n_part + 8) if n_pairs else 0,
+                       dtype=torch.float32, device=device)
+    return floats, ints, part
+
+
+def _outputs(floats: torch.Tensor, ints: torch.Tensor, n_scene: int, n_slot: int, n_pairs: int,
+             with_grad: bool) -> dict[str, torch.Tensor]:
+    """The named output views of one call's float and int buffers."""
+    n_obj = n_scene * n_slot
     sizes_f = [n_scene, n_scene, n_scene, n_pairs, n_pairs, n_obj, n_obj, n_obj]
-    views = list(torch.split(floats, sizes_f + ([4 * n_obj] if with_grad else [])))
+    views = torch.split(floats, sizes_f + ([4 * n_obj] if with_grad else []))
     out = dict(zip(("energy", "max_depth", "depth_sum", "pair_energy", "pair_depth"), views[:5]))
     for key, view in zip(("table_depth", "table_energy", "table_below"), views[5:8]):
         out[key] = view.view(n_scene, n_slot)
-    out["pair_a"], out["pair_b"], out["pair_hit"] = torch.split(ints[:3 * n_pairs], [n_pairs] * 3)
-    n_item = ints[-1:]
-    w_poses = _ct(poses.reshape(n_obj, 4), wp.vec4)
-    w_sizes = _ct(sizes.reshape(n_obj, 3), wp.vec3)
-    w_asset = _ct(obj_asset.reshape(n_obj))
-    w_pair_start, w_count = _ct(pair_start), _ct(count)
-    w_points = _ct(assets["points"], wp.vec3)
-    w_pt_start, w_pt_count = _ct(assets["pt_start"]), _ct(assets["pt_count"])
-    w_n_item = _ct(n_item)
-    launch(table_contact, n_obj, [w_count, n_slot, w_poses, w_sizes, w_asset, w_points, w_pt_start,
-                                  w_pt_count, _ct(assets["pt_zmin"]), w_n_item,
-                                  _ct(views[5]), _ct(views[6]), _ct(views[7])])
     if with_grad:
         out["grad"] = views[8].view(n_scene, n_slot, 4)
+    out["pair_a"], out["pair_b"], out["pair_hit"] = torch.split(ints[:3 * n_pairs], [n_pairs] * 3)
+    return out
+
+
+def _penetration(launch, view, *, pair_start, count, n_pairs, poses, sizes, obj_asset, assets, margin,
+                 tolerance, with_grad, lanes, worklist, buffers) -> dict[str, torch.Tensor]:
+    """Issue every launch of one call through ``launch(kernel, dim, inputs)`` with array arguments
+    made by ``view(tensor, dtype=None)``, writing into ``buffers`` (see :func:`_allocate`)."""
+    device = poses.device
+    floats, ints, part = buffers
+    n_scene, n_slot = poses.shape[0], poses.shape[1]
+    n_obj = n_scene * n_slot
+    out = _outputs(floats, ints, n_scene, n_slot, n_pairs, with_grad)
+    n_item = ints[-1:]
+    w_poses = view(poses.reshape(n_obj, 4), wp.vec4)
+    w_sizes = view(sizes.reshape(n_obj, 3), wp.vec3)
+    w_asset = view(obj_asset.reshape(n_obj))
+    w_pair_start, w_count = view(pair_start), view(count)
+    w_points = view(assets["points"], wp.vec3)
+    w_n_item = view(n_item)
+    launch(table_contact, n_obj, [w_count, n_slot, w_poses, w_sizes, w_asset, w_points,
+                                  view(assets["pt_start"]), view(assets["pt_count"]), view(assets["pt_zmin"]),
+                                  w_n_item,
+                                  view(out["table_depth"].view(-1)), view(out["table_energy"].view(-1)),
+                                  view(out["table_below"].view(-1))])
     if n_pairs == 0:
         floats[:3 * n_scene].zero_()
         if with_grad:
             out["grad"].zero_()
         return out
-    w_pair_a, w_pair_b, w_hit = _ct(out["pair_a"]), _ct(out["pair_b"]), _ct(out["pair_hit"])
+    w_pair_a, w_pair_b, w_hit = view(out["pair_a"]), view(out["pair_b"]), view(out["pair_hit"])
     w_pair_item = w_hit
+    n_part = _partials(n_pairs, lanes)
     if worklist:
         from physcene.kernels.narrowphase import broadphase_items, narrowphase_items
 
         pair_item, items = ints[3 * n_pairs:4 * n_pairs], ints[4 * n_pairs:6 * n_pairs]
-        w_pair_item, w_items = _ct(pair_item), _ct(items)
-        launch(broadphase_items, n_pairs, [w_pair_start, w_count, n_slot, w_poses, w_sizes, float(margin),
+        w_pair_item, w_items = view(pair_item), view(items)
+        launch(broadphase_items, n_pairs, [w_pair_start, w_count, n_slot, w_poses, w_sizes, margin,
                                            w_pair_a, w_pair_b, w_hit, w_pair_item, w_n_item, w_items])
-        # the count stays on the device: each group of lanes threads loops over items (grid-stride);
-        # the partials are sized for the upper bound 2T (only the first count are written)
-        n_part = 2 * n_pairs * lanes
+        # the count stays on the device: each group of lanes threads loops over items (grid-stride)
         if device.type == "cuda":  # a few waves of resident threads
             n_thread = min(2 * n_pairs, max(1, _WORKLIST_WAVES * _resident_threads(device) // lanes)) * lanes
         else:  # the CPU runs threads one after another: one group of lanes does every item
             n_thread = lanes
     else:
-        launch(broadphase, n_pairs, [w_pair_start, w_count, n_slot, w_poses, w_sizes, float(margin),
+        launch(broadphase, n_pairs, [w_pair_start, w_count, n_slot, w_poses, w_sizes, margin,
                                      w_pair_a, w_pair_b, w_hit])
-        n_thread = n_part = n_pairs * 2 * lanes
+        n_thread = n_part
     if with_grad:
-        part = torch.empty(7 * n_part + 8 * n_pairs, dtype=torch.float32, device=device)
         pe, pd, pg, py, pair_grad = torch.split(part, [n_part, n_part, 3 * n_part, 2 * n_part, 8 * n_pairs])
         pg, py, pair_grad = pg.view(n_part, 3), py.view(n_part, 2), pair_grad.view(n_pairs, 2, 4)
     else:  # the gradient buffers are never touched: one-element stand-ins
-        part = torch.empty(2 * n_part + 8, dtype=torch.float32, device=device)
         pe, pd, spare = torch.split(part, [n_part, n_part, 8])
         pg, py, pair_grad = spare[:3].view(1, 3), spare[3:5].view(1, 2), spare.view(1, 2, 4)
-    w_part = [_ct(pe), _ct(pd), _ct(pg, wp.vec3), _ct(py, wp.vec2)]
-    w_pair_grad = _ct(pair_grad, wp.vec4)
-    w_fields = [w_poses, w_sizes, w_asset, _ct(assets["sdf"]), _ct(assets["rays"]), _ct(assets["sdf_start"]),
-                _ct(assets["sdf_res"]), w_points, _ct(assets["pt_bucket"]), int(with_grad)]
+    w_part = [view(pe), view(pd), view(pg, wp.vec3), view(py, wp.vec2)]
+    w_pair_grad = view(pair_grad, wp.vec4)
+    w_fields = [w_poses, w_sizes, w_asset, view(assets["sdf"]), view(assets["rays"]),
+                view(assets["sdf_start"]), view(assets["sdf_res"]), w_points, view(assets["pt_bucket"]),
+                int(with_grad)]
     if worklist:
         launch(narrowphase_items, n_thread, [w_items, w_n_item, n_thread, lanes, w_pair_a, w_pair_b,
                                              *w_fields, *w_part])
     else:
         launch(narrowphase_buckets, n_thread, [w_pair_a, w_pair_b, w_hit, *w_fields, lanes, *w_part])
-    w_pair_energy, w_pair_depth = _ct(out["pair_energy"]), _ct(out["pair_depth"])
+    w_pair_energy, w_pair_depth = view(out["pair_energy"]), view(out["pair_depth"])
     launch(reduce_pairs, n_pairs, [w_pair_a, w_pair_b, w_hit, w_poses, *w_part, w_pair_item, int(worklist),
                                    int(with_grad), lanes, w_pair_energy, w_pair_depth, w_pair_grad])
-    launch(reduce_scenes, n_scene, [w_pair_start, w_pair_energy, w_pair_depth, float(tolerance),
-                                    _ct(out["energy"]), _ct(out["max_depth"]), _ct(out["depth_sum"])])
+    launch(reduce_scenes, n_scene, [w_pair_start, w_pair_energy, w_pair_depth, tolerance,
+                                    view(out["energy"]), view(out["max_depth"]), view(out["depth_sum"])])
     if with_grad:
         launch(reduce_objects, n_obj, [w_pair_start, w_count, n_slot, w_pair_grad,
-                                       _ct(views[8].view(n_obj, 4), wp.vec4)])
+                                       view(out["grad"].view(n_obj, 4), wp.vec4)])
     return out
+
+
+def _warp_array(t: torch.Tensor, dtype=None):
+    """A zero-copy ``wp.array`` view (graph capture records arrays, not raw ctype views)."""
+    return wp.from_torch(t, dtype=dtype, requires_grad=False)
+
+
+# Captured launch sequences, least recently used first; each holds its scratch memory.
+_PLANS: OrderedDict = OrderedDict()
+_MAX_PLANS = 4
+# Layouts run once without a capture (the second run captures), oldest first.
+_SEEN: OrderedDict = OrderedDict()
+
+
+class _Plan:
+    """One batch layout's launches captured as a graph, with the buffers it reads and writes."""
+
+    def __init__(self, launcher: _Launcher, poses: torch.Tensor, args: dict):
+        self.args = args
+        self.poses = poses.clone()  # the graph's own input: callers' poses are copied in
+        self.buffers = _allocate(self.poses, **args)
+        self.shape = (poses.shape[0], poses.shape[1])
+
+        def launch(kernel, dim, inputs):
+            if dim > 0:
+                wp.launch(kernel, dim=dim, inputs=inputs, device=launcher.device, stream=launcher.stream)
+
+        with wp.ScopedCapture(device=launcher.device, stream=launcher.stream) as capture:
+            _penetration(launch, _warp_array, poses=self.poses, buffers=self.buffers, **args)
+        self.graph = capture.graph
+
+    @staticmethod
+    def key(launcher: _Launcher, poses: torch.Tensor, args: dict) -> tuple:
+        """Everything the captured launches depend on: array addresses and shapes, scalars."""
+        arrays = [args[k] for k in ("pair_start", "count", "sizes", "obj_asset")]
+        arrays += args["assets"].values()
+        return (launcher.device.alias, id(launcher.stream), tuple(poses.shape), poses.dtype,
+                tuple((t.data_ptr(), t.numel()) for t in arrays),
+                *(args[k] for k in ("n_pairs", "margin", "tolerance", "with_grad", "lanes", "worklist")))
+
+    def replay(self, poses: torch.Tensor, launcher: _Launcher) -> dict[str, torch.Tensor]:
+        self.poses.copy_(poses)
+        wp.capture_launch(self.graph, stream=launcher.stream)
+        floats, ints, _ = self.buffers
+        n_pairs = self.args["n_pairs"]
+        return _outputs(floats.clone(), ints[:3 * n_pairs].clone(), *self.shape, n_pairs,
+                        self.args["with_grad"])
 
 
 def launch_support(*, count: torch.Tensor, poses: torch.Tensor, sizes: torch.Tensor,

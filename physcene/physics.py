@@ -50,6 +50,11 @@ class PhysicsConfig:
     (kernels/narrowphase.py); ``buckets``: threads for every pair, most exiting at once. Same
     results up to float summation order (docs/physics.md)."""
 
+    graph: bool = False
+    """Capture the kernel launches once per batch layout (CUDA graph; Warp CPU graph on the CPU)
+    and replay them when the same batch is scored again (TTO steps, benchmarks): host launch
+    cost off the critical path, at one capture per new layout. Same results."""
+
     def __post_init__(self):
         if self.narrowphase not in NARROWPHASES:
             raise ConfigError(f"configs/physics.yaml: narrowphase={self.narrowphase!r}: expected one of "
@@ -311,7 +316,7 @@ class PhysicsEngine:
             pair_start=batch.pair_start, count=batch.count, n_pairs=batch.n_pairs,
             poses=self._poses(batch, poses), sizes=batch.sizes, obj_asset=batch.asset_index,
             assets=self.packed_assets(), margin=self.config.margin_cm, tolerance=tolerance,
-            with_grad=with_grad, narrowphase=self.config.narrowphase,
+            with_grad=with_grad, narrowphase=self.config.narrowphase, graph=self.config.graph,
             lanes=self.config.lanes_cuda if self.device.type == "cuda" else self.config.lanes_cpu)
 
     def support_gap(self, batch: SceneBatch, poses: torch.Tensor | None = None) -> torch.Tensor:

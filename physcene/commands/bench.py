@@ -119,6 +119,8 @@ def _reward_arguments(parser) -> None:
                              "(default: configs/physics.yaml's; key=value overrides apply to the engine)")
     parser.add_argument("--lanes", type=int, nargs="+", default=None,
                         help="narrowphase threads per (pair, direction) to time (default: the config's)")
+    parser.add_argument("--graph", nargs="+", choices=("off", "on"), default=None,
+                        help="time without and/or with the captured launch graph (default: the config's)")
 
 
 def bench_reward(args) -> dict:
@@ -133,7 +135,7 @@ def bench_reward(args) -> dict:
     library = AssetLibrary(resolution=args.resolution, n_points=args.points)
     library.add_primitives()
     config = PhysicsConfig.load(getattr(args, "overrides", []))
-    variants = _variants(config, device, args.narrowphase, args.lanes)
+    variants = _variants(config, device, args.narrowphase, args.lanes, args.graph)
     engine = PhysicsEngine(library, device, variants[0][1])
     scenes = bench_scenes(args.scenes, args.objects)
     batch = engine.pack(scenes)
@@ -162,15 +164,16 @@ def bench_reward(args) -> dict:
     result["variants"] = {}
     for name, variant in variants:  # the first is the engine's config, used for the reward below
         engine.config = variant
-        check = engine.evaluate(batch, with_grad=True)
-        result["variants"][name] = {
-            "narrowphase": variant.narrowphase,
+        row = result["variants"][name] = {
+            "narrowphase": variant.narrowphase, "graph": variant.graph,
             "lanes": variant.lanes_cuda if device.type == "cuda" else variant.lanes_cpu,
             "warp_forward": figures(timed(lambda: engine.evaluate(batch), device, repeat)),
-            "warp_grad": figures(timed(lambda: engine.evaluate(batch, with_grad=True), device, repeat)),
-            # against the first variant: the same maths up to float summation order
-            "max_rel_diff": {key: _rel_diff(check[key], base[key])
-                             for key in ("energy", "pair_depth", "grad")}}
+            "warp_grad": figures(timed(lambda: engine.evaluate(batch, with_grad=True), device, repeat))}
+        # after the timings (a graph variant replays by now), against the first variant: the same
+        # maths up to float summation order
+        check = engine.evaluate(batch, with_grad=True)
+        row["max_rel_diff"] = {key: _rel_diff(check[key], base[key])
+                               for key in ("energy", "pair_depth", "grad")}
     engine.config = variants[0][1]
     result["warp_forward"] = result["variants"][variants[0][0]]["warp_forward"]
     result["warp_grad"] = result["variants"][variants[0][0]]["warp_grad"]
@@ -202,8 +205,8 @@ def _rel_diff(a: torch.Tensor, b: torch.Tensor) -> float:
     return float((a - b).abs().max() / b.abs().max().clamp_min(1e-12)) if b.numel() else 0.0
 
 
-def _variants(config, device: torch.device, narrowphases, lanes) -> list:
-    """[(name, PhysicsConfig)] for every narrowphase x lanes asked (the config's when not asked)."""
+def _variants(config, device: torch.device, narrowphases, lanes, graphs=None) -> list:
+    """[(name, PhysicsConfig)] for every narrowphase x lanes x graph asked (the config's when not)."""
     from dataclasses import replace
 
     from physcene.kernels.penetration import NARROWPHASES
@@ -218,7 +221,9 @@ def _variants(config, device: torch.device, narrowphases, lanes) -> list:
     out = []
     for name in narrowphases or [config.narrowphase]:
         for n in lanes or [getattr(config, key)]:
-            out.append((f"{name}/lanes={n}", replace(config, narrowphase=name, **{key: n})))
+            for graph in graphs or ["on" if config.graph else "off"]:
+                label = f"{name}/lanes={n}" + ("/graph" if graph == "on" else "")
+                out.append((label, replace(config, narrowphase=name, graph=graph == "on", **{key: n})))
     return out
 
 
