@@ -828,6 +828,15 @@ _PLANS: OrderedDict = OrderedDict()
 _MAX_PLANS = 4
 # Layouts run once without a capture (the second run captures), oldest first.
 _SEEN: OrderedDict = OrderedDict()
+_CAPTURE_STREAMS: dict = {}
+
+
+def _capture_stream(device) -> wp.Stream:
+    """A non-default CUDA stream of ``device`` to capture graphs on, one per device."""
+    stream = _CAPTURE_STREAMS.get(device.alias)
+    if stream is None:
+        stream = _CAPTURE_STREAMS[device.alias] = wp.Stream(device)
+    return stream
 
 
 class _Plan:
@@ -839,11 +848,15 @@ class _Plan:
         self.buffers = _allocate(self.poses, **args)
         self.shape = (poses.shape[0], poses.shape[1])
 
+        # CUDA cannot capture on the legacy default stream (torch's usual current stream): capture on
+        # a private stream; the graph is then launched on the caller's stream
+        stream = _capture_stream(launcher.device) if launcher.device.is_cuda else None
+
         def launch(kernel, dim, inputs):
             if dim > 0:
-                wp.launch(kernel, dim=dim, inputs=inputs, device=launcher.device, stream=launcher.stream)
+                wp.launch(kernel, dim=dim, inputs=inputs, device=launcher.device, stream=stream)
 
-        with wp.ScopedCapture(device=launcher.device, stream=launcher.stream) as capture:
+        with wp.ScopedCapture(device=launcher.device, stream=stream) as capture:
             _penetration(launch, _warp_array, poses=self.poses, buffers=self.buffers, **args)
         self.graph = capture.graph
 
