@@ -2,6 +2,7 @@
 
     python benchmarks/profile_engine.py --device cuda --scenes 512 --objects 16
     python benchmarks/profile_engine.py --narrowphase buckets worklist --lanes 8 16 32 64
+    python benchmarks/profile_engine.py --narrowphase worklist --lanes 32 --graph off on
 
 Runs ``PhysicsEngine.evaluate`` (forward, and forward + gradient) on the bench scenes of
 ``physcene bench reward`` under ``torch.profiler`` and prints, per Warp kernel, the summed device
@@ -15,6 +16,7 @@ import argparse
 import json
 import time
 from dataclasses import replace
+from itertools import product
 
 import torch
 from torch.profiler import ProfilerActivity, profile
@@ -58,20 +60,23 @@ def main() -> None:
                         help="narrowphase threads per (pair, direction) to compare")
     parser.add_argument("--narrowphase", nargs="+", default=["buckets", "worklist"],
                         help="narrowphase variants to compare (configs/physics.yaml: narrowphase)")
+    parser.add_argument("--graph", nargs="+", choices=("off", "on"), default=["off"],
+                        help="without and/or with the captured launch graph (configs/physics.yaml: graph)")
     args = parser.parse_args()
     library = AssetLibrary(n_points=args.points)
     library.add_primitives()
     engine = PhysicsEngine(library, args.device)
     batch = engine.pack(bench_scenes(args.scenes, args.objects))
     report = {}
-    for narrowphase, lanes in ((n, k) for n in args.narrowphase for k in args.lanes):
-        engine.config = replace(engine.config, lanes_cuda=lanes, lanes_cpu=lanes, narrowphase=narrowphase)
+    for narrowphase, lanes, graph in product(args.narrowphase, args.lanes, args.graph):
+        engine.config = replace(engine.config, lanes_cuda=lanes, lanes_cpu=lanes, narrowphase=narrowphase,
+                                graph=graph == "on")
         for name, grad in (("forward", False), ("forward+grad", True)):
             fn = lambda grad=grad: engine.evaluate(batch, with_grad=grad)  # noqa: E731
             for _ in range(3):
                 fn()
             kernels = kernel_times(fn, args.repeat)
-            report[f"{narrowphase} lanes={lanes} {name}"] = {
+            report[f"{narrowphase} lanes={lanes}{' graph' if graph == 'on' else ''} {name}"] = {
                 "wall_ms": wall_ms(fn, args.repeat), "kernel_ms_total": sum(kernels.values()),
                 "kernels_ms": dict(sorted(kernels.items(), key=lambda kv: -kv[1]))}
     print(json.dumps(report, indent=1))
