@@ -2,7 +2,10 @@
 
     python benchmarks/ab_narrowphase.py --device cpu --scenes 256 --objects 12 --points 256 \
         --variants buckets/16 buckets/1 worklist/1 worklist/4 --rounds 12
-    python benchmarks/ab_narrowphase.py --device cuda --variants buckets/32 worklist/16 worklist/32
+    python benchmarks/ab_narrowphase.py --device cuda --scenes 512 --objects 16 --points 1024 \
+        --variants buckets/32 worklist/16 worklist/32 worklist/32/graph --rounds 20
+    python benchmarks/ab_narrowphase.py --scenes 1 --objects 3 --points 64 \
+        --variants worklist/1 worklist/1/graph
 
 ``physcene bench reward --narrowphase ... --lanes ...`` times each variant in one block of calls;
 here every round calls each variant once (forward, then forward + gradient), so load that
@@ -33,7 +36,7 @@ def main() -> None:
     parser.add_argument("--points", type=int, default=256)
     parser.add_argument("--rounds", type=int, default=12)
     parser.add_argument("--variants", nargs="+", default=["buckets/16", "worklist/1"],
-                        help="NARROWPHASE/LANES, e.g. worklist/32")
+                        help="NARROWPHASE/LANES[/graph], e.g. worklist/32 worklist/32/graph")
     args = parser.parse_args()
     device = torch.device(args.device)
     library = AssetLibrary(n_points=args.points)
@@ -44,18 +47,21 @@ def main() -> None:
     base = PhysicsConfig.load()
     variants = {}
     for v in args.variants:
-        name, _, lanes = v.partition("/")
-        variants[v] = replace(base, narrowphase=name, **{key: int(lanes or getattr(base, key))})
+        name, lanes, *graph = v.split("/")
+        if graph not in ([], ["graph"]):
+            raise SystemExit(f"variant {v!r}: expected NARROWPHASE/LANES or NARROWPHASE/LANES/graph")
+        variants[v] = replace(base, narrowphase=name, graph=bool(graph), **{key: int(lanes)})
 
     def sync():
         if device.type == "cuda":
             torch.cuda.synchronize(device)
 
     times = {(v, g): ([], []) for v in variants for g in (False, True)}
-    for config in variants.values():  # JIT and warm-up
+    for config in variants.values():  # JIT and warm-up (a graph variant captures on its second call)
         engine.config = config
-        for _ in range(2):
-            engine.evaluate(batch, with_grad=True)
+        for _ in range(3):
+            for grad in (False, True):
+                engine.evaluate(batch, with_grad=grad)
     for _ in range(args.rounds):
         for v, config in variants.items():
             engine.config = config
