@@ -37,6 +37,7 @@ float64 torch oracle is physcene/physics_reference.py and must stay the same mat
 
 from __future__ import annotations
 
+import threading
 from collections import OrderedDict
 
 import torch
@@ -606,7 +607,7 @@ class _Launcher:
     def __call__(self, kernel, dim: int, inputs: list) -> None:
         if dim <= 0:
             return
-        key = (kernel, self.device.alias)
+        key = (kernel, self.device.alias, threading.get_ident())  # a Launch is set, then launched
         hit = self._recorded.get(key)
         if hit is None:
             cmd = wp.launch(kernel, dim=dim, inputs=inputs, device=self.device, record_cmd=True)
@@ -865,8 +866,9 @@ class _Plan:
         """Everything the captured launches depend on: array addresses and shapes, scalars."""
         arrays = [args[k] for k in ("pair_start", "count", "sizes", "obj_asset")]
         arrays += args["assets"].values()
-        return (launcher.device.alias, id(launcher.stream), tuple(poses.shape), poses.dtype,
-                tuple((t.data_ptr(), t.numel()) for t in arrays),
+        # per thread: a replay writes the plan's buffers, so two threads must not share one
+        return (launcher.device.alias, id(launcher.stream), threading.get_ident(), tuple(poses.shape),
+                poses.dtype, tuple((t.data_ptr(), t.numel()) for t in arrays),
                 *(args[k] for k in ("n_pairs", "margin", "tolerance", "with_grad", "lanes", "worklist")))
 
     def replay(self, poses: torch.Tensor, launcher: _Launcher) -> dict[str, torch.Tensor]:
