@@ -876,8 +876,14 @@ class _Plan:
         wp.capture_launch(self.graph, stream=launcher.stream)
         floats, ints, _ = self.buffers
         n_pairs = self.args["n_pairs"]
-        return _outputs(floats.clone(), ints[:3 * n_pairs].clone(), *self.shape, n_pairs,
+        return _outputs(_fresh(floats), _fresh(ints[:3 * n_pairs]), *self.shape, n_pairs,
                         self.args["with_grad"])
+
+
+def _fresh(t: torch.Tensor) -> torch.Tensor:
+    """A copy of t. On the CPU through numpy: torch's parallel copy leaves its OpenMP threads
+    spinning after it, which on a small machine slows the single-threaded Warp kernels after it."""
+    return torch.from_numpy(t.numpy().copy()) if t.device.type == "cpu" else t.clone()
 
 
 def launch_support(*, count: torch.Tensor, poses: torch.Tensor, sizes: torch.Tensor,
