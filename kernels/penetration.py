@@ -5,8 +5,8 @@ for i < count[s]), and the assets packed into flat arrays (one 1-D float array o
 per-asset start + resolution, one array of surface points with per-asset start + count).
 
 Pairs are enumerated per scene as CSR: scene s owns pair indices [pair_start[s], pair_start[s+1])
-= its count*(count-1)/2 pairs (i < j) in row-major order. Stages (one launch each, no host sync
-on CUDA):
+= its count*(count-1)/2 pairs (i < j) in row-major order. Stages (one launch each, no host sync,
+so the whole sequence can be captured as a graph: ``launch_penetration(graph=True)``):
 
 0. ``table_contact``: per object, the surface points below the table top z = 0.
 1. ``broadphase``: per pair, decode (i, j), test the slightly inflated yawed boxes (z interval +
