@@ -604,13 +604,15 @@ class _Launcher:
             if self.stream is None:
                 self.stream = self._streams[key] = wp.stream_from_torch(device)
 
-    def __call__(self, kernel, dim: int, inputs: list) -> None:
+    def __call__(self, kernel, dim: int, inputs: list, block_dim: int | None = None) -> None:
         if dim <= 0:
             return
-        key = (kernel, self.device.alias, threading.get_ident())  # a Launch is set, then launched
+        # per thread: a recorded Launch is set, then launched
+        key = (kernel, self.device.alias, threading.get_ident(), block_dim)
         hit = self._recorded.get(key)
         if hit is None:
-            cmd = wp.launch(kernel, dim=dim, inputs=inputs, device=self.device, record_cmd=True)
+            cmd = wp.launch(kernel, dim=dim, inputs=inputs, device=self.device, record_cmd=True,
+                            block_dim=block_dim)
             self._recorded[key] = (cmd, [dim], list(inputs))
         else:
             cmd, last_dim, last = hit
@@ -659,6 +661,7 @@ def launch_penetration(
     lanes: int | None = None,
     narrowphase: str = "worklist",
     graph: bool = False,
+    block_dim: int | None = None,
 ) -> dict[str, torch.Tensor]:
     """Run broadphase → narrowphase → reductions on torch tensors (zero-copy, torch's stream).
 
@@ -678,6 +681,8 @@ def launch_penetration(
     second time it is run (a CUDA graph; a Warp CPU graph on the CPU) and replay them from the
     third: the poses are copied into the graph's own buffer and the outputs cloned out of it,
     so callers get fresh tensors as without.
+    ``block_dim``: CUDA threads per block of the narrowphase launch (None: Warp's 256); ignored on
+    the CPU.
     """
     device = poses.device
     lanes = DEFAULT_LANES[device.type] if lanes is None else int(lanes)
@@ -685,10 +690,15 @@ def launch_penetration(
         raise ValueError(f"lanes must be >= 1, got {lanes}")
     if narrowphase not in NARROWPHASES:
         raise ValueError(f"narrowphase {narrowphase!r}: expected one of {', '.join(NARROWPHASES)}")
+    if device.type != "cuda":
+        block_dim = None
+    elif block_dim is not None and not 1 <= int(block_dim) <= 1024:
+        raise ValueError(f"block_dim must be in 1..1024, got {block_dim}")
     launcher = _Launcher(device)
     args = dict(pair_start=pair_start, count=count, n_pairs=n_pairs, sizes=sizes, obj_asset=obj_asset,
                 assets=assets, margin=float(margin), tolerance=float(tolerance), with_grad=bool(with_grad),
-                lanes=lanes, worklist=narrowphase == "worklist")
+                lanes=lanes, worklist=narrowphase == "worklist",
+                block_dim=None if block_dim is None else int(block_dim))
     if not graph or n_pairs == 0:
         return _penetration(launcher, _ct, poses=poses, buffers=_allocate(poses, **args), **args)
     key = _Plan.key(launcher, poses, args)
@@ -748,7 +758,7 @@ def _outputs(floats: torch.Tensor, ints: torch.Tensor, n_scene: int, n_slot: int
 
 
 def _penetration(launch, view, *, pair_start, count, n_pairs, poses, sizes, obj_asset, assets, margin,
-                 tolerance, with_grad, lanes, worklist, buffers) -> dict[str, torch.Tensor]:
+                 tolerance, with_grad, lanes, worklist, block_dim, buffers) -> dict[str, torch.Tensor]:
     """Issue every launch of one call through ``launch(kernel, dim, inputs)`` with array arguments
     made by ``view(tensor, dtype=None)``, writing into ``buffers`` (see :func:`_allocate`)."""
     device = poses.device
@@ -805,9 +815,10 @@ def _penetration(launch, view, *, pair_start, count, n_pairs, poses, sizes, obj_
                 int(with_grad)]
     if worklist:
         launch(narrowphase_items, n_thread, [w_items, w_n_item, n_thread, lanes, w_pair_a, w_pair_b,
-                                             *w_fields, *w_part])
+                                             *w_fields, *w_part], block_dim)
     else:
-        launch(narrowphase_buckets, n_thread, [w_pair_a, w_pair_b, w_hit, *w_fields, lanes, *w_part])
+        launch(narrowphase_buckets, n_thread, [w_pair_a, w_pair_b, w_hit, *w_fields, lanes, *w_part],
+               block_dim)
     w_pair_energy, w_pair_depth = view(out["pair_energy"]), view(out["pair_depth"])
     launch(reduce_pairs, n_pairs, [w_pair_a, w_pair_b, w_hit, w_poses, *w_part, w_pair_item, int(worklist),
                                    int(with_grad), lanes, w_pair_energy, w_pair_depth, w_pair_grad])
@@ -853,9 +864,10 @@ class _Plan:
         # a private stream; the graph is then launched on the caller's stream
         stream = _capture_stream(launcher.device) if launcher.device.is_cuda else None
 
-        def launch(kernel, dim, inputs):
+        def launch(kernel, dim, inputs, block_dim=None):
             if dim > 0:
-                wp.launch(kernel, dim=dim, inputs=inputs, device=launcher.device, stream=stream)
+                wp.launch(kernel, dim=dim, inputs=inputs, device=launcher.device, stream=stream,
+                          block_dim=block_dim)
 
         with wp.ScopedCapture(device=launcher.device, stream=stream) as capture:
             _penetration(launch, _warp_array, poses=self.poses, buffers=self.buffers, **args)
@@ -869,7 +881,8 @@ class _Plan:
         # per thread: a replay writes the plan's buffers, so two threads must not share one
         return (launcher.device.alias, id(launcher.stream), threading.get_ident(), tuple(poses.shape),
                 poses.dtype, tuple((t.data_ptr(), t.numel()) for t in arrays),
-                *(args[k] for k in ("n_pairs", "margin", "tolerance", "with_grad", "lanes", "worklist")))
+                *(args[k] for k in ("n_pairs", "margin", "tolerance", "with_grad", "lanes", "worklist",
+                                    "block_dim")))
 
     def replay(self, poses: torch.Tensor, launcher: _Launcher) -> dict[str, torch.Tensor]:
         self.poses.copy_(poses)

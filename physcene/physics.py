@@ -50,12 +50,18 @@ class PhysicsConfig:
     (kernels/narrowphase.py); ``buckets``: threads for every pair, most exiting at once. Same
     results up to float summation order (docs/physics.md)."""
 
+    narrowphase_block_dim: int = 256
+    """CUDA threads per block of the narrowphase launch (worklist: with fewer, a block whose items
+    are done frees its SM slot sooner; a multiple of the lanes keeps an item in one block)."""
     graph: bool = False
     """Capture the kernel launches once per batch layout (CUDA graph; Warp CPU graph on the CPU)
     and replay them when the same batch is scored again (TTO steps, benchmarks): host launch
     cost off the critical path, at one capture per new layout. Same results."""
 
     def __post_init__(self):
+        if not 1 <= self.narrowphase_block_dim <= 1024:
+            raise ConfigError(f"configs/physics.yaml: narrowphase_block_dim={self.narrowphase_block_dim}: "
+                              "expected 1..1024")
         if self.narrowphase not in NARROWPHASES:
             raise ConfigError(f"configs/physics.yaml: narrowphase={self.narrowphase!r}: expected one of "
                               f"{', '.join(NARROWPHASES)}")
@@ -317,6 +323,7 @@ class PhysicsEngine:
             poses=self._poses(batch, poses), sizes=batch.sizes, obj_asset=batch.asset_index,
             assets=self.packed_assets(), margin=self.config.margin_cm, tolerance=tolerance,
             with_grad=with_grad, narrowphase=self.config.narrowphase, graph=self.config.graph,
+            block_dim=self.config.narrowphase_block_dim,
             lanes=self.config.lanes_cuda if self.device.type == "cuda" else self.config.lanes_cpu)
 
     def support_gap(self, batch: SceneBatch, poses: torch.Tensor | None = None) -> torch.Tensor:

@@ -110,17 +110,20 @@ def test_table_contact_skip_is_exact(library):
 def test_narrowphase_config_is_checked():
     with pytest.raises(ConfigError, match="narrowphase='tiles'"):
         PhysicsConfig(narrowphase="tiles")
+    with pytest.raises(ConfigError, match="narrowphase_block_dim=2048"):
+        PhysicsConfig.load(["narrowphase_block_dim=2048"])
     assert PhysicsConfig.load(["narrowphase=buckets"]).narrowphase == "buckets"
     assert replace(PhysicsConfig(), narrowphase="worklist").narrowphase == "worklist"
 
 
 @pytest.mark.cuda
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
-@pytest.mark.parametrize("lanes", [8, 32])
-def test_cuda_worklist_equals_cpu_buckets(library, lanes):
+@pytest.mark.parametrize("lanes,block_dim", [(8, 256), (32, 256), (32, 64), (16, 32)])
+def test_cuda_worklist_equals_cpu_buckets(library, lanes, block_dim):
     scenes = random_scenes(np.random.default_rng(41), 64, max_obj=12)
     cpu = PhysicsEngine(library, "cpu", PhysicsConfig(narrowphase="buckets"))
-    gpu = PhysicsEngine(library, "cuda", PhysicsConfig(narrowphase="worklist", lanes_cuda=lanes))
+    gpu = PhysicsEngine(library, "cuda", PhysicsConfig(narrowphase="worklist", lanes_cuda=lanes,
+                                                       narrowphase_block_dim=block_dim))
     ref = cpu.evaluate(cpu.pack(scenes), with_grad=True)
     batch = gpu.pack(scenes)
     out = gpu.evaluate(batch, with_grad=True)
