@@ -1,6 +1,9 @@
 """Where the time of one engine call goes: GPU kernel time vs host (launch) overhead.
 
     python benchmarks/profile_engine.py --device cuda --scenes 512 --objects 16
+    python benchmarks/profile_engine.py --narrowphase buckets worklist --lanes 8 16 32 64
+    python benchmarks/profile_engine.py --narrowphase worklist --lanes 32 --graph off on
+    python benchmarks/profile_engine.py --narrowphase worklist --lanes 16 32 --block-dim 64 128 256
 
 Runs ``PhysicsEngine.evaluate`` (forward, and forward + gradient) on the bench scenes of
 ``physcene bench reward`` under ``torch.profiler`` and prints, per Warp kernel, the summed device
@@ -14,6 +17,7 @@ import argparse
 import json
 import time
 from dataclasses import replace
+from itertools import product
 
 import torch
 from torch.profiler import ProfilerActivity, profile
@@ -55,20 +59,29 @@ def main() -> None:
     parser.add_argument("--repeat", type=int, default=50)
     parser.add_argument("--lanes", type=int, nargs="+", default=[16, 32, 64, 128],
                         help="narrowphase threads per (pair, direction) to compare")
+    parser.add_argument("--narrowphase", nargs="+", default=["buckets", "worklist"],
+                        help="narrowphase variants to compare (configs/physics.yaml: narrowphase)")
+    parser.add_argument("--block-dim", type=int, nargs="+", default=[256],
+                        help="CUDA threads per narrowphase block (physics.yaml: narrowphase_block_dim)")
+    parser.add_argument("--graph", nargs="+", choices=("off", "on"), default=["off"],
+                        help="without and/or with the captured launch graph (configs/physics.yaml: graph)")
     args = parser.parse_args()
     library = AssetLibrary(n_points=args.points)
     library.add_primitives()
     engine = PhysicsEngine(library, args.device)
     batch = engine.pack(bench_scenes(args.scenes, args.objects))
     report = {}
-    for lanes in args.lanes:
-        engine.config = replace(engine.config, lanes_cuda=lanes, lanes_cpu=lanes)
+    sweep = product(args.narrowphase, args.lanes, args.block_dim, args.graph)
+    for narrowphase, lanes, block_dim, graph in sweep:
+        engine.config = replace(engine.config, lanes_cuda=lanes, lanes_cpu=lanes, narrowphase=narrowphase,
+                                graph=graph == "on", narrowphase_block_dim=block_dim)
         for name, grad in (("forward", False), ("forward+grad", True)):
             fn = lambda grad=grad: engine.evaluate(batch, with_grad=grad)  # noqa: E731
             for _ in range(3):
                 fn()
             kernels = kernel_times(fn, args.repeat)
-            report[f"lanes={lanes} {name}"] = {
+            label = f"{narrowphase} lanes={lanes} block_dim={block_dim}{' graph' if graph == 'on' else ''}"
+            report[f"{label} {name}"] = {
                 "wall_ms": wall_ms(fn, args.repeat), "kernel_ms_total": sum(kernels.values()),
                 "kernels_ms": dict(sorted(kernels.items(), key=lambda kv: -kv[1]))}
     print(json.dumps(report, indent=1))

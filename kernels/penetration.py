@@ -5,16 +5,24 @@ for i < count[s]), and the assets packed into flat arrays (one 1-D float array o
 per-asset start + resolution, one array of surface points with per-asset start + count).
 
 Pairs are enumerated per scene as CSR: scene s owns pair indices [pair_start[s], pair_start[s+1])
-= its count*(count-1)/2 pairs (i < j) in row-major order. Stages (one launch each, no host sync):
+= its count*(count-1)/2 pairs (i < j) in row-major order. Stages (one launch each, no host sync,
+so the whole sequence can be captured as a graph: ``launch_penetration(graph=True)``):
 
+0. ``table_contact``: per object, the surface points below the table top z = 0.
 1. ``broadphase``: per pair, decode (i, j), test the slightly inflated yawed boxes (z interval +
    2-D separating axes of the two footprints) and write ``pair_hit``.
-2. ``narrowphase``: one thread per (pair, direction, lane): ``lanes`` threads share the points of
-   one object of the pair and query the other's field; each writes its partial sums. ``lanes`` is
-   a launch argument: few on the CPU (every thread is a loop iteration there, idle ones included),
-   many on CUDA (a 16-object batch has only a few thousand candidate pairs, and more lanes are
-   what fills the GPU). No atomics: the
-   partials are reduced in a fixed order, so results are bit-for-bit repeatable.
+2. the narrowphase, one of two (``narrowphase=`` of :func:`launch_penetration`, same maths, same
+   results up to float summation order):
+
+   - ``worklist`` (default; kernels/narrowphase.py): the broadphase appends the (pair, direction)
+     items of the pairs that pass to a dense list, and ``lanes`` threads per *item* stride over
+     the owner's points in the buckets that meet the other object's box;
+   - ``buckets`` (``narrowphase_buckets`` below): ``lanes`` threads for *every* (pair,
+     direction), most exiting at once when the pair failed the broadphase.
+
+   Either way the lanes query the other object's field and each writes its partial sums. No
+   atomics on values: the partials are reduced in a fixed order, so results are bit-for-bit
+   repeatable.
 3. ``reduce_pairs``: per pair energy Σ ReLU(−φ), depth max(−φ), and the pose gradient of both
    objects (4-vectors), from the partials of step 2.
 4. ``reduce_scenes`` / ``reduce_objects``: per scene energy and depths, per object gradient, each a
@@ -29,6 +37,9 @@ float64 torch oracle is physcene/physics_reference.py and must stay the same mat
 
 from __future__ import annotations
 
+import threading
+from collections import OrderedDict
+
 import torch
 import warp as wp
 
@@ -41,7 +52,7 @@ wp.init()
 __all__ = ["DEFAULT_LANES", "launch_penetration", "launch_support"]
 
 # Threads sharing one (pair, direction), per device type (see the module docstring).
-DEFAULT_LANES = {"cpu": 16, "cuda": 32}
+DEFAULT_LANES = {"cpu": 1, "cuda": 32}
 # Gradients of the normalised field smaller than this are "vanished": fall back to h_min.
 _GRAD_EPS = wp.constant(1.0e-6)
 # Surface points are sorted into BUCKETS^3 cells of the normalised cube (physics.pack_assets), so
@@ -225,6 +236,33 @@ def find_scene(pair_start: wp.array(dtype=wp.int32), n_scene: int, k: int):
     return lo
 
 
+@wp.func
+def decode_pair(pair_start: wp.array(dtype=wp.int32), count: wp.array(dtype=wp.int32), n_slot: int, k: int):
+    """Slots (a, b) of CSR pair k: scene by binary search, then the row-major (i < j) of its pairs."""
+    s = find_scene(pair_start, count.shape[0], k)
+    n = int(count[s])
+    r = k - int(pair_start[s])
+    # row-major (i < j): row i starts at i*n - i*(i+1)/2; float guess, then exact integer fix-up
+    i = int(float(n) - 0.5 - wp.sqrt((float(n) - 0.5) * (float(n) - 0.5) - 2.0 * float(r)))
+    i = wp.clamp(i, 0, n - 2)
+    while i > 0 and i * n - i * (i + 1) // 2 > r:
+        i -= 1
+    while (i + 1) * n - (i + 1) * (i + 2) // 2 <= r:
+        i += 1
+    j = r - (i * n - i * (i + 1) // 2) + i + 1
+    return s * n_slot + i, s * n_slot + j
+
+
+@wp.func
+def boxes_meet(pa: wp.vec4, ha: wp.vec3, pb: wp.vec4, hb: wp.vec3, margin: float):
+    """1 if the two yawed boxes (half sizes ha, hb), inflated by margin, overlap, else 0."""
+    hit = int(0)
+    if wp.abs(pa[2] - pb[2]) <= ha[2] + hb[2] + margin:
+        if footprint_gap(pa, ha, pb, hb) <= margin:
+            hit = 1
+    return hit
+
+
 @wp.kernel
 def broadphase(
     pair_start: wp.array(dtype=wp.int32),  # (S+1,)
@@ -238,34 +276,14 @@ def broadphase(
     pair_hit_out: wp.array(dtype=wp.int32),  # (T,) 1 if the inflated boxes overlap
 ):
     k = wp.tid()
-    s = find_scene(pair_start, count.shape[0], k)
-    n = int(count[s])
-    r = k - int(pair_start[s])
-    # row-major (i < j): row i starts at i*n - i*(i+1)/2; float guess, then exact integer fix-up
-    i = int(float(n) - 0.5 - wp.sqrt((float(n) - 0.5) * (float(n) - 0.5) - 2.0 * float(r)))
-    i = wp.clamp(i, 0, n - 2)
-    while i > 0 and i * n - i * (i + 1) // 2 > r:
-        i -= 1
-    while (i + 1) * n - (i + 1) * (i + 2) // 2 <= r:
-        i += 1
-    j = r - (i * n - i * (i + 1) // 2) + i + 1
-    a = s * n_slot + i
-    b = s * n_slot + j
+    a, b = decode_pair(pair_start, count, n_slot, k)
     pair_a_out[k] = a
     pair_b_out[k] = b
-    pa = poses[a]
-    pb = poses[b]
-    ha = sizes[a] * 0.5
-    hb = sizes[b] * 0.5
-    hit = int(0)
-    if wp.abs(pa[2] - pb[2]) <= ha[2] + hb[2] + margin:
-        if footprint_gap(pa, ha, pb, hb) <= margin:
-            hit = 1
-    pair_hit_out[k] = hit
+    pair_hit_out[k] = boxes_meet(poses[a], sizes[a] * 0.5, poses[b], sizes[b] * 0.5, margin)
 
 
 @wp.kernel
-def narrowphase(
+def narrowphase_buckets(
     pair_a: wp.array(dtype=wp.int32),
     pair_b: wp.array(dtype=wp.int32),
     pair_hit: wp.array(dtype=wp.int32),
@@ -372,6 +390,8 @@ def reduce_pairs(
     part_depth: wp.array(dtype=float),
     part_gu: wp.array(dtype=wp.vec3),
     part_yaw: wp.array(dtype=wp.vec2),
+    pair_item: wp.array(dtype=wp.int32),  # (T,) worklist: first of the pair's two items; else unused
+    compact: int,  # 1: partials of item k at k*lanes (worklist), 0: of pair p at p*2*lanes (buckets)
     with_grad: int,
     lanes: int,
     pair_energy_out: wp.array(dtype=float),  # (T,) cm
@@ -385,6 +405,8 @@ def reduce_pairs(
     gb = wp.vec4(0.0, 0.0, 0.0, 0.0)
     if pair_hit[pair] != 0:
         base = pair * 2 * lanes
+        if compact != 0:
+            base = pair_item[pair] * lanes  # the pair's two items are consecutive: direction 0, 1
         for k in range(2 * lanes):
             energy += part_energy[base + k]
             depth = wp.max(depth, part_depth[base + k])
@@ -475,19 +497,25 @@ def table_contact(
     points: wp.array(dtype=wp.vec3),
     pt_start: wp.array(dtype=wp.int32),
     pt_count: wp.array(dtype=wp.int32),
+    pt_zmin: wp.array(dtype=float),  # (A,) lowest normalised z of each asset's points
+    counter_out: wp.array(dtype=wp.int32),  # (1,) zeroed here for the worklist's append (one launch less)
     depth_out: wp.array(dtype=float),  # (S*N,) deepest surface point below z = 0, cm
     energy_out: wp.array(dtype=float),  # (S*N,) Σ ReLU(−z) over surface points, cm
     below_out: wp.array(dtype=float),  # (S*N,) number of points below z = 0 (= −∂E/∂z)
 ):
     slot = wp.tid()
+    if slot == 0:
+        counter_out[0] = 0
     s = slot // n_slot
     depth = float(0.0)
     energy = float(0.0)
     below = float(0.0)
-    if slot - s * n_slot < int(count[s]):
-        pose = poses[slot]
-        half = sizes[slot] * 0.5
-        a = obj_asset[slot]
+    pose = poses[slot]
+    half = sizes[slot] * 0.5
+    a = obj_asset[slot]
+    # z + p_z h_z is monotone in p_z (rounding too): if the lowest point is not below z = 0, none
+    # is, and an object resting on the table skips its points exactly
+    if slot - s * n_slot < int(count[s]) and pose[2] + pt_zmin[a] * half[2] < 0.0:
         p0 = pt_start[a]
         for p in range(pt_count[a]):
             # yaw does not change z: z = z_c + p_z * h_z
@@ -539,22 +567,33 @@ _CTYPES: dict = {}
 def _ct(t: torch.Tensor, dtype=None):
     """A zero-copy Warp view of a contiguous torch tensor, in launch's fast ctype form.
 
-    The view is only (pointer, shape, strides, dtype), so views are memoised on exactly that key:
-    a later tensor at the same address with the same layout gets an identical view.
+    The view is only (pointer, shape, strides), so views are memoised on exactly that key: a later
+    tensor at the same address with the same layout gets the identical view (and the launcher
+    below then skips re-packing it). The view does not hold the tensor: holding it would keep
+    every call's scratch memory alive until the memo is cleared, so the allocator could never
+    hand the same address back (the memo would never hit, and CUDA memory would pile up).
     """
     key = (t.data_ptr(), t.shape, t.stride(), t.dtype, dtype, t.device)
     view = _CTYPES.get(key)
     if view is None:
         if len(_CTYPES) > 4096:
             _CTYPES.clear()
-        view = _CTYPES[key] = wp.from_torch(t, dtype=dtype, return_ctype=True)
+        view = _CTYPES[key] = wp.from_torch(t, dtype=dtype, requires_grad=False, return_ctype=True)
+        view._ref = None
     return view
 
 
 class _Launcher:
-    """Launches on one device and, on CUDA, on torch's current stream (no scoped sync)."""
+    """Launches on one device and, on CUDA, on torch's current stream (no scoped sync).
+
+    Each kernel's launch is recorded once (``wp.launch(record_cmd=True)``) and replayed: only
+    the arguments that changed since its last launch are re-packed. ``wp.launch`` packs every
+    argument on every call, which is most of its ~10-20 µs host cost; at < 1 ms per engine call
+    with 5-6 launches, host time is a large part of the wall time.
+    """
 
     _streams: dict = {}
+    _recorded: dict = {}
 
     def __init__(self, device: torch.device):
         self.device = wp.device_from_torch(device)
@@ -565,8 +604,46 @@ class _Launcher:
             if self.stream is None:
                 self.stream = self._streams[key] = wp.stream_from_torch(device)
 
-    def __call__(self, kernel, dim: int, inputs: list) -> None:
-        wp.launch(kernel, dim=dim, inputs=inputs, device=self.device, stream=self.stream)
+    def __call__(self, kernel, dim: int, inputs: list, block_dim: int | None = None) -> None:
+        if dim <= 0:
+            return
+        # per thread: a recorded Launch is set, then launched
+        key = (kernel, self.device.alias, threading.get_ident(), block_dim)
+        hit = self._recorded.get(key)
+        if hit is None:
+            cmd = wp.launch(kernel, dim=dim, inputs=inputs, device=self.device, record_cmd=True,
+                            block_dim=block_dim)
+            self._recorded[key] = (cmd, [dim], list(inputs))
+        else:
+            cmd, last_dim, last = hit
+            if last_dim[0] != dim:
+                cmd.set_dim(dim)
+                last_dim[0] = dim
+            for k, value in enumerate(inputs):
+                old = last[k]
+                # memoised views: the same object when the array is the same; scalars by value
+                if value is not old and (type(value) is not type(old) or value != old):
+                    cmd.set_param_at_index_from_ctype(k, value)
+                    last[k] = value
+        cmd.launch(self.stream)
+
+
+NARROWPHASES = ("buckets", "worklist")
+# CUDA work-list launch: at most this many waves of resident threads; each thread loops over items.
+_WORKLIST_WAVES = 4
+
+
+def _resident_threads(device: torch.device) -> int:
+    """Threads a CUDA device keeps resident at once (SMs x threads per SM), memoised."""
+    key = str(device)
+    n = _RESIDENT.get(key)
+    if n is None:
+        props = torch.cuda.get_device_properties(device)
+        n = _RESIDENT[key] = props.multi_processor_count * props.max_threads_per_multi_processor
+    return n
+
+
+_RESIDENT: dict = {}
 
 
 def launch_penetration(
@@ -582,78 +659,244 @@ def launch_penetration(
     tolerance: float,
     with_grad: bool,
     lanes: int | None = None,
+    narrowphase: str = "worklist",
+    graph: bool = False,
+    block_dim: int | None = None,
 ) -> dict[str, torch.Tensor]:
     """Run broadphase → narrowphase → reductions on torch tensors (zero-copy, torch's stream).
 
     Inputs: pair_start (S+1,) int32; count (S,) int32; poses (S, N, 4) float32 contiguous;
     sizes (S, N, 3) float32; obj_asset (S, N) int32; ``assets`` the packed arrays (``sdf``,
     ``rays``, ``sdf_start``, ``sdf_res``, ``points`` (K, 3), ``pt_start``, ``pt_count``,
-    ``pt_bucket``).
+    ``pt_zmin``, ``pt_bucket``).
     Returns torch tensors: ``energy``, ``max_depth``, ``depth_sum`` (S,); ``pair_a``, ``pair_b``
     (T,) slots; ``pair_hit`` (T,); ``pair_energy``, ``pair_depth`` (T,); ``table_depth``,
     ``table_energy``, ``table_below`` (S, N); ``grad`` (S, N, 4) when ``with_grad``.
     ``lanes``: threads per (pair, direction), default ``DEFAULT_LANES`` of the device type.
-    No host synchronisation: every size is known from the arguments.
+    ``narrowphase``: ``"worklist"`` (kernels/narrowphase.py: threads only for pairs that pass the
+    broadphase) or ``"buckets"`` (every pair's threads launched); same results up to float
+    summation order. No host synchronisation: every launch size is known from the arguments (the
+    work list's length stays on the device).
+    ``graph``: capture the launches of a batch layout (the same arrays, sizes and settings) the
+    second time it is run (a CUDA graph; a Warp CPU graph on the CPU) and replay them from the
+    third: the poses are copied into the graph's own buffer and the outputs cloned out of it,
+    so callers get fresh tensors as without.
+    ``block_dim``: CUDA threads per block of the narrowphase launch (None: Warp's 256); ignored on
+    the CPU.
     """
     device = poses.device
     lanes = DEFAULT_LANES[device.type] if lanes is None else int(lanes)
     if lanes < 1:
         raise ValueError(f"lanes must be >= 1, got {lanes}")
-    launch = _Launcher(device)
-    n_scene, n_slot = poses.shape[0], poses.shape[1]
-    n_obj = n_scene * n_slot
+    if narrowphase not in NARROWPHASES:
+        raise ValueError(f"narrowphase {narrowphase!r}: expected one of {', '.join(NARROWPHASES)}")
+    if device.type != "cuda":
+        block_dim = None
+    elif block_dim is not None and not 1 <= int(block_dim) <= 1024:
+        raise ValueError(f"block_dim must be in 1..1024, got {block_dim}")
+    launcher = _Launcher(device)
+    args = dict(pair_start=pair_start, count=count, n_pairs=n_pairs, sizes=sizes, obj_asset=obj_asset,
+                assets=assets, margin=float(margin), tolerance=float(tolerance), with_grad=bool(with_grad),
+                lanes=lanes, worklist=narrowphase == "worklist",
+                block_dim=None if block_dim is None else int(block_dim))
+    if not graph or n_pairs == 0:
+        return _penetration(launcher, _ct, poses=poses, buffers=_allocate(poses, **args), **args)
+    key = _Plan.key(launcher, poses, args)
+    plan = _PLANS.get(key)
+    if plan is not None:
+        _PLANS.move_to_end(key)
+        return plan.replay(poses, launcher)
+    # run directly (this also loads the kernels); capture only a layout seen before, so a stream of
+    # new batches (the reward's) never pays for captures it would not replay
+    out = _penetration(launcher, _ct, poses=poses, buffers=_allocate(poses, **args), **args)
+    if _SEEN.pop(key, None) is None:
+        _SEEN[key] = True
+        if len(_SEEN) > 64:
+            _SEEN.pop(next(iter(_SEEN)))
+    else:
+        if len(_PLANS) >= _MAX_PLANS:
+            _PLANS.pop(next(iter(_PLANS)))  # the least recently used
+        _PLANS[key] = _Plan(launcher, poses, args)
+    return out
+
+
+def _partials(n_pairs: int, lanes: int) -> int:
+    """Partial-sum slots of the narrowphase: 2 directions x lanes per pair (work list: upper bound)."""
+    return 2 * n_pairs * lanes
+
+
+def _allocate(poses: torch.Tensor, *, n_pairs: int, with_grad: bool, lanes: int, worklist: bool,
+              **_) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """(floats, ints, part): one allocation per kind for every output and scratch array of a call."""
+    device = poses.device
+    n_scene, n_obj = poses.shape[0], poses.shape[0] * poses.shape[1]
     # one allocation for the float outputs, one for the int ones: views are cheap, allocations not
     floats = torch.empty(3 * n_scene + 2 * n_pairs + 3 * n_obj + (4 * n_obj if with_grad else 0),
                          dtype=torch.float32, device=device)
-    ints = torch.empty(3 * n_pairs, dtype=torch.int32, device=device)
+    # pair_a, pair_b, pair_hit, then (work list) pair_item, items (2T), the item counter
+    ints = torch.empty(3 * n_pairs + (3 * n_pairs + 1 if worklist else 1), dtype=torch.int32, device=device)
+    n_part = _partials(n_pairs, lanes)
+    # the gradient partials are never touched without with_grad: 8 spare floats stand in for them
+    part = torch.empty((7 * n_part + 8 * n_pairs if with_grad else 2 * n_part + 8) if n_pairs else 0,
+                       dtype=torch.float32, device=device)
+    return floats, ints, part
+
+
+def _outputs(floats: torch.Tensor, ints: torch.Tensor, n_scene: int, n_slot: int, n_pairs: int,
+             with_grad: bool) -> dict[str, torch.Tensor]:
+    """The named output views of one call's float and int buffers."""
+    n_obj = n_scene * n_slot
     sizes_f = [n_scene, n_scene, n_scene, n_pairs, n_pairs, n_obj, n_obj, n_obj]
-    views = list(torch.split(floats, sizes_f + ([4 * n_obj] if with_grad else [])))
+    views = torch.split(floats, sizes_f + ([4 * n_obj] if with_grad else []))
     out = dict(zip(("energy", "max_depth", "depth_sum", "pair_energy", "pair_depth"), views[:5]))
     for key, view in zip(("table_depth", "table_energy", "table_below"), views[5:8]):
         out[key] = view.view(n_scene, n_slot)
-    out["pair_a"], out["pair_b"], out["pair_hit"] = torch.split(ints, [n_pairs] * 3)
-    w_poses = _ct(poses.reshape(n_obj, 4), wp.vec4)
-    w_sizes = _ct(sizes.reshape(n_obj, 3), wp.vec3)
-    w_asset = _ct(obj_asset.reshape(n_obj))
-    w_pair_start, w_count = _ct(pair_start), _ct(count)
-    w_points = _ct(assets["points"], wp.vec3)
-    w_pt_start, w_pt_count = _ct(assets["pt_start"]), _ct(assets["pt_count"])
-    launch(table_contact, n_obj, [w_count, n_slot, w_poses, w_sizes, w_asset, w_points, w_pt_start,
-                                  w_pt_count, _ct(views[5]), _ct(views[6]), _ct(views[7])])
     if with_grad:
         out["grad"] = views[8].view(n_scene, n_slot, 4)
+    out["pair_a"], out["pair_b"], out["pair_hit"] = torch.split(ints[:3 * n_pairs], [n_pairs] * 3)
+    return out
+
+
+def _penetration(launch, view, *, pair_start, count, n_pairs, poses, sizes, obj_asset, assets, margin,
+                 tolerance, with_grad, lanes, worklist, block_dim, buffers) -> dict[str, torch.Tensor]:
+    """Issue every launch of one call through ``launch(kernel, dim, inputs)`` with array arguments
+    made by ``view(tensor, dtype=None)``, writing into ``buffers`` (see :func:`_allocate`)."""
+    device = poses.device
+    floats, ints, part = buffers
+    n_scene, n_slot = poses.shape[0], poses.shape[1]
+    n_obj = n_scene * n_slot
+    out = _outputs(floats, ints, n_scene, n_slot, n_pairs, with_grad)
+    n_item = ints[-1:]
+    w_poses = view(poses.reshape(n_obj, 4), wp.vec4)
+    w_sizes = view(sizes.reshape(n_obj, 3), wp.vec3)
+    w_asset = view(obj_asset.reshape(n_obj))
+    w_pair_start, w_count = view(pair_start), view(count)
+    w_points = view(assets["points"], wp.vec3)
+    w_n_item = view(n_item)
+    launch(table_contact, n_obj, [w_count, n_slot, w_poses, w_sizes, w_asset, w_points,
+                                  view(assets["pt_start"]), view(assets["pt_count"]), view(assets["pt_zmin"]),
+                                  w_n_item,
+                                  view(out["table_depth"].view(-1)), view(out["table_energy"].view(-1)),
+                                  view(out["table_below"].view(-1))])
     if n_pairs == 0:
         floats[:3 * n_scene].zero_()
         if with_grad:
             out["grad"].zero_()
         return out
-    w_pair_a, w_pair_b, w_hit = _ct(out["pair_a"]), _ct(out["pair_b"]), _ct(out["pair_hit"])
-    launch(broadphase, n_pairs, [w_pair_start, w_count, n_slot, w_poses, w_sizes, float(margin),
-                                 w_pair_a, w_pair_b, w_hit])
-    n_part = n_pairs * 2 * lanes
+    w_pair_a, w_pair_b, w_hit = view(out["pair_a"]), view(out["pair_b"]), view(out["pair_hit"])
+    w_pair_item = w_hit
+    n_part = _partials(n_pairs, lanes)
+    if worklist:
+        from physcene.kernels.narrowphase import broadphase_items, narrowphase_items
+
+        pair_item, items = ints[3 * n_pairs:4 * n_pairs], ints[4 * n_pairs:6 * n_pairs]
+        w_pair_item, w_items = view(pair_item), view(items)
+        launch(broadphase_items, n_pairs, [w_pair_start, w_count, n_slot, w_poses, w_sizes, margin,
+                                           w_pair_a, w_pair_b, w_hit, w_pair_item, w_n_item, w_items])
+        # the count stays on the device: each group of lanes threads loops over items (grid-stride)
+        if device.type == "cuda":  # a few waves of resident threads
+            n_thread = min(2 * n_pairs, max(1, _WORKLIST_WAVES * _resident_threads(device) // lanes)) * lanes
+        else:  # the CPU runs threads one after another: one group of lanes does every item
+            n_thread = lanes
+    else:
+        launch(broadphase, n_pairs, [w_pair_start, w_count, n_slot, w_poses, w_sizes, margin,
+                                     w_pair_a, w_pair_b, w_hit])
+        n_thread = n_part
     if with_grad:
-        part = torch.empty(7 * n_part + 8 * n_pairs, dtype=torch.float32, device=device)
         pe, pd, pg, py, pair_grad = torch.split(part, [n_part, n_part, 3 * n_part, 2 * n_part, 8 * n_pairs])
         pg, py, pair_grad = pg.view(n_part, 3), py.view(n_part, 2), pair_grad.view(n_pairs, 2, 4)
     else:  # the gradient buffers are never touched: one-element stand-ins
-        part = torch.empty(2 * n_part + 8, dtype=torch.float32, device=device)
         pe, pd, spare = torch.split(part, [n_part, n_part, 8])
         pg, py, pair_grad = spare[:3].view(1, 3), spare[3:5].view(1, 2), spare.view(1, 2, 4)
-    w_part = [_ct(pe), _ct(pd), _ct(pg, wp.vec3), _ct(py, wp.vec2)]
-    w_pair_grad = _ct(pair_grad, wp.vec4)
-    launch(narrowphase, n_part, [w_pair_a, w_pair_b, w_hit, w_poses, w_sizes, w_asset,
-                                 _ct(assets["sdf"]), _ct(assets["rays"]), _ct(assets["sdf_start"]),
-                                 _ct(assets["sdf_res"]), w_points, _ct(assets["pt_bucket"]), int(with_grad),
-                                 lanes, *w_part])
-    w_pair_energy, w_pair_depth = _ct(out["pair_energy"]), _ct(out["pair_depth"])
-    launch(reduce_pairs, n_pairs, [w_pair_a, w_pair_b, w_hit, w_poses, *w_part, int(with_grad), lanes,
-                                   w_pair_energy, w_pair_depth, w_pair_grad])
-    launch(reduce_scenes, n_scene, [w_pair_start, w_pair_energy, w_pair_depth, float(tolerance),
-                                    _ct(out["energy"]), _ct(out["max_depth"]), _ct(out["depth_sum"])])
+    w_part = [view(pe), view(pd), view(pg, wp.vec3), view(py, wp.vec2)]
+    w_pair_grad = view(pair_grad, wp.vec4)
+    w_fields = [w_poses, w_sizes, w_asset, view(assets["sdf"]), view(assets["rays"]),
+                view(assets["sdf_start"]), view(assets["sdf_res"]), w_points, view(assets["pt_bucket"]),
+                int(with_grad)]
+    if worklist:
+        launch(narrowphase_items, n_thread, [w_items, w_n_item, n_thread, lanes, w_pair_a, w_pair_b,
+                                             *w_fields, *w_part], block_dim)
+    else:
+        launch(narrowphase_buckets, n_thread, [w_pair_a, w_pair_b, w_hit, *w_fields, lanes, *w_part],
+               block_dim)
+    w_pair_energy, w_pair_depth = view(out["pair_energy"]), view(out["pair_depth"])
+    launch(reduce_pairs, n_pairs, [w_pair_a, w_pair_b, w_hit, w_poses, *w_part, w_pair_item, int(worklist),
+                                   int(with_grad), lanes, w_pair_energy, w_pair_depth, w_pair_grad])
+    launch(reduce_scenes, n_scene, [w_pair_start, w_pair_energy, w_pair_depth, tolerance,
+                                    view(out["energy"]), view(out["max_depth"]), view(out["depth_sum"])])
     if with_grad:
         launch(reduce_objects, n_obj, [w_pair_start, w_count, n_slot, w_pair_grad,
-                                       _ct(views[8].view(n_obj, 4), wp.vec4)])
+                                       view(out["grad"].view(n_obj, 4), wp.vec4)])
     return out
+
+
+def _warp_array(t: torch.Tensor, dtype=None):
+    """A zero-copy ``wp.array`` view (graph capture records arrays, not raw ctype views)."""
+    return wp.from_torch(t, dtype=dtype, requires_grad=False)
+
+
+# Captured launch sequences, least recently used first; each holds its scratch memory.
+_PLANS: OrderedDict = OrderedDict()
+_MAX_PLANS = 4
+# Layouts run once without a capture (the second run captures), oldest first.
+_SEEN: OrderedDict = OrderedDict()
+_CAPTURE_STREAMS: dict = {}
+
+
+def _capture_stream(device) -> wp.Stream:
+    """A non-default CUDA stream of ``device`` to capture graphs on, one per device."""
+    stream = _CAPTURE_STREAMS.get(device.alias)
+    if stream is None:
+        stream = _CAPTURE_STREAMS[device.alias] = wp.Stream(device)
+    return stream
+
+
+class _Plan:
+    """One batch layout's launches captured as a graph, with the buffers it reads and writes."""
+
+    def __init__(self, launcher: _Launcher, poses: torch.Tensor, args: dict):
+        self.args = args
+        self.poses = poses.clone()  # the graph's own input: callers' poses are copied in
+        self.buffers = _allocate(self.poses, **args)
+        self.shape = (poses.shape[0], poses.shape[1])
+
+        # CUDA cannot capture on the legacy default stream (torch's usual current stream): capture on
+        # a private stream; the graph is then launched on the caller's stream
+        stream = _capture_stream(launcher.device) if launcher.device.is_cuda else None
+
+        def launch(kernel, dim, inputs, block_dim=None):
+            if dim > 0:
+                wp.launch(kernel, dim=dim, inputs=inputs, device=launcher.device, stream=stream,
+                          block_dim=block_dim)
+
+        with wp.ScopedCapture(device=launcher.device, stream=stream) as capture:
+            _penetration(launch, _warp_array, poses=self.poses, buffers=self.buffers, **args)
+        self.graph = capture.graph
+
+    @staticmethod
+    def key(launcher: _Launcher, poses: torch.Tensor, args: dict) -> tuple:
+        """Everything the captured launches depend on: array addresses and shapes, scalars."""
+        arrays = [args[k] for k in ("pair_start", "count", "sizes", "obj_asset")]
+        arrays += args["assets"].values()
+        # per thread: a replay writes the plan's buffers, so two threads must not share one
+        return (launcher.device.alias, id(launcher.stream), threading.get_ident(), tuple(poses.shape),
+                poses.dtype, tuple((t.data_ptr(), t.numel()) for t in arrays),
+                *(args[k] for k in ("n_pairs", "margin", "tolerance", "with_grad", "lanes", "worklist",
+                                    "block_dim")))
+
+    def replay(self, poses: torch.Tensor, launcher: _Launcher) -> dict[str, torch.Tensor]:
+        self.poses.copy_(poses)
+        wp.capture_launch(self.graph, stream=launcher.stream)
+        floats, ints, _ = self.buffers
+        n_pairs = self.args["n_pairs"]
+        return _outputs(_fresh(floats), _fresh(ints[:3 * n_pairs]), *self.shape, n_pairs,
+                        self.args["with_grad"])
+
+
+def _fresh(t: torch.Tensor) -> torch.Tensor:
+    """A copy of t. On the CPU through numpy: torch's parallel copy leaves its OpenMP threads
+    spinning after it, which on a small machine slows the single-threaded Warp kernels after it."""
+    return torch.from_numpy(t.numpy().copy()) if t.device.type == "cpu" else t.clone()
 
 
 def launch_support(*, count: torch.Tensor, poses: torch.Tensor, sizes: torch.Tensor,

@@ -23,8 +23,8 @@ from itertools import chain
 import numpy as np
 import torch
 
-from physcene.config import load_dataclass
-from physcene.kernels.penetration import BUCKETS, launch_penetration, launch_support
+from physcene.config import ConfigError, load_dataclass
+from physcene.kernels.penetration import BUCKETS, NARROWPHASES, launch_penetration, launch_support
 from physcene.scene import Scene
 
 __all__ = ["PhysicsConfig", "PhysicsEngine", "SceneBatch", "Score", "axis_ray_distances", "bucket_points",
@@ -41,10 +41,30 @@ class PhysicsConfig:
     """An object whose bottom is more than this above every support under it is floating."""
     footprint_overlap_cm: float = 0.01
     """Two footprints must overlap by more than this to count as one standing on the other."""
-    lanes_cpu: int = 16
-    """Narrowphase threads per (pair, direction) on the CPU."""
+    lanes_cpu: int = 1
+    """Narrowphase threads per (pair, direction) on the CPU (run one after another: 1 is fastest)."""
     lanes_cuda: int = 32
     """Narrowphase threads per (pair, direction) on CUDA (more lanes fill the GPU)."""
+    narrowphase: str = "worklist"
+    """``worklist``: threads only for the (pair, direction) items that pass the broadphase
+    (kernels/narrowphase.py); ``buckets``: threads for every pair, most exiting at once. Same
+    results up to float summation order (docs/physics.md)."""
+
+    narrowphase_block_dim: int = 256
+    """CUDA threads per block of the narrowphase launch (worklist: with fewer, a block whose items
+    are done frees its SM slot sooner; a multiple of the lanes keeps an item in one block)."""
+    graph: bool = False
+    """Capture the kernel launches once per batch layout (CUDA graph; Warp CPU graph on the CPU)
+    and replay them when the same batch is scored again (TTO steps, benchmarks): host launch
+    cost off the critical path, at one capture per new layout. Same results."""
+
+    def __post_init__(self):
+        if not 1 <= self.narrowphase_block_dim <= 1024:
+            raise ConfigError(f"configs/physics.yaml: narrowphase_block_dim={self.narrowphase_block_dim}: "
+                              "expected 1..1024")
+        if self.narrowphase not in NARROWPHASES:
+            raise ConfigError(f"configs/physics.yaml: narrowphase={self.narrowphase!r}: expected one of "
+                              f"{', '.join(NARROWPHASES)}")
 
     @classmethod
     def load(cls, overrides: Sequence[str] = ()) -> PhysicsConfig:
@@ -192,6 +212,8 @@ def pack_assets(assets: Sequence, device: torch.device) -> dict[str, torch.Tenso
         "points": np.concatenate([b[0] for b in bucketed]).astype(np.float32).reshape(-1, 3),
         "pt_start": pt_start.astype(np.int32),
         "pt_count": n_pt,
+        # lowest normalised z of each asset's points: table_contact skips objects resting on z = 0
+        "pt_zmin": np.array([a.points[:, 2].min() if len(a.points) else 0.0 for a in assets], np.float32),
         "pt_bucket": np.concatenate([b[1] + start for b, start in zip(bucketed, pt_start)]).astype(np.int32),
     }
     if arrays["sdf"].size >= 2**31:
@@ -315,7 +337,8 @@ class PhysicsEngine:
             pair_start=batch.pair_start, count=batch.count, n_pairs=batch.n_pairs,
             poses=self._poses(batch, poses), sizes=batch.sizes, obj_asset=batch.asset_index,
             assets=self.packed_assets(), margin=self.config.margin_cm, tolerance=tolerance,
-            with_grad=with_grad,
+            with_grad=with_grad, narrowphase=self.config.narrowphase, graph=self.config.graph,
+            block_dim=self.config.narrowphase_block_dim,
             lanes=self.config.lanes_cuda if self.device.type == "cuda" else self.config.lanes_cpu)
 
     def support_gap(self, batch: SceneBatch, poses: torch.Tensor | None = None) -> torch.Tensor:

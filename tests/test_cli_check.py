@@ -100,3 +100,12 @@ def test_bench_reward_small(capsys):
     for key in ("warp_forward", "warp_grad", "reference_forward", "reference_grad", "reward_from_text"):
         assert doc[key]["seconds"] > 0 and doc[key]["scenes_per_s"] > 0
     assert doc["queries_evaluated"] <= doc["queries_all_pairs"] and doc["speedup_forward"] > 0
+
+
+def test_check_takes_physics_overrides_after_the_paths(capsys, tree):
+    path = str(tree / "a" / "layout.json")
+    code, doc = run_json(capsys, ["check", path, "--json", "narrowphase=buckets", "floating_tolerance_cm=5"])
+    assert code == 0 and doc["scenes"][0]["floating"] == []  # 3 cm above the table: within 5 cm
+    assert doc["scenes"][0]["pairs"][0]["depth_cm"] == pytest.approx(2.0, abs=0.05)
+    assert main(["check", path, "narrowphase=tiles"]) == 2
+    assert "narrowphase='tiles'" in capsys.readouterr().err

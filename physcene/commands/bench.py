@@ -2,6 +2,7 @@
 
     physcene bench reward --device cuda                      # 512 scenes x 16 objects x 1024 points
     physcene bench reward --device cpu --scenes 256 --objects 12 --json
+    physcene bench reward --device cuda --narrowphase buckets worklist   # A/B in one process
 
 Targets live in ``TARGETS`` (name -> :class:`BenchTarget`). A new target is one function:
 
@@ -113,20 +114,29 @@ def _reward_arguments(parser) -> None:
     parser.add_argument("--points", type=int, default=1024, help="surface points per asset")
     parser.add_argument("--resolution", type=int, default=64, help="SDF grid nodes per axis")
     parser.add_argument("--no-reference", action="store_true", help="skip the torch reference")
+    parser.add_argument("--narrowphase", nargs="+", default=None, metavar="NAME",
+                        help="narrowphase variant(s) to time, each in this process: worklist, buckets "
+                             "(default: configs/physics.yaml's; key=value overrides apply to the engine)")
+    parser.add_argument("--lanes", type=int, nargs="+", default=None,
+                        help="narrowphase threads per (pair, direction) to time (default: the config's)")
+    parser.add_argument("--graph", nargs="+", choices=("off", "on"), default=None,
+                        help="time without and/or with the captured launch graph (default: the config's)")
 
 
 def bench_reward(args) -> dict:
     """Warp engine vs torch reference (forward, forward+gradient) and the whole reward."""
     from physcene.assets import AssetLibrary
     from physcene.ctrc import completion_text
-    from physcene.physics import PhysicsEngine
+    from physcene.physics import PhysicsConfig, PhysicsEngine
     from physcene.physics_reference import reference_penetration
     from physcene.reward import PhysicsReward, RewardConfig
 
     device = torch.device(args.device)
     library = AssetLibrary(resolution=args.resolution, n_points=args.points)
     library.add_primitives()
-    engine = PhysicsEngine(library, device)
+    config = PhysicsConfig.load(getattr(args, "overrides", []))
+    variants = _variants(config, device, args.narrowphase, args.lanes, args.graph)
+    engine = PhysicsEngine(library, device, variants[0][1])
     scenes = bench_scenes(args.scenes, args.objects)
     batch = engine.pack(scenes)
     assets = engine.packed_assets()
@@ -150,8 +160,23 @@ def bench_reward(args) -> dict:
                 "gq_per_s": evaluated / seconds / 1e9, "all_pairs_gq_per_s": nominal / seconds / 1e9}
 
     repeat = args.repeat
-    result["warp_forward"] = figures(timed(lambda: engine.evaluate(batch), device, repeat))
-    result["warp_grad"] = figures(timed(lambda: engine.evaluate(batch, with_grad=True), device, repeat))
+    base = engine.evaluate(batch, with_grad=True)
+    result["variants"] = {}
+    for name, variant in variants:  # the first is the engine's config, used for the reward below
+        engine.config = variant
+        row = result["variants"][name] = {
+            "narrowphase": variant.narrowphase, "graph": variant.graph,
+            "lanes": variant.lanes_cuda if device.type == "cuda" else variant.lanes_cpu,
+            "warp_forward": figures(timed(lambda: engine.evaluate(batch), device, repeat)),
+            "warp_grad": figures(timed(lambda: engine.evaluate(batch, with_grad=True), device, repeat))}
+        # after the timings (a graph variant replays by now), against the first variant: the same
+        # maths up to float summation order
+        check = engine.evaluate(batch, with_grad=True)
+        row["max_rel_diff"] = {key: _rel_diff(check[key], base[key])
+                               for key in ("energy", "pair_depth", "grad")}
+    engine.config = variants[0][1]
+    result["warp_forward"] = result["variants"][variants[0][0]]["warp_forward"]
+    result["warp_grad"] = result["variants"][variants[0][0]]["warp_grad"]
     if not args.no_reference:
         kw = dict(poses=batch.poses, sizes=batch.sizes, count=batch.count, obj_asset=batch.asset_index,
                   assets=assets, margin=engine.config.margin_cm)
@@ -188,22 +213,55 @@ def _seconds(seconds: float, n_scene: int) -> dict:
     return {"seconds": seconds, "cpu_seconds": timed.last_cpu_seconds, "scenes_per_s": n_scene / seconds}
 
 
+def _rel_diff(a: torch.Tensor, b: torch.Tensor) -> float:
+    """max |a - b| / max |b| (0 when b is all zeros and a equals it)."""
+    return float((a - b).abs().max() / b.abs().max().clamp_min(1e-12)) if b.numel() else 0.0
+
+
+def _variants(config, device: torch.device, narrowphases, lanes, graphs=None) -> list:
+    """[(name, PhysicsConfig)] for every narrowphase x lanes x graph asked (the config's when not)."""
+    from dataclasses import replace
+
+    from physcene.kernels.penetration import NARROWPHASES
+
+    for name in narrowphases or ():
+        if name not in NARROWPHASES:
+            raise ValueError(f"--narrowphase {name!r}: expected one of {', '.join(NARROWPHASES)}")
+    for n in lanes or ():
+        if n < 1:
+            raise ValueError(f"--lanes {n}: expected >= 1")
+    key = "lanes_cuda" if device.type == "cuda" else "lanes_cpu"
+    out = []
+    for name in narrowphases or [config.narrowphase]:
+        for n in lanes or [getattr(config, key)]:
+            for graph in graphs or ["on" if config.graph else "off"]:
+                label = f"{name}/lanes={n}" + ("/graph" if graph == "on" else "")
+                out.append((label, replace(config, narrowphase=name, graph=graph == "on", **{key: n})))
+    return out
+
+
 def _reward_summary(r: dict) -> str:
     lines = [f"device {r['device']}: {r['scenes']} scenes x {r['objects']} objects x "
              f"{r['points']:.0f} points, "
              f"{r['candidate_pairs']}/{r['pairs']} pairs pass the broadphase, "
              f"{r['queries_evaluated'] / 1e6:.1f} M point queries evaluated "
              f"({r['queries_all_pairs'] / 1e6:.1f} M for all ordered pairs)"]
-    for key, label in (("warp_forward", "warp forward"), ("warp_grad", "warp forward+grad"),
-                       ("reference_forward", "torch reference forward"),
+    rows = [(r["variants"][name][key], f"{label} {name}") for name in r["variants"]
+            for key, label in (("warp_forward", "fwd"), ("warp_grad", "fwd+grad"))]
+    for key, label in (("reference_forward", "torch reference forward"),
                        ("reference_grad", "torch reference forward+grad")):
         if key in r:
-            f = r[key]
+            rows.append((r[key], label))
+    for f, label in rows:
+        if f:
             lines.append(f"{label:30s} {f['seconds'] * 1e3:9.3f} ms ({f['cpu_seconds'] * 1e3:9.3f} ms CPU)  "
                          f"{f['scenes_per_s']:12.1f} scenes/s  {f['gq_per_s']:8.3f} Gq/s evaluated  "
                          f"{f['all_pairs_gq_per_s']:8.3f} Gq/s all-pairs")
+    for name, v in r["variants"].items():
+        diff = ", ".join(f"{k} {d:.1e}" for k, d in v["max_rel_diff"].items())
+        lines.append(f"{name}: max |diff| / max |first variant|: {diff}")
     if "speedup_forward" in r:
-        lines.append(f"warp / reference: forward {r['speedup_forward']:.1f}x, "
+        lines.append(f"warp ({next(iter(r['variants']))}) / reference: forward {r['speedup_forward']:.1f}x, "
                      f"forward+grad {r['speedup_grad']:.1f}x")
     for key, label in (("reward_from_text", "whole reward (text -> rewards)"),
                        ("reward_from_text_python", "  same, pure-Python parse"),

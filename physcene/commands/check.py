@@ -138,8 +138,11 @@ def _line(report: dict) -> str:
 def run(args) -> int:
     from physcene.physics import PhysicsConfig, PhysicsEngine
 
-    items = collect(args.paths)
-    config = PhysicsConfig.load(args.overrides)
+    # PATH... also swallows the key=value overrides after the paths: a word with "=" that names no
+    # file is an override (configs/physics.yaml)
+    overrides = [p for p in args.paths if "=" in p and not Path(p).exists()]
+    items = collect([p for p in args.paths if p not in overrides])
+    config = PhysicsConfig.load([*args.overrides, *overrides])
     engine = PhysicsEngine(device=args.device, config=config) if any(it.scene for it in items) else None
     reports = check_scenes(items, engine)
     if args.json:
