@@ -43,17 +43,17 @@ class PhysicsConfig:
     """Two footprints must overlap by more than this to count as one standing on the other."""
     lanes_cpu: int = 1
     """Narrowphase threads per (pair, direction) on the CPU (run one after another: 1 is fastest)."""
-    lanes_cuda: int = 32
+    lanes_cuda: int = 64
     """Narrowphase threads per (pair, direction) on CUDA (more lanes fill the GPU)."""
     narrowphase: str = "worklist"
     """``worklist``: threads only for the (pair, direction) items that pass the broadphase
     (kernels/narrowphase.py); ``buckets``: threads for every pair, most exiting at once. Same
     results up to float summation order (docs/physics.md)."""
 
-    narrowphase_block_dim: int = 256
+    narrowphase_block_dim: int = 128
     """CUDA threads per block of the narrowphase launch (worklist: with fewer, a block whose items
     are done frees its SM slot sooner; a multiple of the lanes keeps an item in one block)."""
-    graph: bool = False
+    graph: bool = True
     """Capture the kernel launches once per batch layout (CUDA graph; Warp CPU graph on the CPU)
     and replay them when the same batch is scored again (TTO steps, benchmarks): host launch
     cost off the critical path, at one capture per new layout. Same results."""
