@@ -120,10 +120,11 @@ def _zero_shot(items: Sequence[BenchmarkItem], url: str, model: str, api_key_env
 
 def generate(items: Sequence[BenchmarkItem], generator: str, *, seed: int = 0, model: str = "gpt-4o",
              api_key_env: str = "PHYSCENE_GENERATOR_API_KEY", max_new_tokens: int = 4096,
-             progress: bool = True, device: str | None = None) -> list:
+             progress: bool = True, device: str | None = None, cache: str = "dynamic") -> list:
     """One output per item: a Scene or a ParseError (model output that did not parse).
 
-    ``device``: where a ``model:PATH`` generator runs (default: the first GPU, else CPU).
+    ``device``: where a ``model:PATH`` generator runs (default: the first GPU, else CPU); ``cache``:
+    its KV cache (``physcene.train.generate.CACHE_MODES``: dynamic, static, static_compile).
     """
     from physcene.ctrc import ParseError
 
@@ -143,7 +144,7 @@ def generate(items: Sequence[BenchmarkItem], generator: str, *, seed: int = 0, m
         from physcene.ctrc import parse
 
         texts = model_generate(generator[6:], [it.prompt for it in items], max_new_tokens=max_new_tokens,
-                               device=device)
+                               device=device, cache=cache)
         out = [parse(t, zone=it.reference.zone) for t, it in zip(texts, items)]
     elif generator.startswith("endpoint:"):
         out = _zero_shot(items, generator[9:], model, api_key_env, progress)
@@ -322,7 +323,8 @@ def run_evaluation(cfg, *, command: str = "", title: str = "physcene evaluation"
         name = method_name(gen, bool(cfg.repair))
         report, outputs = evaluate_method(items, gen, judge, engine=engine, repair=bool(cfg.repair),
                                           tto_overrides=tto_overrides, settle=bool(cfg.settle),
-                                          seed=cfg.seed, progress=progress, model=cfg.generator_model)
+                                          seed=cfg.seed, progress=progress, model=cfg.generator_model,
+                                          cache=str(cfg.get("cache", "dynamic")))
         methods[name] = report
         slug = name.lower().replace(" + ", "_").replace(" ", "_").replace("(", "").replace(")", "")
         if cfg.get("save_layouts", False):  # re-score later with --generator file:<out>/layouts/<slug>

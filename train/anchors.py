@@ -119,7 +119,8 @@ def run_anchors(cfg: DictConfig) -> Path:
         model, tokenizer, info = load_for_generation(a.model, device=device)
         completions = generate_with(model, tokenizer, [records[i]["prompt"] for i in shard],
                                     chat_format=bool(info.get("chat_format", False)),
-                                    max_new_tokens=int(a.max_new_tokens), batch_size=int(a.batch_size))
+                                    max_new_tokens=int(a.max_new_tokens), batch_size=int(a.batch_size),
+                                    cache=str(a.get("cache", "dynamic")))
         del model
         tto = TTOConfig.from_config([*a.tto, f"device={device}"])
         rows = anchor_records([records[i] for i in shard], completions, tto_config=tto,

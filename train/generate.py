@@ -4,6 +4,18 @@
 is merged into its base for speed), feeds the prompts the way the checkpoint was trained (chat
 template or plain text, from its ``physcene_run.json``), and returns the completion strings only.
 Prompts are sorted by length before batching so left padding stays small.
+
+``cache`` picks the KV cache of HF ``generate`` (configs: ``anchors.cache``, ``eval.cache``,
+``pada.cache``; docs/training.md "Generation speed"):
+
+- ``dynamic``: ``DynamicCache`` (grows by concatenation every step; HF's default);
+- ``static``: ``cache_implementation="static"`` with ``disable_compile`` (a preallocated cache,
+  eager forward; transformers would otherwise auto-compile on CUDA);
+- ``static_compile``: the static cache and HF's ``torch.compile``d decoding forward
+  (``CompileConfig``, mode ``reduce-overhead`` = CUDA graphs on CUDA; also honoured on CPU).
+
+For the static modes the cache is sized once for the longest prompt of the whole call plus
+``max_new_tokens`` (``max_cache_len``) so every batch reuses one shape and one compiled graph.
 """
 
 from __future__ import annotations
@@ -16,7 +28,43 @@ import torch
 from physcene.train.models import TrainingSetupError, load_model, load_tokenizer, read_run_info, torch_dtype
 from transformers import PreTrainedModel, PreTrainedTokenizerBase
 
-__all__ = ["generate", "generate_with", "load_for_generation"]
+__all__ = ["CACHE_MODES", "cache_generate_kwargs", "check_cache", "generate", "generate_token_ids",
+           "generate_with", "load_for_generation"]
+
+CACHE_MODES = ("dynamic", "static", "static_compile")
+
+
+def check_cache(cache: str) -> str:
+    """``cache`` if it names one of :data:`CACHE_MODES`, else a :class:`TrainingSetupError` naming it."""
+    if cache not in CACHE_MODES:
+        raise TrainingSetupError(f"generation cache {cache!r}: expected one of {', '.join(CACHE_MODES)}")
+    return cache
+
+
+def cache_generate_kwargs(cache: str, device: str | torch.device = "cpu",
+                          max_cache_len: int | None = None) -> dict:
+    """``model.generate`` keyword arguments for a :data:`CACHE_MODES` entry.
+
+    ``max_cache_len`` (tokens: longest prompt + max_new_tokens) sizes a static cache for every call.
+    """
+    check_cache(cache)
+    if cache == "dynamic":
+        return {"cache_implementation": "dynamic"}
+    kwargs: dict = {"cache_implementation": "static"}
+    if max_cache_len is not None:
+        kwargs["max_cache_len"] = int(max_cache_len)
+    if cache == "static":
+        kwargs["disable_compile"] = True  # transformers compiles a static-cache decode on CUDA by default
+        return kwargs
+    from transformers import CompileConfig
+
+    config = CompileConfig()
+    if torch.device(device).type != "cuda":
+        # transformers compiles on CUDA/XPU only unless told; honour an explicit request elsewhere
+        config._compile_all_devices = True
+    kwargs["compile_config"] = config
+    kwargs["disable_compile"] = False
+    return kwargs
 
 
 def load_for_generation(model_path: str | Path, device: str | torch.device | None = None,
@@ -51,46 +99,75 @@ def _render(tokenizer: PreTrainedTokenizerBase, prompt: str, chat_format: bool) 
 
 
 @torch.no_grad()
-def generate_with(model: PreTrainedModel, tokenizer: PreTrainedTokenizerBase, prompts: Sequence[str], *,
-                  chat_format: bool = False, max_new_tokens: int = 1024, batch_size: int = 16,
-                  do_sample: bool = False, temperature: float = 1.0, seed: int = 0) -> list[str]:
-    """Completions (decoded, special tokens dropped) of ``prompts`` with a loaded model, in input order."""
+def generate_token_ids(model: PreTrainedModel, tokenizer: PreTrainedTokenizerBase, prompts: Sequence[str], *,
+                       chat_format: bool = False, max_new_tokens: int = 1024, batch_size: int = 16,
+                       do_sample: bool = False, temperature: float = 1.0, seed: int = 0,
+                       cache: str = "dynamic", min_new_tokens: int | None = None) -> list[list[int]]:
+    """Completion token ids of ``prompts`` (prompt and left padding cut off; each row is
+    ``max_new_tokens`` long or ends in EOS + pad), in input order.
+
+    ``cache``: one of :data:`CACHE_MODES`. ``min_new_tokens`` forbids EOS before that many tokens
+    (benchmarks force equal lengths with it).
+    """
     if batch_size < 1 or max_new_tokens < 1:
         raise ValueError(f"batch_size and max_new_tokens must be >= 1, got {batch_size}, {max_new_tokens}")
+    check_cache(cache)
     torch.manual_seed(seed)
     device = next(model.parameters()).device
     texts = [_render(tokenizer, p, chat_format) for p in prompts]
     order = sorted(range(len(texts)), key=lambda i: len(texts[i]))
-    out: list[str] = [""] * len(texts)
+    out: list[list[int]] = [[] for _ in texts]
     tokenizer.padding_side = "left"
-    for start in range(0, len(order), batch_size):
-        idx = order[start:start + batch_size]
-        enc = tokenizer([texts[i] for i in idx], return_tensors="pt", padding=True,
-                        add_special_tokens=False).to(device)
-        kwargs = {"do_sample": do_sample, "max_new_tokens": max_new_tokens,
-                  "pad_token_id": tokenizer.pad_token_id, "eos_token_id": tokenizer.eos_token_id}
-        if do_sample:
-            kwargs["temperature"] = temperature
+    encoded = [tokenizer([texts[i] for i in order[start:start + batch_size]], return_tensors="pt",
+                         padding=True, add_special_tokens=False)
+               for start in range(0, len(order), batch_size)]
+    longest = max((enc["input_ids"].shape[1] for enc in encoded), default=0)
+    kwargs = {"do_sample": do_sample, "max_new_tokens": max_new_tokens,
+              "pad_token_id": tokenizer.pad_token_id, "eos_token_id": tokenizer.eos_token_id,
+              **cache_generate_kwargs(cache, device, max_cache_len=longest + max_new_tokens)}
+    if do_sample:
+        kwargs["temperature"] = temperature
+    if min_new_tokens is not None:
+        kwargs["min_new_tokens"] = int(min_new_tokens)
+    for k, enc in enumerate(encoded):
+        idx = order[k * batch_size:(k + 1) * batch_size]
+        enc = enc.to(device)
         ids = model.generate(**enc, **kwargs)[:, enc["input_ids"].shape[1]:]
-        for i, row in zip(idx, ids):
-            out[i] = tokenizer.decode(row, skip_special_tokens=True)
+        for i, row in zip(idx, ids.tolist()):
+            out[i] = row
     return out
+
+
+def generate_with(model: PreTrainedModel, tokenizer: PreTrainedTokenizerBase, prompts: Sequence[str], *,
+                  chat_format: bool = False, max_new_tokens: int = 1024, batch_size: int = 16,
+                  do_sample: bool = False, temperature: float = 1.0, seed: int = 0,
+                  cache: str = "dynamic") -> list[str]:
+    """Completions (decoded, special tokens dropped) of ``prompts`` with a loaded model, in input order.
+
+    ``cache``: the KV cache, one of :data:`CACHE_MODES` (module docstring).
+    """
+    ids = generate_token_ids(model, tokenizer, prompts, chat_format=chat_format,
+                             max_new_tokens=max_new_tokens, batch_size=batch_size, do_sample=do_sample,
+                             temperature=temperature, seed=seed, cache=cache)
+    return [tokenizer.decode(row, skip_special_tokens=True) for row in ids]
 
 
 def generate(model_path: str | Path, prompts: Sequence[str], *, max_new_tokens: int = 1024,
              batch_size: int | None = None, do_sample: bool = False, temperature: float = 1.0, seed: int = 0,
-             device: str | torch.device | None = None, dtype: str | None = None) -> list[str]:
+             device: str | torch.device | None = None, dtype: str | None = None,
+             cache: str = "dynamic") -> list[str]:
     """Completions of ``prompts`` by the checkpoint at ``model_path`` (greedy unless ``do_sample``).
 
     ``prompts`` are CTRC prompt strings (``physcene.ctrc.build_prompt``); chat-format checkpoints get
     them wrapped in a user turn. ``batch_size`` defaults to the checkpoint's ``eval_batch_size``
     (its training config's ``eval.batch_size``; 16 for foreign checkpoints). Returns one completion
-    string per prompt, in order.
+    string per prompt, in order. ``cache``: the KV cache, one of :data:`CACHE_MODES`.
     """
+    check_cache(cache)
     if dtype is not None:
         torch_dtype(dtype)  # validate early
     model, tokenizer, info = load_for_generation(model_path, device=device, dtype=dtype)
     batch_size = batch_size or int(info.get("eval_batch_size", 16))
     return generate_with(model, tokenizer, prompts, chat_format=bool(info.get("chat_format", False)),
                          max_new_tokens=max_new_tokens, batch_size=batch_size, do_sample=do_sample,
-                         temperature=temperature, seed=seed)
+                         temperature=temperature, seed=seed, cache=cache)

@@ -71,6 +71,9 @@ class PADAConfig(GRPOConfig):
         metadata={"help": "JSON keys whose numeric values the PADA* mask removes from the CE."})
     beta: float = field(default=0.04, metadata={"help": "Initial KL coefficient (AdaptiveKLCallback)."})
     num_generations: int | None = field(default=4, metadata={"help": "Group size G."})
+    generation_compile: bool = field(
+        default=False, metadata={"help": "Compile the decoding forward of a static-cache generation "
+                                         "(pada.cache=static_compile); TRL itself always disables it."})
 
 
 def numeric_spans(text: str, keys: tuple[str, ...] | list[str] = GEOMETRY_KEYS) -> list[tuple[int, int]]:
@@ -117,6 +120,14 @@ class PADATrainer(GRPOTrainer):
             args = PADAConfig("pada")
         super().__init__(model, reward_funcs, args=args, **kwargs)
         self.anchor_alpha = float(args.anchor_alpha)
+        if args.generation_compile and getattr(self, "generation_config", None) is not None:
+            # TRL builds its GenerationConfig with disable_compile=True; pada.cache=static_compile turns
+            # HF's compiled static-cache decoding back on (same CompileConfig as physcene.train.generate).
+            from physcene.train.generate import cache_generate_kwargs
+
+            compiled = cache_generate_kwargs("static_compile", self.accelerator.device)
+            self.generation_config.disable_compile = False
+            self.generation_config.compile_config = compiled["compile_config"]
 
     def _set_signature_columns_if_needed(self):
         super()._set_signature_columns_if_needed()
@@ -242,8 +253,11 @@ def pada_arguments(cfg, variant: str) -> PADAConfig:
 
     if variant not in VARIANTS:
         raise ValueError(f"unknown PADA variant {variant!r}; use one of {sorted(VARIANTS)}")
+    from physcene.train.generate import check_cache
+
     p = cfg.pada
     column, numeric_mask = VARIANTS[variant]
+    cache = check_cache(str(p.get("cache", "dynamic")))
     deepspeed = OmegaConf.to_container(p.deepspeed, resolve=True) if p.deepspeed is not None else None
     return PADAConfig(
         output_dir=str(p.output_dir),
@@ -254,6 +268,9 @@ def pada_arguments(cfg, variant: str) -> PADAConfig:
         num_generations=int(p.num_generations),
         max_completion_length=int(p.max_completion_length),
         temperature=float(p.temperature),
+        # TRL passes it to GenerationConfig (HF generate, use_vllm=False); None = HF's dynamic cache
+        cache_implementation=None if cache == "dynamic" else "static",
+        generation_compile=cache == "static_compile",
         learning_rate=float(p.learning_rate),
         lr_scheduler_type=str(p.lr_scheduler_type),
         num_train_epochs=float(p.epochs),

@@ -25,7 +25,7 @@ import numpy as np
 import torch
 
 NAME = "bench"
-HELP = "Throughput benchmarks (targets: reward, tto)"
+HELP = "Throughput benchmarks (targets: reward, tto, generate)"
 
 __all__ = ["TARGETS", "BenchTarget", "bench_scenes", "bench_target", "timed"]
 
@@ -38,6 +38,8 @@ class BenchTarget:
     """run(args) -> a JSON-able dict of figures."""
     summary: Callable[[dict], str]
     """Human-readable lines of the figures."""
+    repeat: tuple[int, int] = (20, 3)
+    """Default ``--repeat`` on (CUDA, CPU)."""
 
 
 TARGETS: dict[str, BenchTarget] = {}
@@ -299,6 +301,17 @@ def _tto_target() -> BenchTarget:
 TARGETS["tto"] = _tto_target()
 
 
+def _generate_target() -> BenchTarget:
+    from physcene.commands import _bench_generate  # issue 8: KV-cache variants of batched generation
+
+    return BenchTarget("Batched greedy generation: dynamic vs static vs static+compile KV cache",
+                       _bench_generate.add_arguments, _bench_generate.run, _bench_generate.summary,
+                       repeat=(3, 2))
+
+
+TARGETS["generate"] = _generate_target()
+
+
 def add_arguments(parser) -> None:
     sub = parser.add_subparsers(dest="target", metavar="TARGET")
     sub.required = True
@@ -307,7 +320,7 @@ def add_arguments(parser) -> None:
         p.add_argument("--device", default="cpu", help="cpu (default), cuda, cuda:N")
         p.add_argument("--json", action="store_true", help="print the figures as one JSON object")
         p.add_argument("--repeat", type=int, default=None,
-                       help="timed calls per figure (median); default 20 on CUDA, 3 on CPU")
+                       help="timed calls per figure (median); default per target (reward: 20 CUDA, 3 CPU)")
         target.add_arguments(p)
 
 
@@ -315,9 +328,9 @@ def run(args) -> int:
     device = torch.device(args.device)
     if device.type == "cuda" and not torch.cuda.is_available():
         raise ValueError(f"--device {args.device}: CUDA is not available on this machine")
-    if args.repeat is None:
-        args.repeat = 20 if device.type == "cuda" else 3
     target = TARGETS[args.target]
+    if args.repeat is None:
+        args.repeat = target.repeat[0] if device.type == "cuda" else target.repeat[1]
     result = target.run(args)
     print(json.dumps(result, indent=1) if args.json else target.summary(result))
     return 0

@@ -1,0 +1,198 @@
+"""KV-cache modes of batched generation (issue 8): dynamic == static greedy ids, the cache knob reaches
+``model.generate`` from generate_with, anchors, eval and PADA, and ``physcene bench generate`` runs."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+import torch
+from datasets import Dataset
+from physcene.train.generate import (
+    CACHE_MODES,
+    cache_generate_kwargs,
+    generate_token_ids,
+    generate_with,
+)
+from physcene.train.models import TrainingSetupError, build_scratch_model
+from physcene.train.tokenizer import build_tokenizer
+
+from physcene.config import load_config
+from physcene.data import synthesize
+
+ARCH = dict(hidden_size=48, intermediate_size=96, num_hidden_layers=2, num_attention_heads=4,
+            num_key_value_heads=2, head_dim=12, max_position_embeddings=2048)
+
+
+@pytest.fixture(autouse=True)
+def one_thread():
+    old = torch.get_num_threads()
+    torch.set_num_threads(1)  # two busy shared cores
+    yield
+    torch.set_num_threads(old)
+
+
+@pytest.fixture(scope="module")
+def records():
+    return list(synthesize("train", n=8))
+
+
+@pytest.fixture(scope="module")
+def tokenizer(records):
+    texts = [r["prompt"] for r in records] + [r["completion"] for r in records]
+    return build_tokenizer(texts, vocab_size=320)
+
+
+@pytest.fixture(scope="module")
+def model(tokenizer):
+    return build_scratch_model(ARCH, tokenizer, seed=3).eval()
+
+
+def _prompts(records, tokenizer) -> list[str]:
+    """Three CTRC prompts of different token lengths (one shortened) -> real left padding."""
+    prompts = [records[0]["prompt"], records[1]["prompt"][:300], records[2]["prompt"]]
+    lengths = {len(tokenizer(p, add_special_tokens=False)["input_ids"]) for p in prompts}
+    assert len(lengths) == 3
+    return prompts
+
+
+@pytest.mark.parametrize("min_new", [None, 12])
+def test_static_cache_gives_the_dynamic_cache_greedy_ids(model, tokenizer, records, min_new):
+    prompts = _prompts(records, tokenizer)
+    # batch_size 2 over 3 prompts: a padded batch of 2, then a batch of 1 reusing the static cache size
+    out = {cache: generate_token_ids(model, tokenizer, prompts, max_new_tokens=12, batch_size=2,
+                                     cache=cache, min_new_tokens=min_new)
+           for cache in ("dynamic", "static")}
+    assert out["static"] == out["dynamic"]
+    assert all(len(row) == 12 for row in out["dynamic"])
+    # the same ids one prompt at a time (no padding): left padding does not change greedy output
+    single = [generate_token_ids(model, tokenizer, [p], max_new_tokens=12, cache="dynamic",
+                                 min_new_tokens=min_new)[0] for p in prompts]
+    assert single == out["dynamic"]
+    if min_new is not None:
+        assert all(tokenizer.eos_token_id not in row for row in out["dynamic"])
+    else:  # generate_with is the decode of the same ids
+        texts = generate_with(model, tokenizer, prompts, max_new_tokens=12, batch_size=2, cache="static")
+        assert texts == [tokenizer.decode(r, skip_special_tokens=True) for r in out["dynamic"]]
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="static_compile: torch.compile takes ~10-20 s "
+                    "per graph on 2 CPU cores; checked on CUDA (and by `physcene bench generate` on CPU)")
+def test_static_compile_gives_the_dynamic_ids_on_cuda(tokenizer, records):
+    model = build_scratch_model(ARCH, tokenizer, seed=3).cuda().eval()
+    prompts = _prompts(records, tokenizer)
+    out = {cache: generate_token_ids(model, tokenizer, prompts, max_new_tokens=16, batch_size=2, cache=cache,
+                                     min_new_tokens=16) for cache in CACHE_MODES}
+    assert out["static"] == out["dynamic"] and out["static_compile"] == out["dynamic"]
+
+
+def test_cache_kwargs_and_bad_names():
+    assert cache_generate_kwargs("dynamic") == {"cache_implementation": "dynamic"}
+    static = cache_generate_kwargs("static", max_cache_len=100)
+    assert static == {"cache_implementation": "static", "max_cache_len": 100, "disable_compile": True}
+    compiled = cache_generate_kwargs("static_compile", "cpu")
+    assert compiled["cache_implementation"] == "static" and compiled["disable_compile"] is False
+    assert compiled["compile_config"]._compile_all_devices  # an explicit request is honoured on CPU
+    with pytest.raises(TrainingSetupError, match="'paged'"):
+        cache_generate_kwargs("paged")
+
+
+class _Recorder:
+    """Stands in for ``model.generate``: records its keyword arguments, returns prompt + 3 pad ids."""
+
+    def __init__(self, model, pad: int):
+        self.calls, self.model, self.pad = [], model, pad
+
+    def __call__(self, input_ids, attention_mask, **kwargs):
+        self.calls.append(kwargs)
+        return torch.cat([input_ids, torch.full((input_ids.shape[0], 3), self.pad)], 1)
+
+
+def test_the_cache_knob_reaches_model_generate(model, tokenizer, records, monkeypatch):
+    prompts = _prompts(records, tokenizer)
+    rec = _Recorder(model, tokenizer.pad_token_id)
+    monkeypatch.setattr(model, "generate", rec)
+    generate_with(model, tokenizer, prompts, max_new_tokens=7, batch_size=2, cache="static")
+    longest = max(len(tokenizer(p, add_special_tokens=False)["input_ids"]) for p in prompts)
+    assert len(rec.calls) == 2
+    for kw in rec.calls:  # one cache size for every batch: no reallocation, no recompilation
+        assert kw["cache_implementation"] == "static" and kw["disable_compile"] is True
+        assert kw["max_cache_len"] == longest + 7 and kw["max_new_tokens"] == 7
+    with pytest.raises(TrainingSetupError, match="generation cache 'fast'"):
+        generate_with(model, tokenizer, prompts, cache="fast")
+
+
+def test_anchors_cache_reaches_generate_with(tmp_path, monkeypatch, model, tokenizer):
+    import physcene.train.generate as train_generate
+    from physcene.train.anchors import run_anchors
+
+    seen = []
+
+    def fake_generate_with(model, tokenizer, prompts, **kw):
+        seen.append(kw)
+        return ["not a layout"] * len(prompts)
+
+    monkeypatch.setattr(train_generate, "load_for_generation",
+                        lambda path, device=None: (model, tokenizer, {}))
+    monkeypatch.setattr(train_generate, "generate_with", fake_generate_with)
+    cfg = load_config("train_tiny", [f"output_dir={tmp_path}", "anchors.n_records=2",
+                                     "anchors.cache=static_compile", "data.train=synth:train:2"])
+    run_anchors(cfg)
+    assert seen and seen[0]["cache"] == "static_compile"
+
+
+def test_eval_cache_reaches_the_model_generator(monkeypatch):
+    import physcene.train.generate as train_generate
+    from physcene.eval.harness import generate, load_benchmark
+
+    items = load_benchmark("test", n=1, progress=False)
+    seen = {}
+
+    def fake_generate(path, prompts, **kw):
+        seen.update(kw)
+        return ["not a layout"] * len(prompts)
+
+    monkeypatch.setattr(train_generate, "generate", fake_generate)
+    generate(items, "model:runs/x", progress=False, cache="static")
+    assert seen["cache"] == "static"
+    assert load_config("eval").cache == "dynamic"
+    for name in ("tiny", "small", "qwen3_vl_8b"):
+        cfg = load_config(f"train_{name}")
+        assert cfg.eval.cache == cfg.anchors.cache == cfg.pada.cache == "dynamic"
+
+
+def test_pada_cache_reaches_trl_generation_config(tmp_path, tokenizer):
+    from physcene.train.pada import PADAConfig, PADATrainer, pada_arguments
+
+    cfg = load_config("train_tiny", [f"output_dir={tmp_path}"])
+    assert pada_arguments(cfg, "pada").cache_implementation is None
+    for cache, compiled in (("static", False), ("static_compile", True)):
+        overrides = [f"output_dir={tmp_path}", f"pada.cache={cache}"]
+        args = pada_arguments(load_config("train_tiny", overrides), "pada")
+        assert args.cache_implementation == "static" and args.generation_compile is compiled
+    with pytest.raises(TrainingSetupError, match="'bogus'"):
+        pada_arguments(load_config("train_tiny", ["pada.cache=bogus"]), "pada")
+    model = build_scratch_model(ARCH, tokenizer)
+    args = PADAConfig(output_dir=str(tmp_path), num_generations=2, per_device_train_batch_size=2,
+                      max_completion_length=8, use_cpu=True, report_to="none", beta=0.0,
+                      cache_implementation="static", generation_compile=True)
+    trainer = PADATrainer(model, reward_funcs=[lambda prompts, completions, **kw: [0.0] * len(prompts)],
+                          args=args, train_dataset=Dataset.from_list([{"prompt": "a pen", "anchor": ""}] * 2),
+                          processing_class=tokenizer)
+    g = trainer.generation_config
+    assert g.cache_implementation == "static" and g.disable_compile is False and g.compile_config is not None
+
+
+def test_bench_generate_runs_at_tiny_sizes(capsys):
+    from physcene.cli import main
+
+    assert main(["bench", "generate", "--config", "tiny", "--batch", "2", "--tokens", "8", "--repeat", "1",
+                 "--variants", "dynamic", "static", "--json"]) == 0
+    r = json.loads(capsys.readouterr().out)
+    assert r["target"] == "generate" and r["batch"] == 2 and r["tokens"] == 8 and r["reference"] == "dynamic"
+    for name in ("dynamic", "static"):
+        v = r["variants"][name]
+        assert v["equal"] and v["equal_rows"] == 1.0 and v["first_diff_step"] is None
+        assert v["ms_per_step"] > 0 and v["tokens_per_s"] == pytest.approx(16 / v["seconds"])
+    assert main(["bench", "generate", "--config", "tiny", "--batch", "0"]) == 2
+    assert "--batch 0" in capsys.readouterr().err
