@@ -354,6 +354,36 @@ def scan_number(text: wp.array(dtype=wp.uint8), p: int, end: int):
 
 
 @wp.func
+def scan_number_array(text: wp.array(dtype=wp.uint8), p: int, end: int, out: wp.array2d(dtype=wp.float64),
+                      row: int, cap: int):
+    """The numbers of a JSON array whose '[' is just before p: (position after its ']', count,
+    status); the first ``cap`` values go to out[row, 0:cap]. Status 0, or a negative code
+    (scan_number's, or -2 for a malformed array)."""
+    n = int(0)
+    p = skip_ws(text, p, end)
+    if p < end and int(text[p]) == 93:
+        return p + 1, n, int(0)
+    while True:
+        p = skip_ws(text, p, end)
+        q, v, kind, st = scan_number(text, p, end)
+        if st != 0:
+            return p, n, st
+        if n < cap:
+            out[row, n] = v
+        n += 1
+        p = skip_ws(text, q, end)
+        if p >= end:
+            return p, n, _S_SYNTAX
+        b = int(text[p])
+        p += 1
+        if b == 93:
+            return p, n, int(0)
+        if b != 44:
+            return p, n, _S_SYNTAX
+    return p, n, _S_SYNTAX
+
+
+@wp.func
 def match_word(text: wp.array(dtype=wp.uint8), s: int, n: int, words: wp.array(dtype=wp.uint8),
                word_start: wp.array(dtype=wp.int32), first: int, last: int):
     """Index in [first, last) of the known word equal to text[s:s+n] (length, then bytes), or -1."""
@@ -514,30 +544,10 @@ def entries(text: wp.array(dtype=wp.uint8), offsets: wp.array(dtype=wp.int32),
             p = q
         elif b == 91:
             kind = V_ARRAY
-            p = skip_ws(text, p + 1, end)
-            if p < end and int(text[p]) == 93:
-                p += 1
-            else:
-                while True:
-                    p = skip_ws(text, p, end)
-                    q, av, akind, st = scan_number(text, p, end)
-                    if st != 0:
-                        e_stat[s] = st
-                        return
-                    if an < 8:
-                        arr[s, an] = av
-                    an += 1
-                    p = skip_ws(text, q, end)
-                    if p >= end:
-                        e_stat[s] = _S_SYNTAX
-                        return
-                    b = int(text[p])
-                    p += 1
-                    if b == 93:
-                        break
-                    if b != 44:
-                        e_stat[s] = _S_SYNTAX
-                        return
+            p, an, st = scan_number_array(text, p + 1, end, arr, s, 8)
+            if st != 0:
+                e_stat[s] = st
+                return
         elif b == 45 or (b >= 48 and b <= 57):
             q, v, kind, st = scan_number(text, p, end)
             if st != 0:

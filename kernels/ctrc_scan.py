@@ -69,7 +69,7 @@ from physcene.kernels.ctrc_lex import (
     n_candidates,
     prescan,
     same_bytes,
-    scan_number,
+    scan_number_array,
     scan_string,
     skip_ws,
     wrap_angle,
@@ -164,31 +164,10 @@ def walk(text: wp.array(dtype=wp.uint8), offsets: wp.array(dtype=wp.int32),
             return
         p += 1
         if key == K_ZONE:
-            n = int(0)
-            p = skip_ws(text, p, end)
-            if p < end and int(text[p]) == 93:
-                p += 1
-            else:
-                while True:
-                    p = skip_ws(text, p, end)
-                    q, v, kind, st = scan_number(text, p, end)
-                    if st != 0:
-                        status[c] = st
-                        return
-                    if n < 4:
-                        out_zone[c, n] = v
-                    n += 1
-                    p = skip_ws(text, q, end)
-                    if p >= end:
-                        status[c] = _S_SYNTAX
-                        return
-                    b = int(text[p])
-                    p += 1
-                    if b == 93:
-                        break
-                    if b != 44:
-                        status[c] = _S_SYNTAX
-                        return
+            p, n, st = scan_number_array(text, p, end, out_zone, c, 4)
+            if st != 0:
+                status[c] = st
+                return
             if n != 4:
                 status[c] = _S_ZONE
                 return
