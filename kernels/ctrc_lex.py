@@ -354,6 +354,23 @@ def scan_number(text: wp.array(dtype=wp.uint8), p: int, end: int):
 
 
 @wp.func
+def after_value(text: wp.array(dtype=wp.uint8), p: int, end: int, close: int):
+    """The step after a value inside a JSON array or object closed by byte ``close`` (93 ']',
+    125 '}'): (position after the ',' or the close, 1 if it closed, 0 if a ',' follows, or
+    -2 when neither comes)."""
+    p = skip_ws(text, p, end)
+    if p >= end:
+        return p, _S_SYNTAX
+    b = int(text[p])
+    p += 1
+    if b == close:
+        return p, int(1)
+    if b != 44:
+        return p, _S_SYNTAX
+    return p, int(0)
+
+
+@wp.func
 def scan_number_array(text: wp.array(dtype=wp.uint8), p: int, end: int, out: wp.array2d(dtype=wp.float64),
                       row: int, cap: int):
     """The numbers of a JSON array whose '[' is just before p: (position after its ']', count,
@@ -371,15 +388,11 @@ def scan_number_array(text: wp.array(dtype=wp.uint8), p: int, end: int, out: wp.
         if n < cap:
             out[row, n] = v
         n += 1
-        p = skip_ws(text, q, end)
-        if p >= end:
-            return p, n, _S_SYNTAX
-        b = int(text[p])
-        p += 1
-        if b == 93:
+        p, sep = after_value(text, q, end, 93)
+        if sep == 1:
             return p, n, int(0)
-        if b != 44:
-            return p, n, _S_SYNTAX
+        if sep < 0:
+            return p, n, sep
     return p, n, _S_SYNTAX
 
 
@@ -638,16 +651,11 @@ def entries(text: wp.array(dtype=wp.uint8), offsets: wp.array(dtype=wp.int32),
                         ent_f[s, 8 + k] = arr[s, k]
             else:
                 bbox_n = int(-1)
-        p = skip_ws(text, p, end)
-        if p >= end:
-            e_stat[s] = _S_SYNTAX
-            return
-        b = int(text[p])
-        p += 1
-        if b == 125:
+        p, sep = after_value(text, p, end, 125)
+        if sep == 1:
             break
-        if b != 44:
-            e_stat[s] = _S_SYNTAX
+        if sep < 0:
+            e_stat[s] = sep
             return
     # end of entry: zone entry or object?
     e_end[s] = p

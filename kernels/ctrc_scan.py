@@ -60,6 +60,7 @@ from physcene.kernels.ctrc_lex import (
     MAX_ENTRIES,
     STATUS,
     TOP_KEYS,
+    after_value,
     category_hash,
     emit,
     entries,
@@ -218,28 +219,18 @@ def walk(text: wp.array(dtype=wp.uint8), offsets: wp.array(dtype=wp.int32),
                     ent_i[slot, 0] = -1
                     ent_i[slot, 6] = 0
                     n_obj += 1
-                p = skip_ws(text, p, end)
-                if p >= end:
-                    status[c] = _S_SYNTAX
-                    return
-                b = int(text[p])
-                p += 1
-                if b == 93:
+                p, sep = after_value(text, p, end, 93)
+                if sep == 1:
                     break
-                if b != 44:
-                    status[c] = _S_SYNTAX
+                if sep < 0:
+                    status[c] = sep
                     return
-        p = skip_ws(text, p, end)
-        if p >= end:
-            status[c] = _S_SYNTAX
-            return
-        b = int(text[p])
-        p += 1
+        p, sep = after_value(text, p, end, 125)
         first_key = int(0)
-        if b == 125:
+        if sep == 1:
             break
-        if b != 44:
-            status[c] = _S_SYNTAX
+        if sep < 0:
+            status[c] = sep
             return
     if (top_seen & 1) == 0:
         status[c] = _S_KEY  # no "objects": Python keeps searching the text
