@@ -67,9 +67,13 @@ def test_tiny_pipeline_end_to_end(tmp_path, one_thread):
     anchors_path = run_anchors(cfg)
     rows = load_records(str(anchors_path))
     assert [r["id"] for r in rows] == [r["id"] for r in train]
-    assert all({"anchor", "anchor_raw", "anchor_parse_error"} <= set(r) for r in rows)
+    assert all({"anchor", "anchor_raw", "anchor_parse_error", "sft_completion"} <= set(r) for r in rows)
+    # each row either ended with EOS within the 32 new tokens or was cut at exactly 32
+    assert all(1 <= r["sft_tokens"] <= 32 for r in rows)
+    assert all(r["sft_tokens"] == 32 for r in rows if r["sft_truncated"])
     summary = json.loads(anchors_path.with_suffix(".summary.json").read_text())
     assert summary["n"] == 12 and 0.0 <= summary["parse_rate"] <= 1.0
+    assert summary["tokens_max"] <= 32 and 0.0 <= summary["truncated_rate"] <= 1.0
 
     # Anchors through the same TTO path from the noisy reference completions (SFT-like, colliding).
     rows = anchor_records(train, [r["completion"] for r in train], tto_config=TTOConfig.from_config(TTO_FAST),

@@ -283,3 +283,13 @@ def test_reward_function_on_the_rank_device_matches_cpu():
     cpu = PhysicsRewardFunction("cpu")(None, texts)
     assert gpu == pytest.approx(cpu, rel=1e-4, abs=1e-4) and gpu[-1] == -100.0
     assert logged["parse_rate"] == pytest.approx(6 / 7) and logged["penetration_mm"] >= 0
+
+
+def test_completion_length_tells_truncated_rows_from_finished_ones():
+    from physcene.train.anchors import completion_length
+
+    class Tok:
+        eos_token_id = 7
+
+    assert completion_length([3, 4, 7, 0, 0], Tok()) == (3, False)  # EOS then padding
+    assert completion_length([3, 4, 5], Tok()) == (3, True)         # cut at max_new_tokens

@@ -8,6 +8,9 @@ constrained TTO (``physcene.tto.repair``); the repaired scene is written back as
 - ``anchor``: the TTO-repaired completion (PADA's target), ``""`` when the SFT output did not parse;
 - ``anchor_raw``: the raw SFT completion (PADA*'s target), ``""`` when it did not parse;
 - ``anchor_parse_error``: the parser's reason, or ``""``;
+- ``sft_completion``: the raw SFT completion, parsed or not (what a failed parse looked like);
+- ``sft_tokens`` / ``sft_truncated``: its length in tokens and whether it hit ``max_new_tokens``
+  without EOS (a model that loops is told apart from one that writes a wrong but finished layout);
 - ``anchor_energy_before`` / ``anchor_energy_after``: penetration energy (cm) before and after TTO.
 
 On N processes (``accelerate launch``) each rank generates and repairs a contiguous shard on its
@@ -22,7 +25,7 @@ from pathlib import Path
 from omegaconf import DictConfig
 from physcene.train.records import load_records, write_records
 
-__all__ = ["anchor_records", "anchor_summary", "run_anchors"]
+__all__ = ["anchor_records", "anchor_summary", "completion_length", "run_anchors"]
 
 
 def _record_zone(record: dict):
@@ -39,16 +42,19 @@ def _record_zone(record: dict):
 
 
 def anchor_records(records: list[dict], completions: list[str], *, tto_config=None, engine=None,
-                   decimals: int | None = None) -> list[dict]:
+                   decimals: int | None = None, lengths: list[tuple[int, bool]] | None = None) -> list[dict]:
     """``records`` with the anchor columns filled from the SFT ``completions`` (one per record).
 
-    All parsed layouts are repaired in one batched TTO call.
+    All parsed layouts are repaired in one batched TTO call. ``lengths``: (tokens, truncated) per
+    completion, from the generator, written as ``sft_tokens``/``sft_truncated``.
     """
     from physcene.ctrc import ParseError, completion_text, parse
     from physcene.tto import repair
 
     if len(records) != len(completions):
         raise ValueError(f"{len(records)} records but {len(completions)} completions")
+    if lengths is not None and len(lengths) != len(completions):
+        raise ValueError(f"{len(completions)} completions but {len(lengths)} lengths")
     scenes, errors = [], []
     for r, text in zip(records, completions):
         scene = parse(text, zone=_record_zone(r), scene_type=str(r.get("scene_type", "")),
@@ -68,6 +74,9 @@ def anchor_records(records: list[dict], completions: list[str], *, tto_config=No
         row["anchor_parse_error"] = errors[i]
         row["anchor_energy_before"] = float(res.energy_before) if res is not None else None
         row["anchor_energy_after"] = float(res.energy_after) if res is not None else None
+        row["sft_completion"] = text
+        if lengths is not None:
+            row["sft_tokens"], row["sft_truncated"] = int(lengths[i][0]), bool(lengths[i][1])
         out.append(row)
     return out
 
@@ -80,9 +89,13 @@ def anchor_summary(rows: list[dict]) -> dict:
     mean = (lambda xs: sum(xs) / len(xs) if xs else None)  # noqa: E731
     from physcene.eval.metrics import parse_error_kinds
 
+    tokens = [r["sft_tokens"] for r in rows if r.get("sft_tokens") is not None]
     return {
         "n": len(rows),
         "parse_rate": len(parsed) / max(len(rows), 1),
+        "truncated_rate": mean([float(r["sft_truncated"]) for r in rows if "sft_truncated" in r]),
+        "tokens_mean": mean(tokens),
+        "tokens_max": max(tokens, default=None),
         "parse_error_kinds": parse_error_kinds(r["anchor_parse_error"] for r in rows
                                                if r.get("anchor_parse_error")),
         "energy_before_mean_cm": mean(before),
@@ -90,6 +103,14 @@ def anchor_summary(rows: list[dict]) -> dict:
         "collision_free_before": mean([float(e <= 0.0) for e in before]),
         "collision_free_after": mean([float(e <= 0.0) for e in after]),
     }
+
+
+def completion_length(ids: list[int], tokenizer) -> tuple[int, bool]:
+    """(tokens up to and including EOS, True when no EOS came: the row hit ``max_new_tokens``)."""
+    eos = tokenizer.eos_token_id
+    if eos in ids:
+        return ids.index(eos) + 1, False
+    return len(ids), True
 
 
 def run_anchors(cfg: DictConfig) -> Path:
@@ -100,7 +121,7 @@ def run_anchors(cfg: DictConfig) -> Path:
     """
     from accelerate import PartialState
     from accelerate.utils import gather_object
-    from physcene.train.generate import generate_with, load_for_generation
+    from physcene.train.generate import generate_token_ids, load_for_generation
 
     from physcene.physics import PhysicsEngine
     from physcene.tto import TTOConfig
@@ -117,14 +138,17 @@ def run_anchors(cfg: DictConfig) -> Path:
     indices = list(range(len(records)))
     with state.split_between_processes(indices) as shard:
         model, tokenizer, info = load_for_generation(a.model, device=device)
-        completions = generate_with(model, tokenizer, [records[i]["prompt"] for i in shard],
-                                    chat_format=bool(info.get("chat_format", False)),
-                                    max_new_tokens=int(a.max_new_tokens), batch_size=int(a.batch_size),
-                                    cache=str(a.get("cache", "dynamic")))
+        ids = generate_token_ids(model, tokenizer, [records[i]["prompt"] for i in shard],
+                                 chat_format=bool(info.get("chat_format", False)),
+                                 max_new_tokens=int(a.max_new_tokens), batch_size=int(a.batch_size),
+                                 cache=str(a.get("cache", "dynamic")))
         del model
+        completions = [tokenizer.decode(row, skip_special_tokens=True) for row in ids]
+        lengths = [completion_length(row, tokenizer) for row in ids]
         tto = TTOConfig.from_config([*a.tto, f"device={device}"])
         rows = anchor_records([records[i] for i in shard], completions, tto_config=tto,
-                              engine=PhysicsEngine(device=device), decimals=a.get("decimals"))
+                              engine=PhysicsEngine(device=device), decimals=a.get("decimals"),
+                              lengths=lengths)
     rows = gather_object(rows)  # rank order = shard order = input order
     if state.is_main_process:
         write_records(rows, out)

@@ -316,7 +316,7 @@ def run_pada(cfg, variant: str | None = None, reward=None, callbacks=()) -> Path
     model_dir = Path(str(cfg.pada.model))
     info = read_run_info(model_dir)
     chat = bool(info.get("chat_format", cfg.model.chat_format))
-    records = load_records(str(cfg.pada.anchors))
+    records = load_records(str(cfg.pada.anchors), max_level=cfg.pada.get("max_level"))
     if not records:
         raise ValueError(f"no records in anchor file {cfg.pada.anchors!r}")
     if args.anchor_alpha > 0 and not any(r.get(args.anchor_column) for r in records):
