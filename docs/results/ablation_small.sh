@@ -4,6 +4,8 @@
 #
 #   bash docs/results/ablation_small.sh                       # all GPUs, runs/small, defaults below
 #   NPROC=1 SFT_MIN=30 PADA_MIN=10 bash docs/results/ablation_small.sh   # longer, one GPU
+#   STAGES="synth sft" bash docs/results/ablation_small.sh                # part of it (then the rest:
+#   STAGES="anchors grpo pada_star pada eval" EXTRA="anchors.cache=static" bash ...)
 #
 # Stages resume: rerunning continues SFT from its last checkpoint, keeps a complete anchor file
 # and reuses finished models (`ablation.reuse`). Step times land in each stage's train_log.json.
@@ -18,28 +20,43 @@ ANCHORS=${ANCHORS:-256}
 N_TEST=${N_TEST:-200}
 MAX_TOKENS=${MAX_TOKENS:-4096}      # test-split completions are 914-2,791 tokens
 PADA_BATCH=${PADA_BATCH:-64}        # completions per GPU per step (G = 4 -> 16 prompts)
+PADA_TOKENS=${PADA_TOKENS:-$MAX_TOKENS}  # max_completion_length of PADA generation
 WORKERS=${WORKERS:-$(nproc)}
 LAUNCH=${LAUNCH:-"accelerate launch --config_file configs/accelerate/multi_gpu.yaml --num_processes $NPROC"}
+PADA_LEVEL=${PADA_LEVEL:-null}      # PADA prompts of level <= this only (null: all levels)
+SFT_STEPS=${SFT_STEPS:--1}          # optimizer steps of SFT (-1: the config's epochs)
 EXTRA=${EXTRA:-}                    # more key=value overrides for every stage
+STAGES=${STAGES:-"synth sft anchors grpo pada_star pada eval"}
 
 stamp() { echo "[$(date +%T)] $*"; }
 common="output_dir=$RUN data.train=$DATA eval.max_new_tokens=$MAX_TOKENS anchors.max_new_tokens=$MAX_TOKENS"
-common="$common pada.max_completion_length=$MAX_TOKENS pada.per_device_batch_size=$PADA_BATCH"
-common="$common pada.global_batch_size=$((PADA_BATCH * NPROC)) ablation.n_test=$N_TEST $EXTRA"
+common="$common anchors.n_records=$ANCHORS"  # every stage: the eval stage checks the anchor file is complete
+common="$common pada.max_completion_length=$PADA_TOKENS pada.per_device_batch_size=$PADA_BATCH"
+common="$common pada.global_batch_size=$((PADA_BATCH * NPROC)) pada.max_level=$PADA_LEVEL"
+common="$common ablation.n_test=$N_TEST $EXTRA"
+want() { [[ " $STAGES " == *" $1 "* ]]; }
 
-if [ ! -s "$DATA" ] && [[ "$DATA" != synth:* ]]; then
+if want synth && [ ! -s "$DATA" ] && [[ "$DATA" != synth:* ]]; then
   stamp "synth -> $DATA"
   physcene data synth --split train --out "$(dirname "$DATA")" --workers "$WORKERS"
 fi
-stamp "sft ($NPROC processes, $SFT_MIN min)"
-$LAUNCH -m physcene.cli train sft --config "$CONFIG" $common sft.max_minutes="$SFT_MIN"
-stamp "anchors ($ANCHORS records)"
-$LAUNCH -m physcene.cli train anchors --config "$CONFIG" $common anchors.n_records="$ANCHORS"
+if want sft; then
+  stamp "sft ($NPROC processes, $SFT_MIN min)"
+  $LAUNCH -m physcene.cli train sft --config "$CONFIG" $common sft.max_minutes="$SFT_MIN" sft.max_steps="$SFT_STEPS"
+fi
+if want anchors; then
+  stamp "anchors ($ANCHORS records)"
+  $LAUNCH -m physcene.cli train anchors --config "$CONFIG" $common
+fi
 for variant in grpo pada_star pada; do
+  want "$variant" || continue
   stamp "$variant ($PADA_MIN min)"
   $LAUNCH -m physcene.cli train pada --config "$CONFIG" --variant "$variant" $common pada.max_minutes="$PADA_MIN" \
     || stamp "$variant failed (the ablation retries it within its budget or reports it skipped)"
 done
-stamp "eval ($N_TEST test scenes)"
-$LAUNCH -m physcene.cli train ablation --config "$CONFIG" $common ablation.budget_min="$(python3 -c "print(10 * $PADA_MIN)")"
+if want eval; then
+  stamp "eval ($N_TEST test scenes)"
+  $LAUNCH -m physcene.cli train ablation --config "$CONFIG" $common \
+    ablation.budget_min="$(python3 -c "print(10 * $PADA_MIN)")"
+fi
 stamp done
