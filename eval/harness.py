@@ -120,11 +120,13 @@ def _zero_shot(items: Sequence[BenchmarkItem], url: str, model: str, api_key_env
 
 def generate(items: Sequence[BenchmarkItem], generator: str, *, seed: int = 0, model: str = "gpt-4o",
              api_key_env: str = "PHYSCENE_GENERATOR_API_KEY", max_new_tokens: int = 4096,
-             progress: bool = True, device: str | None = None, cache: str = "dynamic") -> list:
+             progress: bool = True, device: str | None = None, cache: str = "dynamic",
+             constrained: bool = False) -> list:
     """One output per item: a Scene or a ParseError (model output that did not parse).
 
     ``device``: where a ``model:PATH`` generator runs (default: the first GPU, else CPU); ``cache``:
-    its KV cache (``physcene.train.generate.CACHE_MODES``: dynamic, static, static_compile).
+    its KV cache (``physcene.train.generate.CACHE_MODES``: dynamic, static, static_compile);
+    ``constrained``: decode it under the CTRC constraint (``physcene.train.constrained``).
     """
     from physcene.ctrc import ParseError
 
@@ -144,7 +146,7 @@ def generate(items: Sequence[BenchmarkItem], generator: str, *, seed: int = 0, m
         from physcene.ctrc import parse
 
         texts = model_generate(generator[6:], [it.prompt for it in items], max_new_tokens=max_new_tokens,
-                               device=device, cache=cache)
+                               device=device, cache=cache, constrained=constrained)
         out = [parse(t, zone=it.reference.zone) for t, it in zip(texts, items)]
     elif generator.startswith("endpoint:"):
         out = _zero_shot(items, generator[9:], model, api_key_env, progress)
@@ -324,7 +326,8 @@ def run_evaluation(cfg, *, command: str = "", title: str = "physcene evaluation"
         report, outputs = evaluate_method(items, gen, judge, engine=engine, repair=bool(cfg.repair),
                                           tto_overrides=tto_overrides, settle=bool(cfg.settle),
                                           seed=cfg.seed, progress=progress, model=cfg.generator_model,
-                                          cache=str(cfg.get("cache", "dynamic")))
+                                          cache=str(cfg.get("cache", "dynamic")),
+                                          constrained=bool(cfg.get("constrained", False)))
         methods[name] = report
         slug = name.lower().replace(" + ", "_").replace(" ", "_").replace("(", "").replace(")", "")
         if cfg.get("save_layouts", False):  # re-score later with --generator file:<out>/layouts/<slug>

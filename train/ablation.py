@@ -83,7 +83,8 @@ def _evaluate(cfg: DictConfig, models: dict[str, Path], budget_s: float) -> list
         with state.split_between_processes(list(range(len(items)))) as shard:
             part = generate([items[i] for i in shard], f"model:{models[name]}", progress=False,
                             max_new_tokens=int(cfg.eval.max_new_tokens), device=str(state.device),
-                            cache=str(cfg.eval.get("cache", "dynamic")))
+                            cache=str(cfg.eval.get("cache", "dynamic")),
+                            constrained=bool(cfg.eval.get("constrained", False)))
         outputs = gather_object(part)  # rank order = shard order = input order
         if not state.is_main_process:
             continue

@@ -141,7 +141,8 @@ def run_anchors(cfg: DictConfig) -> Path:
         ids = generate_token_ids(model, tokenizer, [records[i]["prompt"] for i in shard],
                                  chat_format=bool(info.get("chat_format", False)),
                                  max_new_tokens=int(a.max_new_tokens), batch_size=int(a.batch_size),
-                                 cache=str(a.get("cache", "dynamic")))
+                                 cache=str(a.get("cache", "dynamic")),
+                                 constrained=bool(a.get("constrained", False)))
         del model
         completions = [tokenizer.decode(row, skip_special_tokens=True) for row in ids]
         lengths = [completion_length(row, tokenizer) for row in ids]

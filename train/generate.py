@@ -102,12 +102,14 @@ def _render(tokenizer: PreTrainedTokenizerBase, prompt: str, chat_format: bool) 
 def generate_token_ids(model: PreTrainedModel, tokenizer: PreTrainedTokenizerBase, prompts: Sequence[str], *,
                        chat_format: bool = False, max_new_tokens: int = 1024, batch_size: int = 16,
                        do_sample: bool = False, temperature: float = 1.0, seed: int = 0,
-                       cache: str = "dynamic", min_new_tokens: int | None = None) -> list[list[int]]:
+                       cache: str = "dynamic", min_new_tokens: int | None = None,
+                       constrained: bool = False) -> list[list[int]]:
     """Completion token ids of ``prompts`` (prompt and left padding cut off; each row is
     ``max_new_tokens`` long or ends in EOS + pad), in input order.
 
     ``cache``: one of :data:`CACHE_MODES`. ``min_new_tokens`` forbids EOS before that many tokens
-    (benchmarks force equal lengths with it).
+    (benchmarks force equal lengths with it). ``constrained``: decode under
+    :class:`physcene.train.constrained.CTRCConstraint` (CTRC grammar + the prompt's Object List).
     """
     if batch_size < 1 or max_new_tokens < 1:
         raise ValueError(f"batch_size and max_new_tokens must be >= 1, got {batch_size}, {max_new_tokens}")
@@ -132,6 +134,12 @@ def generate_token_ids(model: PreTrainedModel, tokenizer: PreTrainedTokenizerBas
     for k, enc in enumerate(encoded):
         idx = order[k * batch_size:(k + 1) * batch_size]
         enc = enc.to(device)
+        if constrained:
+            from physcene.train.constrained import CTRCConstraint
+            from transformers import LogitsProcessorList
+
+            kwargs["logits_processor"] = LogitsProcessorList(
+                [CTRCConstraint(tokenizer, [prompts[i] for i in idx], greedy=not do_sample)])
         ids = model.generate(**enc, **kwargs)[:, enc["input_ids"].shape[1]:]
         for i, row in zip(idx, ids.tolist()):
             out[i] = row
@@ -141,27 +149,29 @@ def generate_token_ids(model: PreTrainedModel, tokenizer: PreTrainedTokenizerBas
 def generate_with(model: PreTrainedModel, tokenizer: PreTrainedTokenizerBase, prompts: Sequence[str], *,
                   chat_format: bool = False, max_new_tokens: int = 1024, batch_size: int = 16,
                   do_sample: bool = False, temperature: float = 1.0, seed: int = 0,
-                  cache: str = "dynamic") -> list[str]:
+                  cache: str = "dynamic", constrained: bool = False) -> list[str]:
     """Completions (decoded, special tokens dropped) of ``prompts`` with a loaded model, in input order.
 
-    ``cache``: the KV cache, one of :data:`CACHE_MODES` (module docstring).
+    ``cache``: the KV cache, one of :data:`CACHE_MODES` (module docstring); ``constrained``: CTRC-
+    constrained decoding (:mod:`physcene.train.constrained`).
     """
     ids = generate_token_ids(model, tokenizer, prompts, chat_format=chat_format,
                              max_new_tokens=max_new_tokens, batch_size=batch_size, do_sample=do_sample,
-                             temperature=temperature, seed=seed, cache=cache)
+                             temperature=temperature, seed=seed, cache=cache, constrained=constrained)
     return [tokenizer.decode(row, skip_special_tokens=True) for row in ids]
 
 
 def generate(model_path: str | Path, prompts: Sequence[str], *, max_new_tokens: int = 1024,
              batch_size: int | None = None, do_sample: bool = False, temperature: float = 1.0, seed: int = 0,
              device: str | torch.device | None = None, dtype: str | None = None,
-             cache: str = "dynamic") -> list[str]:
+             cache: str = "dynamic", constrained: bool = False) -> list[str]:
     """Completions of ``prompts`` by the checkpoint at ``model_path`` (greedy unless ``do_sample``).
 
     ``prompts`` are CTRC prompt strings (``physcene.ctrc.build_prompt``); chat-format checkpoints get
     them wrapped in a user turn. ``batch_size`` defaults to the checkpoint's ``eval_batch_size``
     (its training config's ``eval.batch_size``; 16 for foreign checkpoints). Returns one completion
-    string per prompt, in order. ``cache``: the KV cache, one of :data:`CACHE_MODES`.
+    string per prompt, in order. ``cache``: the KV cache, one of :data:`CACHE_MODES`;
+    ``constrained``: CTRC-constrained decoding (:mod:`physcene.train.constrained`).
     """
     check_cache(cache)
     if dtype is not None:
@@ -170,4 +180,4 @@ def generate(model_path: str | Path, prompts: Sequence[str], *, max_new_tokens: 
     batch_size = batch_size or int(info.get("eval_batch_size", 16))
     return generate_with(model, tokenizer, prompts, chat_format=bool(info.get("chat_format", False)),
                          max_new_tokens=max_new_tokens, batch_size=batch_size, do_sample=do_sample,
-                         temperature=temperature, seed=seed, cache=cache)
+                         temperature=temperature, seed=seed, cache=cache, constrained=constrained)

@@ -1,0 +1,175 @@
+"""CTRC-constrained decoding (train/constrained.py): never blocks a valid completion, repairs the
+failures a small model makes (repeated ids, broken numbers, a missing close), and plugs into HF generate."""
+
+import pytest
+import torch
+from physcene.train.constrained import CTRCConstraint, constraint_rule, listed_instance_ids
+from physcene.train.tokenizer import build_tokenizer
+
+from physcene.ctrc import ParseError, parse
+from physcene.data import synthesize
+
+PROMPT_TAIL = "**Object List**: mirror (1), tray (1), comb (2)\n\nFirst write"
+
+
+@pytest.fixture(scope="module")
+def records():
+    return list(synthesize("train", 6, seed=3))
+
+
+@pytest.fixture(scope="module")
+def tokenizer(records):
+    texts = [r["prompt"] for r in records] + [r["completion"] for r in records]
+    return build_tokenizer(texts, vocab_size=600)
+
+
+def allowed(text: str, listed, candidate: str) -> bool:
+    rule = constraint_rule(text, listed)
+    if rule is None:
+        return True
+    import regex
+
+    return regex.fullmatch(rule[1], rule[0] + candidate, partial=True) is not None
+
+
+def test_listed_ids_follow_the_mesatask_naming(records):
+    assert listed_instance_ids(PROMPT_TAIL) == ["1_mirror_0", "2_tray_0", "3_comb_0", "3_comb_1"]
+    assert listed_instance_ids("no list here") is None
+    for r in records:  # the data's own ids are exactly the listed ones
+        scene = parse(r["completion"])
+        assert sorted(listed_instance_ids(r["prompt"])) == sorted(o.instance_id for o in scene.objects)
+
+
+@pytest.mark.parametrize("greedy", [True, False])
+def test_reference_completions_pass_unchanged(records, tokenizer, greedy):
+    """Fed the true next token as the model's favourite, the processor never masks it out."""
+    vocab = len(tokenizer)
+    for r in records:
+        ids = tokenizer(r["completion"], add_special_tokens=False)["input_ids"] + [tokenizer.eos_token_id]
+        proc = CTRCConstraint(tokenizer, [r["prompt"]], greedy=greedy, top_k=8)
+        prompt = torch.full((1, 3), tokenizer.pad_token_id)
+        for k, t in enumerate(ids):
+            scores = torch.randn(1, vocab)
+            scores[0, t] = 50.0
+            out = proc(torch.cat([prompt, torch.tensor([ids[:k]], dtype=torch.long)], 1), scores)
+            assert out[0, t] == 50.0, (r["id"], repr(proc.texts[0][-60:]), repr(tokenizer.decode([t])))
+        if greedy:  # the first choice was always allowed: no row was ever masked
+            assert proc.masked_steps == 0
+
+
+def test_repeated_instance_id_is_refused():
+    listed = ["1_mirror_0", "2_tray_0", "3_comb_0"]
+    text = ('**Sub-instruction:**\n1. Place 1_mirror_0 at the center.\n\n**Scene Layout:**\n{\n'
+            '  "objects": [\n    {"layer": 0, "instance_id": "root_zone", "type": "zone", '
+            '"bbox": [0.0, 9.0, 0.0, 9.0, 0.0, 0.0], '
+            '"z_rotation": 0.0},\n    {"layer": 1, "instance_id": "1_mirror_0", "category": "mirror", '
+            '"parent_id": "root_zone", "relation_type": "near", "description": "A mirror.", '
+            '"relative_bbox": [1.0, 2.0, 1.0, 2.0, 0.0, 3.0], "relative_rotation_deg": 0.0},\n'
+            '    {"layer": 1, "instance_id":')
+    assert not allowed(text, listed, ' "1_mirror_0"')
+    assert allowed(text, listed, ' "2_tray_0",') and allowed(text, listed, ' "3_co')
+    assert not allowed(text, listed, ' "4_')
+    # category and relation follow the id and the parent
+    entry = text + ' "3_comb_0", "category":'
+    assert allowed(entry, listed, ' "comb"') and not allowed(entry, listed, ' "tray"')
+    parent = entry + ' "comb", "parent_id":'
+    assert allowed(parent, listed, ' "1_mirror_0"') and allowed(parent, listed, ' "root_zone"')
+    assert not allowed(parent, listed, ' "2_tray_0"')  # not placed yet
+    assert not allowed(parent, listed, ' "3_comb_0"')  # itself
+    relation = parent + ' "1_mirror_0", "relation_type":'
+    assert allowed(relation, listed, ' "on"') and not allowed(relation, listed, ' "near"')
+    table = parent + ' "root_zone", "relation_type":'
+    assert allowed(table, listed, ' "near"') and not allowed(table, listed, ' "in"')
+
+
+def test_numbers_and_entry_ends():
+    listed = ["1_mirror_0"]
+    box = '{"layer": 0, "instance_id": "root_zone", "type": "zone", "bbox":'
+    assert allowed(box, listed, " [10.0")
+    assert not allowed(box, listed, " [10.0.")   # 10.0.141
+    assert not allowed(box, listed, " [.7")      # .7.0718
+    assert not allowed(box, listed, " [1.0, , ")
+    assert not allowed(box, listed, " [1.0, 2.0]")  # six numbers, not two
+    rot = '"instance_id": "root_zone", "type": "zone", "z_rotation":'
+    assert allowed(rot, listed, ' 0.0},\n    {"layer": 1, "instance_id":')
+    assert not allowed(rot, listed, " 0.0}\n  ],")  # ids left: the array may not close
+    last = rot.replace("root_zone", "1_mirror_0") + ' 0.0'
+    text = '"instance_id": "root_zone", ' + last
+    assert allowed(text, listed, '}\n  ],\n  "item_placement_zone":')
+    assert not allowed(text, listed, "},")
+    assert not allowed(text, listed, '} 1instance_1')
+
+
+def test_plan_places_each_listed_object_once_then_starts_the_layout():
+    listed = ["1_mirror_0", "2_tray_0"]
+    text = "**Sub-instruction:**\n1. Place 1_mirror_0 at the center of the table.\n2. Place"
+    assert not allowed(text, listed, " 1_mirror_0 ")
+    assert allowed(text, listed, " 2_tray_0 to the left")
+    done = text + " 2_tray_0 to the left of 1_mirror_0."
+    assert not allowed(done, listed, "\n3. Place")
+    assert allowed(done, listed, '\n\n**Scene Layout:**\n{\n  "objects": [\n    {"layer": 0, "instance_id":')
+    early = "**Sub-instruction:**\n1. Place 1_mirror_0 at the center of the table."
+    assert allowed(early, listed, "\n2. Place") and not allowed(early, listed, "\n\n**Scene")
+
+
+def test_left_padded_batches_keep_each_rows_text(records, tokenizer):
+    """Rows of different prompt lengths share one padded prompt length; each row's text is its own."""
+    texts = [r["completion"][:300] for r in records[:3]]
+    ids = [tokenizer(t, add_special_tokens=False)["input_ids"] for t in texts]
+    n = min(len(i) for i in ids)
+    proc = CTRCConstraint(tokenizer, [r["prompt"] for r in records[:3]])
+    prompt = torch.full((3, 5), tokenizer.pad_token_id)
+    for k in range(n + 1):
+        step = torch.tensor([row[:k] for row in ids], dtype=torch.long)
+        proc(torch.cat([prompt, step], 1), torch.zeros(3, len(tokenizer)))
+    assert proc.texts == [tokenizer.decode(row[:n]) for row in ids]
+    with pytest.raises(ValueError, match="3 prompts"):
+        proc(torch.zeros(2, 9, dtype=torch.long), torch.zeros(2, len(tokenizer)))
+
+
+def test_generate_runs_constrained_and_parses_a_forced_completion(records, tokenizer):
+    """HF generate with the processor: a model that always prefers repeating the first entry's id
+    still writes a layout with every listed id once (the processor overrules it)."""
+    from physcene.train.generate import generate_token_ids
+    from physcene.train.models import build_scratch_model
+
+    from physcene.config import load_config
+
+    cfg = load_config("train_tiny")
+    model = build_scratch_model(cfg.model.arch, tokenizer, seed=0, dtype="float32").eval()
+    prompts = [r["prompt"] for r in records[:2]]
+    plain = generate_token_ids(model, tokenizer, prompts, max_new_tokens=12, batch_size=2)
+    same = generate_token_ids(model, tokenizer, prompts, max_new_tokens=12, batch_size=2, constrained=True)
+    assert plain == same  # random text never reaches an anchor: the processor leaves it alone
+
+    # A scripted model: it prefers the text of a completion whose second object repeats the first
+    # one's id (what `small` does), and otherwise the reference completion.
+    r = next(r for r in records if len(listed_instance_ids(r["prompt"])) >= 2)
+    first, second = listed_instance_ids(r["prompt"])[:2]
+    reference = r["completion"]
+    broken = reference.replace(f'"instance_id": "{second}"', f'"instance_id": "{first}"')
+    assert isinstance(parse(broken), ParseError)  # the repeated id alone breaks the layout
+    proc = CTRCConstraint(tokenizer, [r["prompt"]])
+    vocab, text, out = len(tokenizer), "", []
+    for _ in range(2 * len(tokenizer(reference)["input_ids"])):
+        scores = torch.full((1, vocab), -10.0)
+        for script, bonus in ((reference, 5.0), (broken, 10.0)):  # later wins
+            if not script.startswith(text):
+                continue
+            rest = script[len(text):]
+            if not rest:
+                scores[0, tokenizer.eos_token_id] = 100.0
+            for t in range(vocab):
+                piece = proc.token_text[t]
+                if piece and rest.startswith(piece):
+                    scores[0, t] = bonus + len(piece)
+        scores = proc(torch.tensor([[tokenizer.pad_token_id] + out], dtype=torch.long), scores)
+        t = int(scores.argmax())
+        if t == tokenizer.eos_token_id:
+            break
+        out.append(t)
+        text += proc.token_text[t]
+    assert proc.masked_steps >= 1
+    scene = parse(text)
+    assert not isinstance(scene, ParseError), scene
+    assert sorted(o.instance_id for o in scene.objects) == sorted(listed_instance_ids(r["prompt"]))

@@ -1,0 +1,248 @@
+"""CTRC-constrained decoding: a ``LogitsProcessor`` that keeps a completion inside the CTRC grammar.
+
+A language model writes a CTRC completion token by token; a small one (``small``: 27 M parameters,
+trained from scratch) loses count of what it has placed and repeats an instance id, or writes a
+number like ``10.0.141``: the whole layout then fails to parse (the 2 x H200 ablation: 79 % of test
+outputs repeated an id). :class:`CTRCConstraint` masks the logits at the few places where the
+format, or the prompt's **Object List**, decides what may come next, and leaves every other token
+(positions, sizes, descriptions, the plan's wording) to the model:
+
+| where (anchor in the text)          | what must follow                                              |
+| ----------------------------------- | ------------------------------------------------------------- |
+| plan line ``\\nN. Place``            | an id from the Object List not yet placed in the plan          |
+| end of a plan line (``.``)           | ``\\nN+1. Place`` while ids are left, else the layout's start |
+| ``"instance_id":``                  | ``root_zone`` first, then an id of the list not yet in the layout |
+| ``"category":``                     | that id's category (``3_tissue_box_0`` -> ``tissue_box``)      |
+| ``"parent_id":``                    | ``root_zone`` or an id placed earlier in the layout           |
+| ``"relation_type":``                | ``near`` for a table-level object, else ``in`` / ``on``       |
+| ``"relative_bbox":`` / ``"bbox":``  | six JSON numbers ``[-?d+(.d+)?, ...]``                        |
+| ``"item_placement_zone":``          | four JSON numbers                                             |
+| ``"relative_rotation_deg":``        | one number, then the next entry while ids are left, else the  |
+|                                     | end of the objects array                                      |
+
+Ids follow the MesaTask naming the data uses (``physcene.data.synth``): ``<index of the category in the
+Object List>_<category>_<copy>``. A prompt without an Object List gets only the number grammar and the
+``root_zone``/``near`` rules. The mask is the model's own distribution restricted to what is allowed:
+under greedy decoding it changes nothing unless the model's first choice breaks the format (then the
+best allowed token wins); under sampling the allowed tokens among the ``top_k`` most likely keep
+their relative probabilities.
+
+Why not a grammar library (``xgrammar``, ``outlines``, ``lm-format-enforcer``): a JSON schema can
+restrict ``instance_id`` to the listed ids, but "each id exactly once" and "a parent placed before
+its child" are not context-free in any compact form, and those are what a small model gets wrong.
+The rules here are a regular expression per anchor, matched with ``regex``'s partial matching
+(already a transformers dependency) against the text since the anchor.
+"""
+
+from __future__ import annotations
+
+import functools
+import re
+from collections.abc import Sequence
+
+import regex
+import torch
+from transformers import LogitsProcessor, PreTrainedTokenizerBase
+
+from physcene.layout import category_from_instance
+from physcene.scene import TABLE
+
+__all__ = ["CTRCConstraint", "constraint_rule", "listed_instance_ids"]
+
+_OBJECT_LIST = re.compile(r"\*\*Object List\*\*: ([^\n]*)")
+_LIST_ITEM = re.compile(r"\s*([^,()]+?) \((\d+)\)")
+_NUMBER = r"-?\d+(?:\.\d+)?"
+_ARRAY_LENGTH = {"relative_bbox": 6, "bbox": 6, "item_placement_zone": 4}
+# The last of these in the text decides the rule in force (group "key": a JSON key; "step": a plan
+# step's number; "line": a finished plan line's number).
+_ANCHOR = re.compile(
+    r'"(?P<key>instance_id|category|parent_id|relation_type|relative_bbox|bbox|item_placement_zone|'
+    r'relative_rotation_deg|z_rotation)":'
+    r"|\n(?P<step>\d+)\. Place(?![^\n.]*\.)"
+    r"|\n(?P<line>\d+)\. Place [^\n.]*\.")
+_LAYOUT_HEADER = "**Scene Layout:**"
+# What follows an object entry's closing brace (completion_text's layout): the next entry up to its
+# instance_id (whose own rule follows), or the end of the objects array up to the zone's key.
+_LAYOUT_START = '\n\n' + _LAYOUT_HEADER + '\n{\n  "objects": [\n    {"layer": 0, "instance_id":'
+_NEXT_ENTRY = regex.escape(',\n    {"layer": ') + r"\d+" + regex.escape(', "instance_id":')
+_END_OF_OBJECTS = regex.escape('\n  ],\n  "item_placement_zone":')
+_TAIL = 400  # characters searched for the last anchor: longer than any constrained segment
+
+
+def listed_instance_ids(prompt: str) -> list[str] | None:
+    """The instance ids a CTRC prompt's **Object List** implies, in list order; None without a list.
+
+    ``napkin (1), vase (2)`` -> ``["1_napkin_0", "2_vase_0", "2_vase_1"]`` (MesaTask naming, spaces in
+    a category become ``_``).
+    """
+    m = _OBJECT_LIST.search(prompt)
+    if m is None:
+        return None
+    items = _LIST_ITEM.findall(m.group(1))
+    if not items:
+        return None
+    return [f"{k}_{name.strip().replace(' ', '_')}_{j}" for k, (name, n) in enumerate(items, 1)
+            for j in range(int(n))]
+
+
+def _alternatives(strings: Sequence[str]) -> str:
+    return "(?:" + "|".join(regex.escape(s) for s in strings) + ")"
+
+
+def constraint_rule(text: str, listed: Sequence[str] | None) -> tuple[str, str] | None:
+    """(text since the anchor, regular expression it must match) for a completion prefix, or None.
+
+    None: nothing constrains the next token (free text, a finished segment, or a prefix that already
+    broke the rule: the parser will reject it; no mask can repair it).
+    """
+    tail = text[-_TAIL:]
+    anchors = list(_ANCHOR.finditer(tail))
+    if not anchors:
+        return None
+    anchor = anchors[-1]
+    partial = tail[anchor.end():]
+    in_plan = _LAYOUT_HEADER not in text[:len(text) - len(partial)]  # the anchor lies in the plan
+    key = anchor.group("key")
+    if anchor.group("step") is not None or anchor.group("line") is not None:
+        if not in_plan or not listed:
+            return None
+        placed = set(re.findall(r"\n\d+\. Place (\S+?)[ .]", text))
+        left = [i for i in listed if i not in placed]
+        if anchor.group("step") is not None:
+            core = " " + _alternatives(left) + "[ .]" if left else None
+        elif left:
+            core = regex.escape(f"\n{int(anchor.group('line')) + 1}. Place ")
+        else:
+            core = regex.escape(_LAYOUT_START)
+    elif key in _ARRAY_LENGTH:
+        n = _ARRAY_LENGTH[key]
+        core = r" \[" + _NUMBER + f"(?:, {_NUMBER}){{{n - 1}}}\\]"
+        if key == "item_placement_zone":
+            core += r"\n\}"  # the layout's last value: then EOS
+    elif key in ("relative_rotation_deg", "z_rotation"):
+        core = " " + _NUMBER + r"\}"
+        if listed is not None:
+            placed = set(re.findall(r'"instance_id": "([^"]*)"', text))
+            core += _NEXT_ENTRY if any(i not in placed for i in listed) else _END_OF_OBJECTS
+    else:
+        ids = re.findall(r'"instance_id": "([^"]*)"', text)
+        if key == "instance_id":
+            if not ids:
+                allowed = [TABLE]
+            elif listed is None:
+                return None
+            else:
+                allowed = [i for i in listed if i not in ids]
+        elif key == "category":
+            if not ids or ids[-1] == TABLE:
+                return None
+            allowed = [category_from_instance(ids[-1])]
+        elif key == "parent_id":
+            allowed = [TABLE, *[i for i in ids[:-1] if i != TABLE]]
+        else:  # relation_type
+            parents = re.findall(r'"parent_id": "([^"]*)"', text)
+            if not parents:
+                return None
+            allowed = ["near"] if parents[-1] == TABLE else ["in", "on"]
+        if not allowed:
+            return None
+        core = ' "' + _alternatives(allowed) + '"'
+    if core is None:
+        return None
+    if _compiled(core).match(partial):  # the segment is complete: what follows is free
+        return None
+    if _compiled(core + r"[\s\S]*").fullmatch(partial, partial=True) is None:
+        return None
+    return partial, core + r"[\s\S]*"
+
+
+@functools.lru_cache(maxsize=4096)
+def _compiled(pattern: str):
+    return regex.compile(pattern)
+
+
+class CTRCConstraint(LogitsProcessor):
+    """Restrict each row's next token to what keeps its completion a valid CTRC prefix (module docstring).
+
+    ``prompts``: the CTRC prompt of every row of the batch, in batch order (their Object Lists give the
+    ids). Pass one instance per ``generate`` call: it keeps each row's text between steps.
+    ``top_k``: candidates checked per constrained row (the full vocabulary when none of them is allowed).
+    ``greedy``: only the best token matters, so a row whose first choice is allowed is left as it is.
+    """
+
+    def __init__(self, tokenizer: PreTrainedTokenizerBase, prompts: Sequence[str], *, top_k: int = 32,
+                 greedy: bool = True):
+        self.token_text = _token_texts(tokenizer)
+        self.eos = tokenizer.eos_token_id
+        self.listed = [listed_instance_ids(p) for p in prompts]
+        self.texts = [""] * len(prompts)
+        self.seen = [0] * len(prompts)
+        self.finished = [False] * len(prompts)
+        self.top_k = int(top_k)
+        self.greedy = bool(greedy)
+        self.prompt_length: int | None = None
+        self.masked_steps = 0  # rows x steps masked (greedy: where the model's choice was overruled)
+
+    def _allowed(self, row: int, rule: tuple[str, str], candidates: list[int]) -> list[int]:
+        partial, pattern = rule
+        compiled = _compiled(pattern)
+        texts = self.token_text
+        return [t for t in candidates
+                if texts[t] and compiled.fullmatch(partial + texts[t], partial=True) is not None]
+
+    def __call__(self, input_ids: torch.LongTensor, scores: torch.FloatTensor) -> torch.FloatTensor:
+        if self.prompt_length is None:
+            self.prompt_length = input_ids.shape[1]
+        if input_ids.shape[0] != len(self.texts):
+            raise ValueError(f"CTRCConstraint built for {len(self.texts)} prompts, got a batch of "
+                             f"{input_ids.shape[0]} rows")
+        new = input_ids[:, self.prompt_length:].tolist()
+        rules = {}
+        for b, ids in enumerate(new):
+            if self.finished[b]:
+                continue
+            for t in ids[self.seen[b]:]:
+                if t == self.eos:
+                    self.finished[b] = True
+                    break
+                self.texts[b] += self.token_text[t]
+            self.seen[b] = len(ids)
+            if not self.finished[b]:
+                rule = constraint_rule(self.texts[b], self.listed[b])
+                if rule is not None:
+                    rules[b] = rule
+        if not rules:
+            return scores
+        k = min(self.top_k, scores.shape[-1])
+        top = scores.topk(k, dim=-1).indices.tolist()
+        keep: dict[int, list[int]] = {}
+        for b, rule in rules.items():
+            if self.greedy and self._allowed(b, rule, top[b][:1]):
+                continue  # the model's own choice is allowed: greedy decoding takes it unchanged
+            allowed = self._allowed(b, rule, top[b])
+            if not allowed:
+                allowed = self._allowed(b, rule, range(scores.shape[-1]))
+            if allowed:  # else: nothing in the vocabulary continues the rule; leave the row to the parser
+                keep[b] = allowed
+        if not keep:
+            return scores
+        self.masked_steps += len(keep)
+        mask = torch.zeros(scores.shape, dtype=torch.bool)  # True: masked out
+        for b, allowed in keep.items():
+            mask[b] = True
+            mask[b, allowed] = False
+        return scores.masked_fill(mask.to(scores.device), float("-inf"))
+
+
+def _token_texts(tokenizer: PreTrainedTokenizerBase) -> list[str]:
+    """The text of every token id ("" for special tokens, which no rule allows)."""
+    key = (type(tokenizer).__name__, getattr(tokenizer, "name_or_path", ""), len(tokenizer))
+    cached = _TOKEN_TEXTS.get(key)
+    if cached is None:
+        special = set(tokenizer.all_special_ids)
+        cached = ["" if i in special else tokenizer.decode([i]) for i in range(len(tokenizer))]
+        _TOKEN_TEXTS[key] = cached
+    return cached
+
+
+_TOKEN_TEXTS: dict[tuple, list[str]] = {}
