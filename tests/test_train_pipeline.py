@@ -46,7 +46,7 @@ def one_thread():
     torch.set_num_threads(old)
 
 
-def test_tiny_pipeline_end_to_end(tmp_path, one_thread):
+def test_tiny_pipeline_end_to_end(tmp_path, one_thread, monkeypatch):
     from physcene.physics import PhysicsEngine
 
     engine = PhysicsEngine()
@@ -89,8 +89,16 @@ def test_tiny_pipeline_end_to_end(tmp_path, one_thread):
     reward = PhysicsReward(RewardConfig(device="cpu"), engine=engine)
     outs = {}
     vcfg = OmegaConf.merge(cfg, {"pada": {"anchors": str(tmp_path / "anchors_ref.jsonl")}})
+    from physcene.train.constrained import CTRCConstraint
+
+    calls = []
+    plain_call = CTRCConstraint.__call__
+    monkeypatch.setattr(CTRCConstraint, "__call__", lambda self, *a: calls.append(1) or plain_call(self, *a))
     for variant in ("grpo", "pada_star", "pada"):
-        outs[variant] = run_pada(vcfg, variant=variant, reward=reward)
+        # pada samples its groups under the CTRC constraint (pada.constrained), the others without
+        constrained = OmegaConf.merge(vcfg, {"pada": {"constrained": variant == "pada"}})
+        outs[variant] = run_pada(constrained, variant=variant, reward=reward)
+        assert bool(calls) == (variant == "pada")
         assert outs[variant].name == variant and (outs[variant] / "adapter_model.safetensors").is_file()
         step = [e for e in json.loads((outs[variant] / "train_log.json").read_text()) if "reward" in e][0]
         assert {"parse_rate", "kl", "rewards/physics/mean"} <= set(step)

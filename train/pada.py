@@ -74,6 +74,9 @@ class PADAConfig(GRPOConfig):
     generation_compile: bool = field(
         default=False, metadata={"help": "Compile the decoding forward of a static-cache generation "
                                          "(pada.cache=static_compile); TRL itself always disables it."})
+    constrained_decoding: bool = field(
+        default=False, metadata={"help": "Sample the groups under the CTRC constraint "
+                                         "(physcene.train.constrained; HF generate only, not vLLM)."})
 
 
 def numeric_spans(text: str, keys: tuple[str, ...] | list[str] = GEOMETRY_KEYS) -> list[tuple[int, int]]:
@@ -128,6 +131,45 @@ class PADATrainer(GRPOTrainer):
             compiled = cache_generate_kwargs("static_compile", self.accelerator.device)
             self.generation_config.disable_compile = False
             self.generation_config.compile_config = compiled["compile_config"]
+
+    def _generate(self, prompts: list):
+        # The prompts of this generation round, in row order, for the CTRC constraint (below).
+        self._round_prompts = prompts
+        return super()._generate(prompts)
+
+    def _generate_single_turn(self, prompt_ids, images, multimodal_fields, num_generations,
+                              has_tool_images=False):
+        """TRL's HF-generate path, with :class:`~physcene.train.constrained.CTRCConstraint` passed to
+        ``generate`` when ``constrained_decoding`` is on (TRL passes no logits processors itself).
+
+        The completions are sampled from the policy restricted to valid CTRC continuations; their
+        log-probabilities are then taken under the unrestricted policy as usual, so the update also
+        raises the probability of the valid tokens the mask picked (TRL's vLLM guided decoding,
+        ``structured_outputs_regex``, is the same idea).
+        """
+        prompts = getattr(self, "_round_prompts", None)
+        usable = prompts is not None and len(prompts) == len(prompt_ids) and not self.use_vllm
+        if not (self.args.constrained_decoding and usable):
+            return super()._generate_single_turn(prompt_ids, images, multimodal_fields, num_generations,
+                                                 has_tool_images)
+        from physcene.train.constrained import CTRCConstraint
+        from transformers import LogitsProcessorList
+
+        texts = [p if isinstance(p, str) else str(p[-1]["content"]) for p in prompts]  # chat: the user turn
+        model = self.accelerator.unwrap_model(self.model_wrapped)
+        plain_generate = model.generate
+
+        def generate(*args, **kwargs):
+            processor = CTRCConstraint(self._tokenizer, texts, greedy=not self.generation_config.do_sample)
+            kwargs["logits_processor"] = LogitsProcessorList([processor])
+            return plain_generate(*args, **kwargs)
+
+        model.generate = generate  # an instance attribute shadows the method for this round only
+        try:
+            return super()._generate_single_turn(prompt_ids, images, multimodal_fields, num_generations,
+                                                 has_tool_images)
+        finally:
+            del model.generate
 
     def _set_signature_columns_if_needed(self):
         super()._set_signature_columns_if_needed()
@@ -271,6 +313,7 @@ def pada_arguments(cfg, variant: str) -> PADAConfig:
         # TRL passes it to GenerationConfig (HF generate, use_vllm=False); None = HF's dynamic cache
         cache_implementation=None if cache == "dynamic" else "static",
         generation_compile=cache == "static_compile",
+        constrained_decoding=bool(p.get("constrained", False)),
         learning_rate=float(p.learning_rate),
         lr_scheduler_type=str(p.lr_scheduler_type),
         num_train_epochs=float(p.epochs),
