@@ -86,6 +86,11 @@ def listed_instance_ids(prompt: str) -> list[str] | None:
 
 
 def _alternatives(strings: Sequence[str]) -> str:
+    return _alternatives_of(tuple(strings))
+
+
+@functools.lru_cache(maxsize=4096)
+def _alternatives_of(strings: tuple[str, ...]) -> str:
     return "(?:" + "|".join(regex.escape(s) for s in strings) + ")"
 
 
@@ -95,13 +100,37 @@ def constraint_rule(text: str, listed: Sequence[str] | None) -> tuple[str, str] 
     None: nothing constrains the next token (free text, a finished segment, or a prefix that already
     broke the rule: the parser will reject it; no mask can repair it).
     """
+    found = last_anchor(text, listed)
+    return None if found is None else active_rule(text[found[0]:], found[1])
+
+
+def active_rule(partial: str, core: str | None) -> tuple[str, str] | None:
+    """The rule ``core`` (a regex) while ``partial`` (the text since its anchor) is inside it, else None."""
+    if core is None or _compiled(core).match(partial):  # no rule, or the segment is complete
+        return None
+    if _compiled(core + r"[\s\S]*").fullmatch(partial, partial=True) is None:
+        return None
+    return partial, core + r"[\s\S]*"
+
+
+def last_anchor(text: str, listed: Sequence[str] | None) -> tuple[int, str | None] | None:
+    """(position in ``text`` where its last anchor ends, the regex of what must follow it or None).
+
+    None: no anchor in the last ``_TAIL`` characters. The regex stays valid until the next anchor, so
+    a decoder need not look for one again until a token that can end an anchor arrives.
+    """
     tail = text[-_TAIL:]
     anchors = list(_ANCHOR.finditer(tail))
     if not anchors:
         return None
     anchor = anchors[-1]
-    partial = tail[anchor.end():]
-    in_plan = _LAYOUT_HEADER not in text[:len(text) - len(partial)]  # the anchor lies in the plan
+    position = len(text) - len(tail) + anchor.end()
+    return position, _core(text[:position], anchor, listed)
+
+
+def _core(text: str, anchor, listed: Sequence[str] | None) -> str | None:
+    """The rule of ``anchor``, the last anchor of ``text`` (which ends with it)."""
+    in_plan = _LAYOUT_HEADER not in text  # the anchor lies in the plan
     key = anchor.group("key")
     if anchor.group("step") is not None or anchor.group("line") is not None:
         if not in_plan or not listed:
@@ -147,18 +176,22 @@ def constraint_rule(text: str, listed: Sequence[str] | None) -> tuple[str, str] 
         if not allowed:
             return None
         core = ' "' + _alternatives(allowed) + '"'
-    if core is None:
-        return None
-    if _compiled(core).match(partial):  # the segment is complete: what follows is free
-        return None
-    if _compiled(core + r"[\s\S]*").fullmatch(partial, partial=True) is None:
-        return None
-    return partial, core + r"[\s\S]*"
+    return core
 
 
 @functools.lru_cache(maxsize=4096)
 def _compiled(pattern: str):
     return regex.compile(pattern)
+
+
+_UNSET = object()
+
+
+def _may_end_anchor(added: str) -> bool:
+    """Whether appending ``added`` can complete an anchor: a key's ``":``, a plan step's ``Place`` (a
+    ``Place`` split over tokens is caught by the caller's ``endswith``) or the ``.`` that ends a plan
+    line (also a decimal point: a harmless extra search)."""
+    return ":" in added or "Place" in added or "." in added
 
 
 class CTRCConstraint(LogitsProcessor):
@@ -176,7 +209,10 @@ class CTRCConstraint(LogitsProcessor):
         self.eos = tokenizer.eos_token_id
         self.listed = [listed_instance_ids(p) for p in prompts]
         self.texts = [""] * len(prompts)
-        self.seen = [0] * len(prompts)
+        # each row's last anchor (position, rule regex): looked for again only when a token that can
+        # end an anchor arrives (_may_end_anchor), so a step costs O(1) regex work per row
+        self.anchors: list = [_UNSET] * len(prompts)
+        self.seen = 0  # completion tokens consumed (all rows advance together)
         self.finished = [False] * len(prompts)
         self.top_k = int(top_k)
         self.greedy = bool(greedy)
@@ -196,34 +232,45 @@ class CTRCConstraint(LogitsProcessor):
         if input_ids.shape[0] != len(self.texts):
             raise ValueError(f"CTRCConstraint built for {len(self.texts)} prompts, got a batch of "
                              f"{input_ids.shape[0]} rows")
-        new = input_ids[:, self.prompt_length:].tolist()
+        # Only the columns not seen yet (one per decoding step): converting the whole history every
+        # step would cost O(length) per step.
+        new = input_ids[:, self.prompt_length + self.seen:].tolist()
+        self.seen = input_ids.shape[1] - self.prompt_length
         rules = {}
         for b, ids in enumerate(new):
             if self.finished[b]:
                 continue
-            for t in ids[self.seen[b]:]:
+            added = ""
+            for t in ids:
                 if t == self.eos:
                     self.finished[b] = True
                     break
-                self.texts[b] += self.token_text[t]
-            self.seen[b] = len(ids)
-            if not self.finished[b]:
-                rule = constraint_rule(self.texts[b], self.listed[b])
-                if rule is not None:
-                    rules[b] = rule
+                added += self.token_text[t]
+            if self.finished[b]:
+                continue
+            self.texts[b] += added
+            if self.anchors[b] is _UNSET or _may_end_anchor(added) or self.texts[b].endswith("Place"):
+                self.anchors[b] = last_anchor(self.texts[b], self.listed[b])
+            found = self.anchors[b]
+            rule = None if found is None else active_rule(self.texts[b][found[0]:], found[1])
+            if rule is not None:
+                rules[b] = rule
         if not rules:
             return scores
-        k = min(self.top_k, scores.shape[-1])
-        top = scores.topk(k, dim=-1).indices.tolist()
         keep: dict[int, list[int]] = {}
-        for b, rule in rules.items():
-            if self.greedy and self._allowed(b, rule, top[b][:1]):
-                continue  # the model's own choice is allowed: greedy decoding takes it unchanged
-            allowed = self._allowed(b, rule, top[b])
-            if not allowed:
-                allowed = self._allowed(b, rule, range(scores.shape[-1]))
-            if allowed:  # else: nothing in the vocabulary continues the rule; leave the row to the parser
-                keep[b] = allowed
+        rows = list(rules)
+        if self.greedy:  # only rows whose first choice breaks their rule need more candidates
+            best = scores.argmax(dim=-1).tolist()
+            rows = [b for b in rows if not self._allowed(b, rules[b], [best[b]])]
+        if rows:
+            k = min(self.top_k, scores.shape[-1])
+            top = scores[rows].topk(k, dim=-1).indices.tolist()
+            for b, candidates in zip(rows, top):
+                allowed = self._allowed(b, rules[b], candidates)
+                if not allowed:
+                    allowed = self._allowed(b, rules[b], range(scores.shape[-1]))
+                if allowed:  # else: nothing in the vocabulary continues the rule; leave it to the parser
+                    keep[b] = allowed
         if not keep:
             return scores
         self.masked_steps += len(keep)
