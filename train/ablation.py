@@ -170,6 +170,10 @@ def run_ablation(cfg: DictConfig, budget_min: float | None = None) -> dict:
         "total_seconds": round(time.monotonic() - t0, 1),
         "stages": stages,
         "anchors": json.loads(anchors_summary.read_text()) if anchors_summary.is_file() else None,
+        "decoding": {"eval": "constrained" if cfg.eval.get("constrained", False) else "greedy",
+                     "anchors": "constrained" if cfg.anchors.get("constrained", False) else "greedy",
+                     "pada": "constrained" if cfg.pada.get("constrained", False) else "sampled",
+                     "cache": str(cfg.eval.get("cache", "dynamic"))},
     }
     from accelerate import PartialState
 

@@ -25,6 +25,8 @@ WORKERS=${WORKERS:-$(nproc)}
 LAUNCH=${LAUNCH:-"accelerate launch --config_file configs/accelerate/multi_gpu.yaml --num_processes $NPROC"}
 PADA_LEVEL=${PADA_LEVEL:-null}      # PADA prompts of level <= this only (null: all levels)
 SFT_STEPS=${SFT_STEPS:--1}          # optimizer steps of SFT (-1: the config's epochs)
+CONSTRAINED=${CONSTRAINED:-0}       # 1: anchors, PADA groups and eval decode under the CTRC constraint
+CACHE=${CACHE:-static_compile}      # KV cache of anchor and eval generation (H200: 3.4x dynamic)
 EXTRA=${EXTRA:-}                    # more key=value overrides for every stage
 STAGES=${STAGES:-"synth sft anchors grpo pada_star pada eval"}
 
@@ -33,6 +35,10 @@ common="output_dir=$RUN data.train=$DATA eval.max_new_tokens=$MAX_TOKENS anchors
 common="$common anchors.n_records=$ANCHORS"  # every stage: the eval stage checks the anchor file is complete
 common="$common pada.max_completion_length=$PADA_TOKENS pada.per_device_batch_size=$PADA_BATCH"
 common="$common pada.global_batch_size=$((PADA_BATCH * NPROC)) pada.max_level=$PADA_LEVEL"
+common="$common anchors.cache=$CACHE eval.cache=$CACHE"
+if [ "$CONSTRAINED" = 1 ]; then
+  common="$common anchors.constrained=true eval.constrained=true pada.constrained=true"
+fi
 common="$common ablation.n_test=$N_TEST $EXTRA"
 want() { [[ " $STAGES " == *" $1 "* ]]; }
 
