@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import pytest
 import torch
@@ -128,17 +129,21 @@ def test_anchors_cache_reaches_generate_with(tmp_path, monkeypatch, model, token
 
     seen = []
 
-    def fake_generate_with(model, tokenizer, prompts, **kw):
+    def fake_generate_token_ids(model, tokenizer, prompts, **kw):
         seen.append(kw)
-        return ["not a layout"] * len(prompts)
+        return [tokenizer("not a layout", add_special_tokens=False)["input_ids"] + [tokenizer.eos_token_id]
+                for _ in prompts]
 
     monkeypatch.setattr(train_generate, "load_for_generation",
                         lambda path, device=None: (model, tokenizer, {}))
-    monkeypatch.setattr(train_generate, "generate_with", fake_generate_with)
+    monkeypatch.setattr(train_generate, "generate_token_ids", fake_generate_token_ids)
     cfg = load_config("train_tiny", [f"output_dir={tmp_path}", "anchors.n_records=2",
-                                     "anchors.cache=static_compile", "data.train=synth:train:2"])
-    run_anchors(cfg)
-    assert seen and seen[0]["cache"] == "static_compile"
+                                     "anchors.cache=static_compile", "anchors.constrained=true",
+                                     "data.train=synth:train:2"])
+    rows = [json.loads(line) for line in Path(run_anchors(cfg)).read_text().splitlines()]
+    assert seen and seen[0]["cache"] == "static_compile" and seen[0]["constrained"] is True
+    assert [r["sft_completion"] for r in rows] == ["not a layout"] * 2
+    assert [r["sft_truncated"] for r in rows] == [False, False]
 
 
 def test_eval_cache_reaches_the_model_generator(monkeypatch):
@@ -153,12 +158,14 @@ def test_eval_cache_reaches_the_model_generator(monkeypatch):
         return ["not a layout"] * len(prompts)
 
     monkeypatch.setattr(train_generate, "generate", fake_generate)
-    generate(items, "model:runs/x", progress=False, cache="static")
-    assert seen["cache"] == "static"
-    assert load_config("eval").cache == "dynamic"
-    for name in ("tiny", "small", "qwen3_vl_8b"):
+    generate(items, "model:runs/x", progress=False, cache="static", constrained=True)
+    assert seen["cache"] == "static" and seen["constrained"] is True
+    assert load_config("eval").cache == "dynamic" and load_config("eval").constrained is False
+    for name in ("tiny", "qwen3_vl_8b"):
         cfg = load_config(f"train_{name}")
         assert cfg.eval.cache == cfg.anchors.cache == cfg.pada.cache == "dynamic"
+    small = load_config("train_small")  # the H200 figures chose the compiled static cache for it
+    assert small.eval.cache == small.anchors.cache == "static_compile" and small.pada.cache == "dynamic"
 
 
 def test_pada_cache_reaches_trl_generation_config(tmp_path, tokenizer):
