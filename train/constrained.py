@@ -47,7 +47,7 @@ from transformers import LogitsProcessor, PreTrainedTokenizerBase
 from physcene.layout import category_from_instance
 from physcene.scene import TABLE
 
-__all__ = ["CTRCConstraint", "constraint_rule", "listed_instance_ids"]
+__all__ = ["CTRCConstraint", "active_rule", "constraint_rule", "last_anchor", "listed_instance_ids"]
 
 _OBJECT_LIST = re.compile(r"\*\*Object List\*\*: ([^\n]*)")
 _LIST_ITEM = re.compile(r"\s*([^,()]+?) \((\d+)\)")
