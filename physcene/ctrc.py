@@ -41,8 +41,13 @@ from physcene.scene import TABLE, Scene, SceneError, SceneObject, Zone, wrap_ang
 
 __all__ = [
     "DECIMALS",
+    "ENTRY_SEPARATOR",
+    "LAYOUT_HEADER",
     "MAX_ABS_CM",
     "MAX_OBJECTS",
+    "OBJECTS_CLOSE",
+    "OBJECTS_OPEN",
+    "PLAN_HEADER",
     "ParseError",
     "build_prompt",
     "coarse_location",
@@ -66,6 +71,13 @@ MAX_CHARS = 200_000
 # More objects than this is not a tabletop (MesaTask's largest scenes have a few dozen); refusing
 # them keeps downstream O(n^2) graph and physics work bounded.
 MAX_OBJECTS = 1000
+# The completion's fixed text (completion_text writes it; train/constrained.py steers a model along it):
+# the plan header, the layout header, and the layout JSON's frame around the object entries.
+PLAN_HEADER = "**Sub-instruction:**"
+LAYOUT_HEADER = "**Scene Layout:**"
+OBJECTS_OPEN = '{\n  "objects": [\n    '
+ENTRY_SEPARATOR = ",\n    "
+OBJECTS_CLOSE = '\n  ],\n  "item_placement_zone":'
 # How many candidate '{' positions the JSON search tries before giving up.
 _MAX_JSON_ATTEMPTS = 256
 
@@ -349,10 +361,9 @@ def completion_text(scene: Scene, *, decimals: int = DECIMALS) -> str:
     plan = [f"{k}. {text}" for k, (_, text) in enumerate(sub_instructions(scene), start=1)]
     rows = [{"layer": 0, "instance_id": TABLE, "type": "zone", "bbox": [*zone, 0.0, 0.0], "z_rotation": 0.0}]
     rows += encode(scene, decimals=decimals)
-    body = ",\n    ".join(_json_line(r) for r in rows)
-    return ("**Sub-instruction:**\n" + "\n".join(plan) + "\n\n**Scene Layout:**\n"
-            + "{\n  \"objects\": [\n    " + body + "\n  ],\n  \"item_placement_zone\": "
-            + _json_line(zone) + "\n}\n")
+    body = ENTRY_SEPARATOR.join(_json_line(r) for r in rows)
+    return (PLAN_HEADER + "\n" + "\n".join(plan) + "\n\n" + LAYOUT_HEADER + "\n"
+            + OBJECTS_OPEN + body + OBJECTS_CLOSE + " " + _json_line(zone) + "\n}\n")
 
 
 def _object_list(objects) -> str:

@@ -44,6 +44,7 @@ import regex
 import torch
 from transformers import LogitsProcessor, PreTrainedTokenizerBase
 
+from physcene.ctrc import ENTRY_SEPARATOR, LAYOUT_HEADER, OBJECTS_CLOSE, OBJECTS_OPEN
 from physcene.layout import category_from_instance
 from physcene.scene import TABLE
 
@@ -60,12 +61,12 @@ _ANCHOR = re.compile(
     r'relative_rotation_deg|z_rotation)":'
     r"|\n(?P<step>\d+)\. Place(?![^\n.]*\.)"
     r"|\n(?P<line>\d+)\. Place [^\n.]*\.")
-_LAYOUT_HEADER = "**Scene Layout:**"
-# What follows an object entry's closing brace (completion_text's layout): the next entry up to its
+# The completion's fixed text, as physcene.ctrc.completion_text writes it: the layout's start up to the
+# root entry's instance_id; what follows an object entry's closing brace: the next entry up to its
 # instance_id (whose own rule follows), or the end of the objects array up to the zone's key.
-_LAYOUT_START = '\n\n' + _LAYOUT_HEADER + '\n{\n  "objects": [\n    {"layer": 0, "instance_id":'
-_NEXT_ENTRY = regex.escape(',\n    {"layer": ') + r"\d+" + regex.escape(', "instance_id":')
-_END_OF_OBJECTS = regex.escape('\n  ],\n  "item_placement_zone":')
+_LAYOUT_START = "\n\n" + LAYOUT_HEADER + "\n" + OBJECTS_OPEN + '{"layer": 0, "instance_id":'
+_NEXT_ENTRY = regex.escape(ENTRY_SEPARATOR + '{"layer": ') + r"\d+" + regex.escape(', "instance_id":')
+_END_OF_OBJECTS = regex.escape(OBJECTS_CLOSE)
 _TAIL = 400  # characters searched for the last anchor: longer than any constrained segment
 
 
@@ -130,7 +131,7 @@ def last_anchor(text: str, listed: Sequence[str] | None) -> tuple[int, str | Non
 
 def _core(text: str, anchor, listed: Sequence[str] | None) -> str | None:
     """The rule of ``anchor``, the last anchor of ``text`` (which ends with it)."""
-    in_plan = _LAYOUT_HEADER not in text  # the anchor lies in the plan
+    in_plan = LAYOUT_HEADER not in text  # the anchor lies in the plan
     key = anchor.group("key")
     if anchor.group("step") is not None or anchor.group("line") is not None:
         if not in_plan or not listed:
