@@ -25,11 +25,7 @@ def tokenizer(records):
 
 def allowed(text: str, listed, candidate: str) -> bool:
     rule = constraint_rule(text, listed)
-    if rule is None:
-        return True
-    import regex
-
-    return regex.fullmatch(rule[1], rule[0] + candidate, partial=True) is not None
+    return rule is None or rule.admits(candidate)
 
 
 def test_listed_ids_follow_the_mesatask_naming(records):
@@ -98,6 +94,44 @@ def test_numbers_and_entry_ends():
     assert allowed(text, listed, '}\n  ],\n  "item_placement_zone":')
     assert not allowed(text, listed, "},")
     assert not allowed(text, listed, '} 1instance_1')
+
+
+def test_boxes_keep_each_max_above_its_min():
+    """The parser refuses a non-positive extent: a max that cannot exceed its min is refused while
+    it is written, not after."""
+    box = '"relation_type": "near", "description": "A mirror.", "relative_bbox": [5.0, '
+    assert allowed(box, None, "5.1, ") and allowed(box, None, "5") and allowed(box, None, "5.0")
+    assert allowed(box, None, "5.00001,") and allowed(box, None, "12")
+    assert not allowed(box, None, "4.9") and not allowed(box, None, "5,") and not allowed(box, None, "5.0,")
+    assert not allowed(box, None, "-") and not allowed(box, None, "0.")
+    neg = box.replace("[5.0, ", "[1.0, 2.0, -3.0, ")
+    assert allowed(neg, None, "-") and allowed(neg, None, "-2") and allowed(neg, None, "-2.9,")
+    assert not allowed(neg, None, "-3") and not allowed(neg, None, "-4") and not allowed(neg, None, "-3.0,")
+    z = box.replace("[5.0, ", "[1.0, 2.0, 1.0, 2.0, 3.0, ")
+    assert allowed(z, None, "4.0]") and not allowed(z, None, "3.0]")
+    zone = '"relative_rotation_deg": 0.0}\n  ],\n  "item_placement_zone":'
+    assert allowed(zone, None, " [0.0, 150.0, 0.0, 92.7]\n}\n")
+    assert not allowed(zone, None, " [0.0, 150.0, 92.7, 0.0]")
+    assert not allowed(box, None, "123456.0")  # over MAX_ABS_CM
+
+
+def test_entry_keys_and_the_end_of_the_completion_are_fixed():
+    listed = ["1_mirror_0"]
+    start = '**Scene Layout:**\n{\n  "objects": [\n    {"layer": 0, "instance_id":'
+    assert allowed(start, listed, ' "root_zone", "type": "zone", "bbox":')
+    assert not allowed(start, listed, ' "root_zone", "category":')
+    entry = (start + ' "root_zone", "type": "zone", "bbox": [0, 9, 0, 9, 0, 0], "z_rotation": 0.0},'
+             '\n    {"layer": 1, "instance_id":')
+    assert allowed(entry, listed, ' "1_mirror_0", "category":')
+    assert not allowed(entry, listed, ' "1_mirror_0", "parent_id":')
+    relation = entry + ' "1_mirror_0", "category": "mirror", "parent_id": "root_zone", "relation_type":'
+    assert allowed(relation, listed, ' "near", "description": "A round \\"mirror\\".", "relative_bbox":')
+    assert not allowed(relation, listed, ' "near", "relative_bbox":')  # no description
+    assert not allowed(relation, listed, ' "near", "description": "A "mirror"')  # unescaped quote
+    assert not allowed(relation, listed, ' "near", "description": "A mirror\n')
+    end = '"item_placement_zone": [0.0, 150.0, 0.0, 92.7]\n}\n'
+    rule = constraint_rule(end, listed)
+    assert rule is not None and rule.pattern is None and not rule.admits(" ")  # EOS only
 
 
 def test_plan_places_each_listed_object_once_then_starts_the_layout():

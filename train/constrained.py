@@ -7,18 +7,21 @@ outputs repeated an id). :class:`CTRCConstraint` masks the logits at the few pla
 format, or the prompt's **Object List**, decides what may come next, and leaves every other token
 (positions, sizes, descriptions, the plan's wording) to the model:
 
-| where (anchor in the text)          | what must follow                                              |
+| where (anchor in the text)          | what must follow (up to the next anchor)                      |
 | ----------------------------------- | ------------------------------------------------------------- |
 | plan line ``\\nN. Place``            | an id from the Object List not yet placed in the plan          |
 | end of a plan line (``.``)           | ``\\nN+1. Place`` while ids are left, else the layout's start |
-| ``"instance_id":``                  | ``root_zone`` first, then an id of the list not yet in the layout |
+| ``"instance_id":``                  | ``root_zone`` first, then an id of the list not yet in the layout, |
+|                                     | then the entry's next key                                     |
 | ``"category":``                     | that id's category (``3_tissue_box_0`` -> ``tissue_box``)      |
 | ``"parent_id":``                    | ``root_zone`` or an id placed earlier in the layout           |
-| ``"relation_type":``                | ``near`` for a table-level object, else ``in`` / ``on``       |
-| ``"relative_bbox":`` / ``"bbox":``  | six JSON numbers ``[-?d+(.d+)?, ...]``                        |
-| ``"item_placement_zone":``          | four JSON numbers                                             |
+| ``"relation_type":``                | ``near`` for a table-level object, else ``in`` / ``on``; then  |
+|                                     | the description (free text, one JSON string)                  |
+| ``"relative_bbox":`` / ``"bbox":``  | six JSON numbers ``[-?d+(.d+)?, ...]``, each max above its min |
+|                                     | (``relative_bbox``)                                           |
 | ``"relative_rotation_deg":``        | one number, then the next entry while ids are left, else the  |
 |                                     | end of the objects array                                      |
+| ``"item_placement_zone":``          | four JSON numbers (max above min), ``}`` and the end of text   |
 
 Ids follow the MesaTask naming the data uses (``physcene.data.synth``): ``<index of the category in the
 Object List>_<category>_<copy>``. A prompt without an Object List gets only the number grammar and the
@@ -37,8 +40,10 @@ The rules here are a regular expression per anchor, matched with ``regex``'s par
 from __future__ import annotations
 
 import functools
+import math
 import re
 from collections.abc import Sequence
+from typing import NamedTuple
 
 import regex
 import torch
@@ -48,12 +53,20 @@ from physcene.ctrc import ENTRY_SEPARATOR, LAYOUT_HEADER, OBJECTS_CLOSE, OBJECTS
 from physcene.layout import category_from_instance
 from physcene.scene import TABLE
 
-__all__ = ["CTRCConstraint", "active_rule", "constraint_rule", "last_anchor", "listed_instance_ids"]
+__all__ = ["CTRCConstraint", "Rule", "active_rule", "constraint_rule", "last_anchor", "listed_instance_ids"]
 
 _OBJECT_LIST = re.compile(r"\*\*Object List\*\*: ([^\n]*)")
 _LIST_ITEM = re.compile(r"\s*([^,()]+?) \((\d+)\)")
-_NUMBER = r"-?\d+(?:\.\d+)?"
+# A JSON number the parser accepts: at most 5 integer digits keeps it under MAX_ABS_CM (1e5 cm), at
+# most 8 decimals keeps a model from writing digits forever (the data has DECIMALS = 5).
+_NUMBER = r"-?\d{1,5}(?:\.\d{1,8})?"
 _ARRAY_LENGTH = {"relative_bbox": 6, "bbox": 6, "item_placement_zone": 4}
+# (min, max) index pairs of an array whose max must exceed its min (physcene.ctrc refuses a
+# non-positive extent); the root's "bbox" is the zone with a zero height, so it has none.
+_ORDERED = {"relative_bbox": ((0, 1), (2, 3), (4, 5)), "item_placement_zone": ((0, 1), (2, 3))}
+# The key that follows each constrained key in an entry (physcene.ctrc.encode's order).
+_NEXT_KEY = {"instance_id": "category", "category": "parent_id", "parent_id": "relation_type",
+             "relation_type": "description", "relative_bbox": "relative_rotation_deg", "bbox": "z_rotation"}
 # The last of these in the text decides the rule in force (group "key": a JSON key; "step": a plan
 # step's number; "line": a finished plan line's number).
 _ANCHOR = re.compile(
@@ -67,7 +80,67 @@ _ANCHOR = re.compile(
 _LAYOUT_START = "\n\n" + LAYOUT_HEADER + "\n" + OBJECTS_OPEN + '{"layer": 0, "instance_id":'
 _NEXT_ENTRY = regex.escape(ENTRY_SEPARATOR + '{"layer": ') + r"\d+" + regex.escape(', "instance_id":')
 _END_OF_OBJECTS = regex.escape(OBJECTS_CLOSE)
-_TAIL = 400  # characters searched for the last anchor: longer than any constrained segment
+_ROOT_KEYS = regex.escape(', "type": "zone", "bbox":')
+_DESCRIPTION = r' "(?:[^"\\\n]|\\.){0,300}"'  # one JSON string on one line
+_TAIL = 600  # characters searched for the last anchor: longer than any constrained segment
+
+
+class Rule(NamedTuple):
+    """What the next tokens must continue: ``partial`` (the text since the anchor) + the new text must
+    stay a prefix of ``pattern``, and numbers at ``ordered`` (min, max) positions of its JSON array
+    must leave room for max > min. ``pattern`` None: the completion is finished; only EOS may follow."""
+
+    partial: str
+    pattern: str | None
+    ordered: tuple[tuple[int, int], ...] = ()
+
+    def admits(self, added: str) -> bool:
+        if self.pattern is None:
+            return False
+        text = self.partial + added
+        if _compiled(self.pattern).fullmatch(text, partial=True) is None:
+            return False
+        return not self.ordered or _extents_possible(text, self.ordered)
+
+
+class _Core(NamedTuple):
+    pattern: str
+    ordered: tuple[tuple[int, int], ...] = ()
+    then_eos: bool = False  # once the pattern is complete the completion ends
+
+
+def _extents_possible(text: str, pairs) -> bool:
+    """Whether the JSON number array that ``text`` starts (`` [1.5, 2``) can still end with every
+    max above its min: a finished max must exceed its min, a max being written must be able to."""
+    m = re.match(r"\s*\[([^\]]*)(\]?)", text)
+    if m is None:
+        return True
+    values = [v.strip() for v in m.group(1).split(",")]
+    n_done = len(values) if m.group(2) else len(values) - 1  # the last one is still being written
+    for lo, hi in pairs:
+        if lo >= n_done or hi > n_done or hi >= len(values):
+            continue
+        low = float(values[lo])
+        if hi < n_done:
+            if not float(values[hi]) > low:
+                return False
+        elif not _supremum(values[hi]) > low:
+            return False
+    return True
+
+
+def _supremum(prefix: str) -> float:
+    """The least upper bound of the numbers ``-?d+(.d+)?`` that start with ``prefix``."""
+    negative = prefix.startswith("-")
+    digits = prefix[1:] if negative else prefix
+    whole, dot, fraction = digits.partition(".")
+    if not negative:
+        if not dot:
+            return math.inf  # more digits can follow
+        return float(f"{whole}.{fraction or 0}") + 10.0 ** -len(fraction)
+    if not dot:
+        return -float(whole or 0)  # "-12" at most -12 ("-" at most -0)
+    return -float(f"{whole}.{fraction or 0}")
 
 
 def listed_instance_ids(prompt: str) -> list[str] | None:
@@ -95,8 +168,8 @@ def _alternatives_of(strings: tuple[str, ...]) -> str:
     return "(?:" + "|".join(regex.escape(s) for s in strings) + ")"
 
 
-def constraint_rule(text: str, listed: Sequence[str] | None) -> tuple[str, str] | None:
-    """(text since the anchor, regular expression it must match) for a completion prefix, or None.
+def constraint_rule(text: str, listed: Sequence[str] | None) -> Rule | None:
+    """The :class:`Rule` the next token of a completion prefix must keep, or None.
 
     None: nothing constrains the next token (free text, a finished segment, or a prefix that already
     broke the rule: the parser will reject it; no mask can repair it).
@@ -105,19 +178,24 @@ def constraint_rule(text: str, listed: Sequence[str] | None) -> tuple[str, str] 
     return None if found is None else active_rule(text[found[0]:], found[1])
 
 
-def active_rule(partial: str, core: str | None) -> tuple[str, str] | None:
-    """The rule ``core`` (a regex) while ``partial`` (the text since its anchor) is inside it, else None."""
-    if core is None or _compiled(core).match(partial):  # no rule, or the segment is complete
+def active_rule(partial: str, core: _Core | None) -> Rule | None:
+    """The rule of ``core`` (from :func:`last_anchor`) while ``partial``, the text since its anchor, is
+    inside it; EOS only once a rule that ends the completion is complete; else None."""
+    if core is None:
         return None
-    if _compiled(core + r"[\s\S]*").fullmatch(partial, partial=True) is None:
+    done = _compiled(core.pattern).match(partial)
+    if done:  # the segment is complete
+        return Rule(partial, None) if core.then_eos and done.end() == len(partial) else None
+    pattern = core.pattern + r"[\s\S]*"
+    if _compiled(pattern).fullmatch(partial, partial=True) is None:
         return None
-    return partial, core + r"[\s\S]*"
+    return Rule(partial, pattern, core.ordered)
 
 
-def last_anchor(text: str, listed: Sequence[str] | None) -> tuple[int, str | None] | None:
-    """(position in ``text`` where its last anchor ends, the regex of what must follow it or None).
+def last_anchor(text: str, listed: Sequence[str] | None) -> tuple[int, _Core | None] | None:
+    """(position in ``text`` where its last anchor ends, the rule of what must follow it or None).
 
-    None: no anchor in the last ``_TAIL`` characters. The regex stays valid until the next anchor, so
+    None: no anchor in the last ``_TAIL`` characters. The rule stays valid until the next anchor, so
     a decoder need not look for one again until a token that can end an anchor arrives.
     """
     tail = text[-_TAIL:]
@@ -129,7 +207,7 @@ def last_anchor(text: str, listed: Sequence[str] | None) -> tuple[int, str | Non
     return position, _core(text[:position], anchor, listed)
 
 
-def _core(text: str, anchor, listed: Sequence[str] | None) -> str | None:
+def _core(text: str, anchor, listed: Sequence[str] | None) -> _Core | None:
     """The rule of ``anchor``, the last anchor of ``text`` (which ends with it)."""
     in_plan = LAYOUT_HEADER not in text  # the anchor lies in the plan
     key = anchor.group("key")
@@ -139,45 +217,50 @@ def _core(text: str, anchor, listed: Sequence[str] | None) -> str | None:
         placed = set(re.findall(r"\n\d+\. Place (\S+?)[ .]", text))
         left = [i for i in listed if i not in placed]
         if anchor.group("step") is not None:
-            core = " " + _alternatives(left) + "[ .]" if left else None
-        elif left:
-            core = regex.escape(f"\n{int(anchor.group('line')) + 1}. Place ")
-        else:
-            core = regex.escape(_LAYOUT_START)
-    elif key in _ARRAY_LENGTH:
+            return _Core(" " + _alternatives(left) + "[ .]") if left else None
+        if left:
+            return _Core(regex.escape(f"\n{int(anchor.group('line')) + 1}. Place "))
+        return _Core(regex.escape(_LAYOUT_START))
+    if key in _ARRAY_LENGTH:
         n = _ARRAY_LENGTH[key]
         core = r" \[" + _NUMBER + f"(?:, {_NUMBER}){{{n - 1}}}\\]"
-        if key == "item_placement_zone":
-            core += r"\n\}"  # the layout's last value: then EOS
-    elif key in ("relative_rotation_deg", "z_rotation"):
+        if key == "item_placement_zone":  # the layout's last value: its brace, then EOS
+            return _Core(core + r"\n\}\n", _ORDERED[key], then_eos=True)
+        return _Core(core + _key(_NEXT_KEY[key]), _ORDERED.get(key, ()))
+    if key in ("relative_rotation_deg", "z_rotation"):
         core = " " + _NUMBER + r"\}"
         if listed is not None:
             placed = set(re.findall(r'"instance_id": "([^"]*)"', text))
             core += _NEXT_ENTRY if any(i not in placed for i in listed) else _END_OF_OBJECTS
-    else:
-        ids = re.findall(r'"instance_id": "([^"]*)"', text)
-        if key == "instance_id":
-            if not ids:
-                allowed = [TABLE]
-            elif listed is None:
-                return None
-            else:
-                allowed = [i for i in listed if i not in ids]
-        elif key == "category":
-            if not ids or ids[-1] == TABLE:
-                return None
-            allowed = [category_from_instance(ids[-1])]
-        elif key == "parent_id":
-            allowed = [TABLE, *[i for i in ids[:-1] if i != TABLE]]
-        else:  # relation_type
-            parents = re.findall(r'"parent_id": "([^"]*)"', text)
-            if not parents:
-                return None
-            allowed = ["near"] if parents[-1] == TABLE else ["in", "on"]
-        if not allowed:
+        return _Core(core)
+    ids = re.findall(r'"instance_id": "([^"]*)"', text)
+    follow = _key(_NEXT_KEY[key])
+    if key == "instance_id":
+        if not ids:
+            return _Core(' "' + regex.escape(TABLE) + '"' + _ROOT_KEYS)
+        if listed is None:
             return None
-        core = ' "' + _alternatives(allowed) + '"'
-    return core
+        allowed = [i for i in listed if i not in ids]
+    elif key == "category":
+        if not ids or ids[-1] == TABLE:
+            return None
+        allowed = [category_from_instance(ids[-1])]
+    elif key == "parent_id":
+        allowed = [TABLE, *[i for i in ids[:-1] if i != TABLE]]
+    else:  # relation_type, then the free description
+        parents = re.findall(r'"parent_id": "([^"]*)"', text)
+        if not parents:
+            return None
+        allowed = ["near"] if parents[-1] == TABLE else ["in", "on"]
+        follow += _DESCRIPTION + _key("relative_bbox")
+    if not allowed:
+        return None
+    return _Core(' "' + _alternatives(allowed) + '"' + follow)
+
+
+def _key(name: str) -> str:
+    """The regex of ``, "name":`` (one key of an entry, after the previous value)."""
+    return regex.escape(f', "{name}":')
 
 
 @functools.lru_cache(maxsize=4096)
@@ -202,10 +285,13 @@ class CTRCConstraint(LogitsProcessor):
     ids). Pass one instance per ``generate`` call: it keeps each row's text between steps.
     ``top_k``: candidates checked per constrained row (the full vocabulary when none of them is allowed).
     ``greedy``: only the best token matters, so a row whose first choice is allowed is left as it is.
+    ``margin``: sampling checks only the candidates whose score is within ``margin`` of the row's best
+    (12: a probability ratio of 6e-6, so the mass left out is negligible), which keeps the regex work
+    per step near one check per row where the model is sure of its next token, as it mostly is.
     """
 
     def __init__(self, tokenizer: PreTrainedTokenizerBase, prompts: Sequence[str], *, top_k: int = 32,
-                 greedy: bool = True):
+                 greedy: bool = True, margin: float = 12.0):
         self.token_text = _token_texts(tokenizer)
         self.eos = tokenizer.eos_token_id
         self.listed = [listed_instance_ids(p) for p in prompts]
@@ -217,15 +303,15 @@ class CTRCConstraint(LogitsProcessor):
         self.finished = [False] * len(prompts)
         self.top_k = int(top_k)
         self.greedy = bool(greedy)
+        self.margin = float(margin)
         self.prompt_length: int | None = None
         self.masked_steps = 0  # rows x steps masked (greedy: where the model's choice was overruled)
 
-    def _allowed(self, row: int, rule: tuple[str, str], candidates: list[int]) -> list[int]:
-        partial, pattern = rule
-        compiled = _compiled(pattern)
+    def _allowed(self, rule: Rule, candidates) -> list[int]:
+        if rule.pattern is None:  # the completion is finished
+            return [self.eos]
         texts = self.token_text
-        return [t for t in candidates
-                if texts[t] and compiled.fullmatch(partial + texts[t], partial=True) is not None]
+        return [t for t in candidates if texts[t] and rule.admits(texts[t])]
 
     def __call__(self, input_ids: torch.LongTensor, scores: torch.FloatTensor) -> torch.FloatTensor:
         if self.prompt_length is None:
@@ -262,14 +348,18 @@ class CTRCConstraint(LogitsProcessor):
         rows = list(rules)
         if self.greedy:  # only rows whose first choice breaks their rule need more candidates
             best = scores.argmax(dim=-1).tolist()
-            rows = [b for b in rows if not self._allowed(b, rules[b], [best[b]])]
+            rows = [b for b in rows if best[b] not in self._allowed(rules[b], [best[b]])]
         if rows:
             k = min(self.top_k, scores.shape[-1])
-            top = scores[rows].topk(k, dim=-1).indices.tolist()
-            for b, candidates in zip(rows, top):
-                allowed = self._allowed(b, rules[b], candidates)
-                if not allowed:
-                    allowed = self._allowed(b, rules[b], range(scores.shape[-1]))
+            values, top = scores[rows].float().topk(k, dim=-1)
+            values, top = values.tolist(), top.tolist()
+            for b, candidates, v in zip(rows, top, values):
+                floor = v[0] - self.margin if not self.greedy else -math.inf
+                candidates = [t for t, x in zip(candidates, v) if x > floor]
+                allowed = self._allowed(rules[b], candidates)
+                if not allowed:  # the whole vocabulary, less what other processors ruled out (-inf)
+                    finite = torch.isfinite(scores[b]).nonzero().flatten().tolist()
+                    allowed = self._allowed(rules[b], finite)
                 if allowed:  # else: nothing in the vocabulary continues the rule; leave it to the parser
                     keep[b] = allowed
         if not keep:
