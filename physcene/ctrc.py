@@ -176,6 +176,10 @@ def encode(scene: Scene, *, decimals: int | None = None) -> list[dict]:
         relation = "near" if o.parent == TABLE else o.relation  # "on the table" is the table level
         box, rot = _relative(o, frame, relation)
         box = [_rounded(v, decimals) for v in box]
+        if decimals is not None:  # an extent thinner than the last decimal would round to zero
+            for lo, hi in ((0, 1), (2, 3), (4, 5)):
+                if not box[hi] > box[lo]:
+                    box[hi] = _rounded(box[lo] + 10.0 ** -decimals, decimals)
         rot = _rounded(rot, decimals)
         if rot >= 180.0:  # canonical [-180, 180): rounding may land a hair below 180 on 180
             rot -= 360.0

@@ -427,3 +427,19 @@ def test_round_trip_layout_ctrc_text_parse(case):
         rows = json.loads(t.split("**Scene Layout:**")[1])["objects"]
         return {r["instance_id"]: r for r in rows}
     assert entries(completion_text(parsed)) == entries(text)
+
+
+def test_completion_text_of_a_box_thinner_than_the_last_decimal_still_parses():
+    """A model may write an extent of 1e-7 cm (max just above min); its anchor text rounds to 5
+    decimals and must keep a positive extent instead of failing on a zero size."""
+    from physcene.ctrc import completion_text, parse
+
+    text = ('{"objects": [{"layer": 1, "instance_id": "1_pencil_0", "category": "pencil", "parent_id": '
+            '"root_zone", "relation_type": "near", "description": "A pencil.", "relative_bbox": '
+            '[10.0, 10.0000001, 5.0, 6.0, 0.0, 12.0], "relative_rotation_deg": 0.0}], '
+            '"item_placement_zone": [0.0, 100.0, 0.0, 80.0]}')
+    scene = parse(text)
+    assert not isinstance(scene, ParseError), scene
+    again = parse(completion_text(scene))
+    assert not isinstance(again, ParseError), again
+    assert 0 < again.objects[0].size[0] <= 2e-5

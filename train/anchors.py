@@ -49,6 +49,7 @@ def anchor_records(records: list[dict], completions: list[str], *, tto_config=No
     completion, from the generator, written as ``sft_tokens``/``sft_truncated``.
     """
     from physcene.ctrc import ParseError, completion_text, parse
+    from physcene.scene import SceneError
     from physcene.tto import repair
 
     if len(records) != len(completions):
@@ -69,7 +70,13 @@ def anchor_records(records: list[dict], completions: list[str], *, tto_config=No
     for i, (r, text) in enumerate(zip(records, completions)):
         row = dict(r)
         res = repaired.get(i)
-        row["anchor"] = completion_text(res.scene, **text_kwargs) if res is not None else ""
+        anchor = ""
+        if res is not None:
+            try:
+                anchor = completion_text(res.scene, **text_kwargs)
+            except SceneError as exc:  # one odd layout must not cost the whole anchor run
+                errors[i], res = f"anchor text: {exc}", None
+        row["anchor"] = anchor
         row["anchor_raw"] = text if res is not None else ""
         row["anchor_parse_error"] = errors[i]
         row["anchor_energy_before"] = float(res.energy_before) if res is not None else None
