@@ -207,3 +207,32 @@ def test_generate_runs_constrained_and_parses_a_forced_completion(records, token
     scene = parse(text)
     assert not isinstance(scene, ParseError), scene
     assert sorted(o.instance_id for o in scene.objects) == sorted(listed_instance_ids(r["prompt"]))
+
+
+@pytest.mark.parametrize("greedy", [True, False])
+def test_a_model_of_random_logits_still_writes_layouts_that_parse(records, tokenizer, greedy):
+    """Everything in the layout constrained: given the reference plan, a model whose logits are noise
+    (every token a wrong guess: keys broken across tokens, leading zeros, bad escapes, a max below its
+    min, numbers that never end) still writes a layout the parser accepts."""
+    vocab = len(tokenizer)
+    gen = torch.Generator().manual_seed(7 + greedy)
+    for r in sorted(records, key=lambda r: len(r["completion"]))[:2]:
+        plan = r["completion"].split("**Scene Layout:**")[0].rstrip("\n")
+        forced = tokenizer(plan, add_special_tokens=False)["input_ids"]
+        proc = CTRCConstraint(tokenizer, [r["prompt"]], greedy=greedy)
+        ids: list[int] = []
+        for step in range(4000):
+            scores = 3.0 * torch.randn(1, vocab, generator=gen)
+            if step < len(forced):
+                scores[0, forced[step]] = 100.0
+                scores[0, tokenizer.eos_token_id] = -1e9
+            scores = proc(torch.tensor([[tokenizer.pad_token_id] + ids], dtype=torch.long), scores)
+            probs = scores.softmax(-1)
+            t = int(scores.argmax()) if greedy else int(torch.multinomial(probs, 1, generator=gen))
+            if t == tokenizer.eos_token_id:
+                break
+            ids.append(t)
+        text = tokenizer.decode(ids)
+        scene = parse(text)
+        assert not isinstance(scene, ParseError), (scene.reason, text[-400:])
+        assert sorted(o.instance_id for o in scene.objects) == sorted(listed_instance_ids(r["prompt"]))

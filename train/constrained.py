@@ -57,9 +57,11 @@ __all__ = ["CTRCConstraint", "Rule", "active_rule", "constraint_rule", "last_anc
 
 _OBJECT_LIST = re.compile(r"\*\*Object List\*\*: ([^\n]*)")
 _LIST_ITEM = re.compile(r"\s*([^,()]+?) \((\d+)\)")
-# A JSON number the parser accepts: at most 5 integer digits keeps it under MAX_ABS_CM (1e5 cm), at
+# A JSON number the parser accepts: no leading zero (JSON); at most 4 integer digits (100 m: a
+# tabletop is a few metres) keeps even a deep stack of relative offsets under MAX_ABS_CM (1e5 cm); at
 # most 8 decimals keeps a model from writing digits forever (the data has DECIMALS = 5).
-_NUMBER = r"-?\d{1,5}(?:\.\d{1,8})?"
+_INTEGER_DIGITS = 4
+_NUMBER = rf"-?(?:0|[1-9]\d{{0,{_INTEGER_DIGITS - 1}}})(?:\.\d{{1,8}})?"
 _ARRAY_LENGTH = {"relative_bbox": 6, "bbox": 6, "item_placement_zone": 4}
 # (min, max) index pairs of an array whose max must exceed its min (physcene.ctrc refuses a
 # non-positive extent); the root's "bbox" is the zone with a zero height, so it has none.
@@ -78,10 +80,11 @@ _ANCHOR = re.compile(
 # root entry's instance_id; what follows an object entry's closing brace: the next entry up to its
 # instance_id (whose own rule follows), or the end of the objects array up to the zone's key.
 _LAYOUT_START = "\n\n" + LAYOUT_HEADER + "\n" + OBJECTS_OPEN + '{"layer": 0, "instance_id":'
-_NEXT_ENTRY = regex.escape(ENTRY_SEPARATOR + '{"layer": ') + r"\d+" + regex.escape(', "instance_id":')
+_LAYER = r"[1-9]\d{0,3}"
+_NEXT_ENTRY = regex.escape(ENTRY_SEPARATOR + '{"layer": ') + _LAYER + regex.escape(', "instance_id":')
 _END_OF_OBJECTS = regex.escape(OBJECTS_CLOSE)
 _ROOT_KEYS = regex.escape(', "type": "zone", "bbox":')
-_DESCRIPTION = r' "(?:[^"\\\n]|\\.){0,300}"'  # one JSON string on one line
+_DESCRIPTION = r' "(?:[^"\\\x00-\x1f]|\\(?:["\\/bfnrt]|u[0-9a-fA-F]{4})){0,300}"'  # one JSON string, one line
 _TAIL = 600  # characters searched for the last anchor: longer than any constrained segment
 
 
@@ -135,8 +138,10 @@ def _supremum(prefix: str) -> float:
     digits = prefix[1:] if negative else prefix
     whole, dot, fraction = digits.partition(".")
     if not negative:
-        if not dot:
-            return math.inf  # more digits can follow
+        if not dot:  # more digits can follow (none after a leading 0), up to _INTEGER_DIGITS
+            if whole == "0":
+                return 1.0
+            return (int(whole or 0) + 1) * 10.0 ** (_INTEGER_DIGITS - len(whole))  # "" -> 1e4
         return float(f"{whole}.{fraction or 0}") + 10.0 ** -len(fraction)
     if not dot:
         return -float(whole or 0)  # "-12" at most -12 ("-" at most -0)
@@ -190,6 +195,16 @@ def active_rule(partial: str, core: _Core | None) -> Rule | None:
     if _compiled(pattern).fullmatch(partial, partial=True) is None:
         return None
     return Rule(partial, pattern, core.ordered)
+
+
+def _within(partial: str, core: _Core | None) -> bool:
+    """Whether ``partial``, the text since an anchor, can still continue into that anchor's rule."""
+    if core is None:
+        return True
+    pattern = core.pattern if core.then_eos else core.pattern + r"[\s\S]*"
+    if _compiled(pattern).fullmatch(partial, partial=True) is None:
+        return False
+    return not core.ordered or _extents_possible(partial, core.ordered)
 
 
 def last_anchor(text: str, listed: Sequence[str] | None) -> tuple[int, _Core | None] | None:
@@ -307,11 +322,36 @@ class CTRCConstraint(LogitsProcessor):
         self.prompt_length: int | None = None
         self.masked_steps = 0  # rows x steps masked (greedy: where the model's choice was overruled)
 
-    def _allowed(self, rule: Rule, candidates) -> list[int]:
-        if rule.pattern is None:  # the completion is finished
+    def _allowed(self, row: int, rule: Rule | None, candidates) -> list[int]:
+        """The ``candidates`` that keep ``row`` inside its ``rule`` (None: free text) and inside the
+        rule of any anchor the token itself completes (a token like ``":**`` ends a key and breaks its
+        value in one step; checking only the old rule would let the value run free)."""
+        if rule is not None and rule.pattern is None:  # the completion is finished
             return [self.eos]
         texts = self.token_text
-        return [t for t in candidates if texts[t] and rule.admits(texts[t])]
+        out = []
+        for t in candidates:
+            added = texts[t]
+            if rule is None:
+                if not added:  # EOS or a special token in free text: the model's choice
+                    out.append(t)
+                    continue
+            elif not added or not rule.admits(added):
+                continue
+            if self._next_rule_holds(row, added):
+                out.append(t)
+        return out
+
+    def _next_rule_holds(self, row: int, added: str) -> bool:
+        text = self.texts[row]
+        if not (_may_end_anchor(added) or "Place" in text[-5:] + added):
+            return True
+        full = text + added
+        found = last_anchor(full, self.listed[row])
+        if found is None or found[0] <= len(text):  # no anchor ends inside the new token
+            return True
+        position, core = found
+        return _within(full[position:], core)
 
     def __call__(self, input_ids: torch.LongTensor, scores: torch.FloatTensor) -> torch.FloatTensor:
         if self.prompt_length is None:
@@ -323,7 +363,7 @@ class CTRCConstraint(LogitsProcessor):
         # step would cost O(length) per step.
         new = input_ids[:, self.prompt_length + self.seen:].tolist()
         self.seen = input_ids.shape[1] - self.prompt_length
-        rules = {}
+        rules: dict[int, Rule | None] = {}  # unfinished rows: their rule, None in free text
         for b, ids in enumerate(new):
             if self.finished[b]:
                 continue
@@ -339,16 +379,14 @@ class CTRCConstraint(LogitsProcessor):
             if self.anchors[b] is _UNSET or _may_end_anchor(added) or self.texts[b].endswith("Place"):
                 self.anchors[b] = last_anchor(self.texts[b], self.listed[b])
             found = self.anchors[b]
-            rule = None if found is None else active_rule(self.texts[b][found[0]:], found[1])
-            if rule is not None:
-                rules[b] = rule
+            rules[b] = None if found is None else active_rule(self.texts[b][found[0]:], found[1])
         if not rules:
             return scores
         keep: dict[int, list[int]] = {}
         rows = list(rules)
         if self.greedy:  # only rows whose first choice breaks their rule need more candidates
             best = scores.argmax(dim=-1).tolist()
-            rows = [b for b in rows if best[b] not in self._allowed(rules[b], [best[b]])]
+            rows = [b for b in rows if not self._allowed(b, rules[b], [best[b]])]
         if rows:
             k = min(self.top_k, scores.shape[-1])
             values, top = scores[rows].float().topk(k, dim=-1)
@@ -356,10 +394,12 @@ class CTRCConstraint(LogitsProcessor):
             for b, candidates, v in zip(rows, top, values):
                 floor = v[0] - self.margin if not self.greedy else -math.inf
                 candidates = [t for t, x in zip(candidates, v) if x > floor]
-                allowed = self._allowed(rules[b], candidates)
+                allowed = self._allowed(b, rules[b], candidates)
+                if rules[b] is None and not self.greedy and len(allowed) == len(candidates):
+                    continue  # sampling in free text: every likely candidate is fine
                 if not allowed:  # the whole vocabulary, less what other processors ruled out (-inf)
                     finite = torch.isfinite(scores[b]).nonzero().flatten().tolist()
-                    allowed = self._allowed(rules[b], finite)
+                    allowed = self._allowed(b, rules[b], finite)
                 if allowed:  # else: nothing in the vocabulary continues the rule; leave it to the parser
                     keep[b] = allowed
         if not keep:
