@@ -25,7 +25,8 @@ WORKERS=${WORKERS:-$(nproc)}
 LAUNCH=${LAUNCH:-"accelerate launch --config_file configs/accelerate/multi_gpu.yaml --num_processes $NPROC"}
 PADA_LEVEL=${PADA_LEVEL:-null}      # PADA prompts of level <= this only (null: all levels)
 SFT_STEPS=${SFT_STEPS:--1}          # optimizer steps of SFT (-1: the config's epochs)
-CONSTRAINED=${CONSTRAINED:-0}       # 1: anchors, PADA groups and eval decode under the CTRC constraint
+CONSTRAINED=${CONSTRAINED:-}        # 1 / 0: anchors, PADA groups and eval decode under the CTRC constraint
+                                    # or not (unset: the config's choice; `small`: constrained)
 CACHE=${CACHE:-static_compile}      # KV cache of anchor and eval generation (H200: 3.4x dynamic)
 EXTRA=${EXTRA:-}                    # more key=value overrides for every stage
 STAGES=${STAGES:-"synth sft anchors grpo pada_star pada eval"}
@@ -38,6 +39,8 @@ common="$common pada.global_batch_size=$((PADA_BATCH * NPROC)) pada.max_level=$P
 common="$common anchors.cache=$CACHE eval.cache=$CACHE"
 if [ "$CONSTRAINED" = 1 ]; then
   common="$common anchors.constrained=true eval.constrained=true pada.constrained=true"
+elif [ "$CONSTRAINED" = 0 ]; then
+  common="$common anchors.constrained=false eval.constrained=false pada.constrained=false"
 fi
 common="$common ablation.n_test=$N_TEST $EXTRA"
 want() { [[ " $STAGES " == *" $1 "* ]]; }
