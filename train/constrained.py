@@ -17,8 +17,8 @@ format, or the prompt's **Object List**, decides what may come next, and leaves 
 | ``"parent_id":``                    | ``root_zone`` or an id placed earlier in the layout           |
 | ``"relation_type":``                | ``near`` for a table-level object, else ``in`` / ``on``; then  |
 |                                     | the description (free text, one JSON string)                  |
-| ``"relative_bbox":`` / ``"bbox":``  | six JSON numbers ``[-?d+(.d+)?, ...]``, each max above its min |
-|                                     | (``relative_bbox``)                                           |
+| ``"relative_bbox":`` / ``"bbox":``  | six JSON numbers (no leading zero, <= 4 integer digits), each  |
+|                                     | ``relative_bbox`` max above its min                           |
 | ``"relative_rotation_deg":``        | one number, then the next entry while ids are left, else the  |
 |                                     | end of the objects array                                      |
 | ``"item_placement_zone":``          | four JSON numbers (max above min), ``}`` and the end of text   |
@@ -111,6 +111,11 @@ class _Core(NamedTuple):
     ordered: tuple[tuple[int, int], ...] = ()
     then_eos: bool = False  # once the pattern is complete the completion ends
 
+    def prefix_rule(self, partial: str) -> Rule:
+        """The :class:`Rule` of this core after ``partial``: its pattern, then anything (the next
+        anchor's rule takes over) unless the completion ends with it."""
+        return Rule(partial, self.pattern if self.then_eos else self.pattern + r"[\s\S]*", self.ordered)
+
 
 def _extents_possible(text: str, pairs) -> bool:
     """Whether the JSON number array that ``text`` starts (`` [1.5, 2``) can still end with every
@@ -191,20 +196,12 @@ def active_rule(partial: str, core: _Core | None) -> Rule | None:
     done = _compiled(core.pattern).match(partial)
     if done:  # the segment is complete
         return Rule(partial, None) if core.then_eos and done.end() == len(partial) else None
-    pattern = core.pattern + r"[\s\S]*"
-    if _compiled(pattern).fullmatch(partial, partial=True) is None:
-        return None
-    return Rule(partial, pattern, core.ordered)
+    return core.prefix_rule(partial) if _within(partial, core) else None
 
 
 def _within(partial: str, core: _Core | None) -> bool:
     """Whether ``partial``, the text since an anchor, can still continue into that anchor's rule."""
-    if core is None:
-        return True
-    pattern = core.pattern if core.then_eos else core.pattern + r"[\s\S]*"
-    if _compiled(pattern).fullmatch(partial, partial=True) is None:
-        return False
-    return not core.ordered or _extents_possible(partial, core.ordered)
+    return core is None or core.prefix_rule("").admits(partial)
 
 
 def last_anchor(text: str, listed: Sequence[str] | None) -> tuple[int, _Core | None] | None:
