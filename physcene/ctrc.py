@@ -40,6 +40,7 @@ from physcene.layout import category_from_instance, load_layout
 from physcene.scene import TABLE, Scene, SceneError, SceneObject, Zone, wrap_angle
 
 __all__ = [
+    "BOX_EXTENTS",
     "DECIMALS",
     "ENTRY_SEPARATOR",
     "LAYOUT_HEADER",
@@ -78,6 +79,9 @@ LAYOUT_HEADER = "**Scene Layout:**"
 OBJECTS_OPEN = '{\n  "objects": [\n    '
 ENTRY_SEPARATOR = ",\n    "
 OBJECTS_CLOSE = '\n  ],\n  "item_placement_zone":'
+# (min, max) index pairs of a relative box [xmin, xmax, ymin, ymax, zmin, zmax], x then y then z (the
+# zone's [xmin, xmax, ymin, ymax] is the first two).
+BOX_EXTENTS = ((0, 1), (2, 3), (4, 5))
 # How many candidate '{' positions the JSON search tries before giving up.
 _MAX_JSON_ATTEMPTS = 256
 
@@ -177,7 +181,7 @@ def encode(scene: Scene, *, decimals: int | None = None) -> list[dict]:
         box, rot = _relative(o, frame, relation)
         box = [_rounded(v, decimals) for v in box]
         if decimals is not None:  # an extent thinner than the last decimal would round to zero
-            for lo, hi in ((0, 1), (2, 3), (4, 5)):
+            for lo, hi in BOX_EXTENTS:
                 if not box[hi] > box[lo]:
                     box[hi] = _rounded(box[lo] + 10.0 ** -decimals, decimals)
         rot = _rounded(rot, decimals)
@@ -224,7 +228,7 @@ def _relative_box(value, iid: str) -> list[float]:
     if not isinstance(value, list) or len(value) != 6:
         raise SceneError("expected [xmin, xmax, ymin, ymax, zmin, zmax]", obj=iid, field="relative_bbox")
     box = [_finite(v, iid=iid, field="relative_bbox") for v in value]
-    for axis, (lo, hi) in zip("xyz", ((0, 1), (2, 3), (4, 5))):
+    for axis, (lo, hi) in zip("xyz", BOX_EXTENTS):
         if not box[hi] > box[lo]:
             raise SceneError(f"{axis}max {box[hi]:g} must exceed {axis}min {box[lo]:g} (non-positive extent)",
                              obj=iid, field="relative_bbox")

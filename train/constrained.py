@@ -49,7 +49,7 @@ import regex
 import torch
 from transformers import LogitsProcessor, PreTrainedTokenizerBase
 
-from physcene.ctrc import ENTRY_SEPARATOR, LAYOUT_HEADER, OBJECTS_CLOSE, OBJECTS_OPEN
+from physcene.ctrc import BOX_EXTENTS, ENTRY_SEPARATOR, LAYOUT_HEADER, OBJECTS_CLOSE, OBJECTS_OPEN
 from physcene.layout import category_from_instance
 from physcene.scene import TABLE
 
@@ -65,7 +65,7 @@ _NUMBER = rf"-?(?:0|[1-9]\d{{0,{_INTEGER_DIGITS - 1}}})(?:\.\d{{1,8}})?"
 _ARRAY_LENGTH = {"relative_bbox": 6, "bbox": 6, "item_placement_zone": 4}
 # (min, max) index pairs of an array whose max must exceed its min (physcene.ctrc refuses a
 # non-positive extent); the root's "bbox" is the zone with a zero height, so it has none.
-_ORDERED = {"relative_bbox": ((0, 1), (2, 3), (4, 5)), "item_placement_zone": ((0, 1), (2, 3))}
+_ORDERED = {"relative_bbox": BOX_EXTENTS, "item_placement_zone": BOX_EXTENTS[:2]}
 # The key that follows each constrained key in an entry (physcene.ctrc.encode's order).
 _NEXT_KEY = {"instance_id": "category", "category": "parent_id", "parent_id": "relation_type",
              "relation_type": "description", "relative_bbox": "relative_rotation_deg", "bbox": "z_rotation"}
