@@ -3,8 +3,9 @@ failures a small model makes (repeated ids, broken numbers, a missing close), an
 
 import pytest
 import torch
-from physcene.train.constrained import CTRCConstraint, constraint_rule, listed_instance_ids
+from physcene.train.constrained import CTRCConstraint, constraint_rule, listed_instance_ids, sampling_warpers
 from physcene.train.tokenizer import build_tokenizer
+from transformers import GenerationConfig, LogitsProcessorList
 
 from physcene.ctrc import ParseError, parse
 from physcene.data import synthesize
@@ -23,6 +24,11 @@ def tokenizer(records):
     return build_tokenizer(texts, vocab_size=600)
 
 
+# greedy; sampling that checks the candidates within a margin; sampling by rejection (warpers given)
+MODES = {"greedy": {"greedy": True}, "candidates": {"greedy": False},
+         "draw": {"greedy": False, "warpers": LogitsProcessorList()}}
+
+
 def allowed(text: str, listed, candidate: str) -> bool:
     rule = constraint_rule(text, listed)
     return rule is None or rule.admits(candidate)
@@ -36,13 +42,14 @@ def test_listed_ids_follow_the_mesatask_naming(records):
         assert sorted(listed_instance_ids(r["prompt"])) == sorted(o.instance_id for o in scene.objects)
 
 
-@pytest.mark.parametrize("greedy", [True, False])
-def test_reference_completions_pass_unchanged(records, tokenizer, greedy):
+@pytest.mark.parametrize("mode", list(MODES))
+def test_reference_completions_pass_unchanged(records, tokenizer, mode):
     """Fed the true next token as the model's favourite, the processor never masks it out."""
     vocab = len(tokenizer)
+    greedy = mode == "greedy"
     for r in records:
         ids = tokenizer(r["completion"], add_special_tokens=False)["input_ids"] + [tokenizer.eos_token_id]
-        proc = CTRCConstraint(tokenizer, [r["prompt"]], greedy=greedy, top_k=8)
+        proc = CTRCConstraint(tokenizer, [r["prompt"]], top_k=8, **MODES[mode])
         prompt = torch.full((1, 3), tokenizer.pad_token_id)
         for k, t in enumerate(ids):
             scores = torch.randn(1, vocab)
@@ -209,17 +216,19 @@ def test_generate_runs_constrained_and_parses_a_forced_completion(records, token
     assert sorted(o.instance_id for o in scene.objects) == sorted(listed_instance_ids(r["prompt"]))
 
 
-@pytest.mark.parametrize("greedy", [True, False])
-def test_a_model_of_random_logits_still_writes_layouts_that_parse(records, tokenizer, greedy):
+@pytest.mark.parametrize("mode", list(MODES))
+def test_a_model_of_random_logits_still_writes_layouts_that_parse(records, tokenizer, mode):
     """Everything in the layout constrained: given the reference plan, a model whose logits are noise
     (every token a wrong guess: keys broken across tokens, leading zeros, bad escapes, a max below its
     min, numbers that never end) still writes a layout the parser accepts."""
     vocab = len(tokenizer)
+    greedy = mode == "greedy"
     gen = torch.Generator().manual_seed(7 + greedy)
+    torch.manual_seed(7)  # the draws of the rejection mode
     for r in sorted(records, key=lambda r: len(r["completion"]))[:2]:
         plan = r["completion"].split("**Scene Layout:**")[0].rstrip("\n")
         forced = tokenizer(plan, add_special_tokens=False)["input_ids"]
-        proc = CTRCConstraint(tokenizer, [r["prompt"]], greedy=greedy)
+        proc = CTRCConstraint(tokenizer, [r["prompt"]], **MODES[mode])
         ids: list[int] = []
         for step in range(4000):
             scores = 3.0 * torch.randn(1, vocab, generator=gen)
@@ -236,3 +245,63 @@ def test_a_model_of_random_logits_still_writes_layouts_that_parse(records, token
         scene = parse(text)
         assert not isinstance(scene, ParseError), (scene.reason, text[-400:])
         assert sorted(o.instance_id for o in scene.objects) == sorted(listed_instance_ids(r["prompt"]))
+
+
+def _replay(proc, tokenizer, text: str, rows: int):
+    """Input ids that hand ``proc`` the completion ``text`` so far of ``rows`` identical rows at its
+    next call (a first call sees the prompt alone)."""
+    ids = tokenizer(text, add_special_tokens=False)["input_ids"]
+    prompt = torch.full((rows, 2), tokenizer.pad_token_id)
+    proc(prompt, torch.zeros(rows, len(tokenizer)))
+    return torch.cat([prompt, torch.tensor([ids] * rows, dtype=torch.long)], 1)
+
+
+def test_rejection_draws_sample_the_allowed_part_of_the_distribution(records, tokenizer):
+    """With warpers, what ``generate`` samples after the processor is an exact sample of the model's
+    (warped) distribution restricted to the allowed tokens: 4,000 rows, once where most of the
+    vocabulary is allowed (a description: accepted draws) and once where two tokens are (after
+    ``"relation_type":``: draws refused, then the allowed set)."""
+    r = min(records, key=lambda r: len(r["completion"]))
+    start = r["completion"].index('"description": "') + len('"description": "')
+    for cut in (start, r["completion"].index('"relation_type":') + len('"relation_type":')):
+        rows = 4000
+        proc = CTRCConstraint(tokenizer, [r["prompt"]] * rows, greedy=False, warpers=sampling_warpers(
+            GenerationConfig(do_sample=True, temperature=0.7, top_k=0)))
+        step = _replay(proc, tokenizer, r["completion"][:cut], rows)
+        gen = torch.Generator().manual_seed(0)
+        logits = torch.randn(len(tokenizer), generator=gen) * 2.0
+        probe = CTRCConstraint(tokenizer, [r["prompt"]])
+        rule = probe._advance(_replay(probe, tokenizer, r["completion"][:cut], 1))[0]
+        allowed_ids = probe._allowed(0, rule, range(len(tokenizer)))
+        assert 2 <= len(allowed_ids) < len(tokenizer) - 2
+        torch.manual_seed(1)
+        out = proc(step, logits.repeat(rows, 1))
+        picked = torch.multinomial((out / 0.7).softmax(-1), 1).flatten()  # what generate does next
+        counts = torch.bincount(picked, minlength=len(tokenizer)).float()
+        assert counts.sum() == counts[allowed_ids].sum()  # nothing refused comes through
+        p = (logits / 0.7).softmax(-1)[allowed_ids]
+        p = p / p.sum()
+        freq = counts[allowed_ids] / rows
+        tolerance = 4 * (p * (1 - p) / rows).sqrt() + 1e-3
+        assert ((freq - p).abs() <= tolerance).all(), (freq, p)
+
+
+def test_only_eos_follows_the_finished_layout(records, tokenizer):
+    r = records[0]
+    for mode, kwargs in MODES.items():
+        proc = CTRCConstraint(tokenizer, [r["prompt"]], **kwargs)
+        step = _replay(proc, tokenizer, r["completion"], 1)
+        scores = torch.zeros(1, len(tokenizer))
+        scores[0, tokenizer.eos_token_id] = -5.0  # the model would rather go on
+        torch.manual_seed(0)
+        out = proc(step, scores)
+        assert torch.isfinite(out[0]).nonzero().flatten().tolist() == [tokenizer.eos_token_id], mode
+
+
+def test_sampling_warpers_rebuild_what_generate_applies():
+    assert sampling_warpers(GenerationConfig(do_sample=False)) is None
+    assert sampling_warpers(GenerationConfig(do_sample=True, typical_p=0.9)) is None  # not rebuilt
+    kinds = [type(w).__name__ for w in sampling_warpers(
+        GenerationConfig(do_sample=True, temperature=0.5, top_k=20, top_p=0.9, min_p=0.05))]
+    assert kinds == ["TemperatureLogitsWarper", "TopKLogitsWarper", "TopPLogitsWarper", "MinPLogitsWarper"]
+    assert len(sampling_warpers(GenerationConfig(do_sample=True, temperature=1.0, top_k=0))) == 0

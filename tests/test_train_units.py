@@ -293,3 +293,24 @@ def test_completion_length_tells_truncated_rows_from_finished_ones():
 
     assert completion_length([3, 4, 7, 0, 0], Tok()) == (3, False)  # EOS then padding
     assert completion_length([3, 4, 5], Tok()) == (3, True)         # cut at max_new_tokens
+
+
+def test_anchors_are_made_only_for_the_levels_pada_trains_on(tmp_path):
+    from physcene.train.anchors import anchor_prompts
+    from physcene.train.records import write_records
+
+    from physcene.data import synthesize
+
+    records = list(synthesize("train", 60, seed=4))
+    assert {1, 2} <= {r["level"] for r in records} and max(r["level"] for r in records) > 2
+    write_records(records, tmp_path / "train.jsonl")
+    base = [f"data.train={tmp_path / 'train.jsonl'}", "anchors.n_records=5"]
+    every = anchor_prompts(load_config("train_tiny", base))
+    assert [r["id"] for r in every] == [r["id"] for r in records[:5]]
+    low = anchor_prompts(load_config("train_tiny", [*base, "pada.max_level=2"]))  # anchors.max_level follows
+    assert len(low) == 5 and all(r["level"] <= 2 for r in low)
+    assert [r["id"] for r in low] == [r["id"] for r in records if r["level"] <= 2][:5]
+    both = anchor_prompts(load_config("train_tiny", [*base, "pada.max_level=2", "data.max_level=1"]))
+    assert both and all(r["level"] == 1 for r in both)  # the tighter of the two
+    unfiltered = load_config("train_tiny", [*base, "pada.max_level=2", "anchors.max_level=null"])
+    assert anchor_prompts(unfiltered) == every

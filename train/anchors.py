@@ -25,7 +25,7 @@ from pathlib import Path
 from omegaconf import DictConfig
 from physcene.train.records import load_records, write_records
 
-__all__ = ["anchor_records", "anchor_summary", "completion_length", "run_anchors"]
+__all__ = ["anchor_prompts", "anchor_records", "anchor_summary", "completion_length", "run_anchors"]
 
 
 def _record_zone(record: dict):
@@ -120,6 +120,18 @@ def completion_length(ids: list[int], tokenizer) -> tuple[int, bool]:
     return len(ids), True
 
 
+def anchor_prompts(cfg) -> list[dict]:
+    """The training records that get an anchor: levels <= ``anchors.max_level`` (by default
+    ``pada.max_level``: no anchor is made for a prompt PADA never sees) and ``data.max_level``, then the
+    first ``anchors.n_records``."""
+    a = cfg.anchors
+    levels = [x for x in (cfg.data.get("max_level"), a.get("max_level")) if x is not None]
+    records = load_records(str(cfg.data.train), seed=int(cfg.seed), max_level=min(levels) if levels else None)
+    if a.get("n_records") is not None:
+        records = records[:int(a.n_records)]
+    return records
+
+
 def run_anchors(cfg: DictConfig) -> Path:
     """Generate, parse and repair anchors for ``cfg.data.train`` with ``cfg.anchors.model``.
 
@@ -135,9 +147,7 @@ def run_anchors(cfg: DictConfig) -> Path:
 
     a = cfg.anchors
     out = Path(str(a.output))
-    records = load_records(str(cfg.data.train), seed=int(cfg.seed), max_level=cfg.data.get("max_level"))
-    if a.get("n_records") is not None:
-        records = records[:int(a.n_records)]
+    records = anchor_prompts(cfg)
     if out.is_file() and not a.get("overwrite", False) and len(load_records(str(out))) == len(records):
         return out
     state = PartialState()

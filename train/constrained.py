@@ -42,18 +42,20 @@ from __future__ import annotations
 import functools
 import math
 import re
+import time
 from collections.abc import Sequence
 from typing import NamedTuple
 
 import regex
 import torch
-from transformers import LogitsProcessor, PreTrainedTokenizerBase
+from transformers import GenerationConfig, LogitsProcessor, LogitsProcessorList, PreTrainedTokenizerBase
 
 from physcene.ctrc import BOX_EXTENTS, ENTRY_SEPARATOR, LAYOUT_HEADER, OBJECTS_CLOSE, OBJECTS_OPEN
 from physcene.layout import category_from_instance
 from physcene.scene import TABLE
 
-__all__ = ["CTRCConstraint", "Rule", "active_rule", "constraint_rule", "last_anchor", "listed_instance_ids"]
+__all__ = ["CTRCConstraint", "Rule", "active_rule", "constraint_rule", "last_anchor", "listed_instance_ids",
+           "sampling_warpers"]
 
 _OBJECT_LIST = re.compile(r"\*\*Object List\*\*: ([^\n]*)")
 _LIST_ITEM = re.compile(r"\s*([^,()]+?) \((\d+)\)")
@@ -300,10 +302,16 @@ class CTRCConstraint(LogitsProcessor):
     ``margin``: sampling checks only the candidates whose score is within ``margin`` of the row's best
     (12: a probability ratio of 6e-6, so the mass left out is negligible), which keeps the regex work
     per step near one check per row where the model is sure of its next token, as it mostly is.
+    ``warpers``: for sampling, the warpers ``generate`` applies after this processor (temperature,
+    top-k, top-p, min-p: :func:`sampling_warpers`). Given, each row's token is drawn here by rejection
+    (:meth:`_draw`): an exact sample of the allowed part of the distribution at about one check per
+    row and step, instead of checking every candidate within ``margin``; ``redraws`` tokens of the
+    draw are checked before the whole vocabulary is.
     """
 
     def __init__(self, tokenizer: PreTrainedTokenizerBase, prompts: Sequence[str], *, top_k: int = 32,
-                 greedy: bool = True, margin: float = 12.0):
+                 greedy: bool = True, margin: float = 12.0, warpers: LogitsProcessorList | None = None,
+                 redraws: int = 8):
         self.token_text = _token_texts(tokenizer)
         self.eos = tokenizer.eos_token_id
         self.listed = [listed_instance_ids(p) for p in prompts]
@@ -317,14 +325,18 @@ class CTRCConstraint(LogitsProcessor):
         self.greedy = bool(greedy)
         self.margin = float(margin)
         self.prompt_length: int | None = None
-        self.masked_steps = 0  # rows x steps masked (greedy: where the model's choice was overruled)
+        self.warpers = None if greedy else warpers
+        self.redraws = int(redraws)
+        self.masked_steps = 0  # rows x steps where the model's choice (greedy) or draw was overruled
+        self.refused_draws = 0  # sampling by rejection (warpers): drawn tokens refused
+        self.seconds = 0.0  # host time spent in __call__ (the constraint's cost inside generate)
 
     def _allowed(self, row: int, rule: Rule | None, candidates) -> list[int]:
         """The ``candidates`` that keep ``row`` inside its ``rule`` (None: free text) and inside the
         rule of any anchor the token itself completes (a token like ``":**`` ends a key and breaks its
         value in one step; checking only the old rule would let the value run free)."""
-        if rule is not None and rule.pattern is None:  # the completion is finished
-            return [self.eos]
+        if rule is not None and rule.pattern is None:  # the completion is finished: EOS only
+            return [t for t in candidates if t == self.eos]
         texts = self.token_text
         out = []
         for t in candidates:
@@ -351,6 +363,49 @@ class CTRCConstraint(LogitsProcessor):
         return _within(full[position:], core)
 
     def __call__(self, input_ids: torch.LongTensor, scores: torch.FloatTensor) -> torch.FloatTensor:
+        start = time.perf_counter()
+        try:
+            return self._restrict(input_ids, scores)
+        finally:
+            self.seconds += time.perf_counter() - start
+
+    def _restrict(self, input_ids: torch.LongTensor, scores: torch.FloatTensor) -> torch.FloatTensor:
+        rules = self._advance(input_ids)
+        if not rules:
+            return scores
+        if self.warpers is not None:
+            return self._draw(rules, input_ids, scores)
+        keep: dict[int, list[int]] = {}
+        rows = list(rules)
+        if self.greedy:  # only rows whose first choice breaks their rule need more candidates
+            best = scores.argmax(dim=-1).tolist()
+            rows = [b for b in rows if not self._allowed(b, rules[b], [best[b]])]
+        if rows:
+            k = min(self.top_k, scores.shape[-1])
+            values, top = scores[rows].float().topk(k, dim=-1)
+            values, top = values.tolist(), top.tolist()
+            for b, candidates, v in zip(rows, top, values):
+                floor = v[0] - self.margin if not self.greedy else -math.inf
+                candidates = [t for t, x in zip(candidates, v) if x > floor]
+                allowed = self._allowed(b, rules[b], candidates)
+                if rules[b] is None and not self.greedy and len(allowed) == len(candidates):
+                    continue  # sampling in free text: every likely candidate is fine
+                if not allowed:
+                    allowed = self._allowed_in_vocabulary(b, rules[b], scores)
+                if allowed:  # else: nothing in the vocabulary continues the rule; leave it to the parser
+                    keep[b] = allowed
+        if not keep:
+            return scores
+        self.masked_steps += len(keep)
+        mask = torch.zeros(scores.shape, dtype=torch.bool)  # True: masked out
+        for b, allowed in keep.items():
+            mask[b] = True
+            mask[b, allowed] = False
+        return scores.masked_fill(mask.to(scores.device), float("-inf"))
+
+    def _advance(self, input_ids: torch.LongTensor) -> dict[int, Rule | None]:
+        """Append each row's new tokens to its text; the rule in force for every unfinished row
+        (None: free text)."""
         if self.prompt_length is None:
             self.prompt_length = input_ids.shape[1]
         if input_ids.shape[0] != len(self.texts):
@@ -360,7 +415,7 @@ class CTRCConstraint(LogitsProcessor):
         # step would cost O(length) per step.
         new = input_ids[:, self.prompt_length + self.seen:].tolist()
         self.seen = input_ids.shape[1] - self.prompt_length
-        rules: dict[int, Rule | None] = {}  # unfinished rows: their rule, None in free text
+        rules: dict[int, Rule | None] = {}
         for b, ids in enumerate(new):
             if self.finished[b]:
                 continue
@@ -377,36 +432,83 @@ class CTRCConstraint(LogitsProcessor):
                 self.anchors[b] = last_anchor(self.texts[b], self.listed[b])
             found = self.anchors[b]
             rules[b] = None if found is None else active_rule(self.texts[b][found[0]:], found[1])
-        if not rules:
-            return scores
-        keep: dict[int, list[int]] = {}
+        return rules
+
+    def _allowed_in_vocabulary(self, row: int, rule: Rule | None, scores: torch.Tensor) -> list[int]:
+        """The allowed tokens of the whole vocabulary, less what other processors ruled out (-inf)."""
+        finite = torch.isfinite(scores[row]).nonzero().flatten().tolist()
+        return self._allowed(row, rule, finite)
+
+    def _draw(self, rules: dict[int, Rule | None], input_ids: torch.LongTensor,
+              scores: torch.FloatTensor) -> torch.FloatTensor:
+        """Sampling by rejection: each unfinished row's tokens in the order of one draw without
+        replacement from its warped distribution (Gumbel-top-k: the warped scores plus Gumbel noise,
+        sorted), checked in that order; the first allowed one is exactly a sample of the distribution
+        restricted to the allowed tokens, and it is mostly the first, so a row costs about one check.
+        A row whose ``redraws`` first tokens are all refused samples afresh among the allowed tokens
+        of the whole vocabulary. Each row comes back with only its chosen token(s) finite, so the
+        sampler that follows picks it."""
         rows = list(rules)
-        if self.greedy:  # only rows whose first choice breaks their rule need more candidates
-            best = scores.argmax(dim=-1).tolist()
-            rows = [b for b in rows if not self._allowed(b, rules[b], [best[b]])]
-        if rows:
-            k = min(self.top_k, scores.shape[-1])
-            values, top = scores[rows].float().topk(k, dim=-1)
-            values, top = values.tolist(), top.tolist()
-            for b, candidates, v in zip(rows, top, values):
-                floor = v[0] - self.margin if not self.greedy else -math.inf
-                candidates = [t for t, x in zip(candidates, v) if x > floor]
-                allowed = self._allowed(b, rules[b], candidates)
-                if rules[b] is None and not self.greedy and len(allowed) == len(candidates):
-                    continue  # sampling in free text: every likely candidate is fine
-                if not allowed:  # the whole vocabulary, less what other processors ruled out (-inf)
-                    finite = torch.isfinite(scores[b]).nonzero().flatten().tolist()
-                    allowed = self._allowed(b, rules[b], finite)
-                if allowed:  # else: nothing in the vocabulary continues the rule; leave it to the parser
-                    keep[b] = allowed
-        if not keep:
-            return scores
-        self.masked_steps += len(keep)
-        mask = torch.zeros(scores.shape, dtype=torch.bool)  # True: masked out
-        for b, allowed in keep.items():
-            mask[b] = True
-            mask[b, allowed] = False
-        return scores.masked_fill(mask.to(scores.device), float("-inf"))
+        index = torch.tensor(rows, device=scores.device)
+        warped = self.warpers(input_ids[index], scores[index].float())
+        uniform = torch.rand_like(warped).clamp_(min=torch.finfo(warped.dtype).tiny)
+        gumbel = -(-uniform.log()).log()  # Gumbel(0, 1)
+        k = min(self.redraws, warped.shape[-1])
+        order = (warped + gumbel).topk(k, dim=-1).indices.tolist()
+        chosen_rows, chosen_tokens, exhausted = [], [], []
+        for b, tokens in zip(rows, order):
+            for n, t in enumerate(tokens):
+                if self._allowed(b, rules[b], [t]):
+                    if n:
+                        self.masked_steps += 1
+                        self.refused_draws += n
+                    chosen_rows.append(b)
+                    chosen_tokens.append(t)
+                    break
+            else:
+                self.masked_steps += 1
+                self.refused_draws += k
+                exhausted.append(b)
+        out = scores.masked_fill(torch.ones_like(scores, dtype=torch.bool), float("-inf"))
+        done = [b for b in range(scores.shape[0]) if b not in rules]  # finished rows: as they were
+        if done:
+            out[done] = scores[done]
+        if chosen_rows:
+            out[chosen_rows, chosen_tokens] = scores[chosen_rows, chosen_tokens]
+        for b in exhausted:
+            allowed = self._allowed_in_vocabulary(b, rules[b], scores)
+            # else nothing continues the rule: leave the row as it was, to the parser
+            out[b, allowed or slice(None)] = scores[b, allowed or slice(None)]
+        return out
+
+
+def sampling_warpers(config: GenerationConfig) -> LogitsProcessorList | None:
+    """The warpers ``generate`` applies after the logits processors when ``config`` samples
+    (temperature, top-k, top-p, min-p, in transformers' order), for :class:`CTRCConstraint`'s draws;
+    None when ``config`` is greedy or uses a warper not rebuilt here (typical-p, epsilon, eta, top-h:
+    the constraint then checks candidates within its margin instead)."""
+    from transformers.generation.logits_process import (
+        MinPLogitsWarper,
+        TemperatureLogitsWarper,
+        TopKLogitsWarper,
+        TopPLogitsWarper,
+    )
+
+    if not config.do_sample or (config.num_beams or 1) > 1:
+        return None
+    if ((config.typical_p is not None and config.typical_p < 1.0) or config.epsilon_cutoff
+            or config.eta_cutoff or getattr(config, "top_h", None) is not None):
+        return None
+    warpers = LogitsProcessorList()
+    if config.temperature is not None and config.temperature != 1.0:
+        warpers.append(TemperatureLogitsWarper(config.temperature))
+    if config.top_k is not None and config.top_k != 0:
+        warpers.append(TopKLogitsWarper(top_k=config.top_k))
+    if config.top_p is not None and config.top_p < 1.0:
+        warpers.append(TopPLogitsWarper(top_p=config.top_p))
+    if config.min_p is not None:
+        warpers.append(MinPLogitsWarper(min_p=config.min_p))
+    return warpers
 
 
 def _token_texts(tokenizer: PreTrainedTokenizerBase) -> list[str]:

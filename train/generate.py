@@ -20,6 +20,7 @@ For the static modes the cache is sized once for the longest prompt of the whole
 
 from __future__ import annotations
 
+import copy
 import json
 from collections.abc import Sequence
 from pathlib import Path
@@ -131,6 +132,13 @@ def generate_token_ids(model: PreTrainedModel, tokenizer: PreTrainedTokenizerBas
         kwargs["temperature"] = temperature
     if min_new_tokens is not None:
         kwargs["min_new_tokens"] = int(min_new_tokens)
+    warpers = None
+    if constrained and do_sample:  # the warpers generate applies after the constraint, for its draws
+        from physcene.train.constrained import sampling_warpers
+
+        config = copy.deepcopy(model.generation_config)
+        config.update(do_sample=True, temperature=temperature)
+        warpers = sampling_warpers(config)
     for k, enc in enumerate(encoded):
         idx = order[k * batch_size:(k + 1) * batch_size]
         enc = enc.to(device)
@@ -138,8 +146,8 @@ def generate_token_ids(model: PreTrainedModel, tokenizer: PreTrainedTokenizerBas
             from physcene.train.constrained import CTRCConstraint
             from transformers import LogitsProcessorList
 
-            kwargs["logits_processor"] = LogitsProcessorList(
-                [CTRCConstraint(tokenizer, [prompts[i] for i in idx], greedy=not do_sample)])
+            kwargs["logits_processor"] = LogitsProcessorList([CTRCConstraint(
+                tokenizer, [prompts[i] for i in idx], greedy=not do_sample, warpers=warpers)])
         ids = model.generate(**enc, **kwargs)[:, enc["input_ids"].shape[1]:]
         for i, row in zip(idx, ids.tolist()):
             out[i] = row

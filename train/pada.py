@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import json
 import re
+import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -113,6 +114,13 @@ def tokenize_anchor(tokenizer: PreTrainedTokenizerBase, text: str, *, max_length
     return ids[:max_length], mask[:max_length]
 
 
+def longest_prompt_tokens(tokenizer: PreTrainedTokenizerBase, prompts) -> int:
+    """Tokens of the longest prompt as TRL feeds it (a conversational prompt through the chat template)."""
+    texts = [p if isinstance(p, str) else
+             tokenizer.apply_chat_template(p, tokenize=False, add_generation_prompt=True) for p in prompts]
+    return max((len(ids) for ids in tokenizer(texts, add_special_tokens=False)["input_ids"]), default=0)
+
+
 class PADATrainer(GRPOTrainer):
     """GRPO + α·CE(anchor) (see the module docstring). ``args`` is a :class:`PADAConfig`."""
 
@@ -123,6 +131,11 @@ class PADATrainer(GRPOTrainer):
             args = PADAConfig("pada")
         super().__init__(model, reward_funcs, args=args, **kwargs)
         self.anchor_alpha = float(args.anchor_alpha)
+        if args.cache_implementation == "static" and getattr(self, "generation_config", None) is not None:
+            # One static cache size for the whole run (longest prompt + completion): HF sizes it per
+            # call otherwise, and each longer batch would recompile the compiled decoding forward.
+            longest = longest_prompt_tokens(self._tokenizer, self.train_dataset["prompt"])
+            self.generation_config.max_cache_len = longest + self.max_completion_length
         if args.generation_compile and getattr(self, "generation_config", None) is not None:
             # TRL builds its GenerationConfig with disable_compile=True; pada.cache=static_compile turns
             # HF's compiled static-cache decoding back on (same CompileConfig as physcene.train.generate).
@@ -135,7 +148,13 @@ class PADATrainer(GRPOTrainer):
     def _generate(self, prompts: list):
         # The prompts of this generation round, in row order, for the CTRC constraint (below).
         self._round_prompts = prompts
-        return super()._generate(prompts)
+        start = time.perf_counter()
+        output = super()._generate(prompts)
+        # seconds of this rank's generation round (with the constraint's host time, logged apart as
+        # time/constraint_s): where a step's time goes, next to time/reward_s and step_time
+        self._metrics["train" if self.model.training else "eval"]["time/generate_s"].append(
+            time.perf_counter() - start)
+        return output
 
     def _generate_single_turn(self, prompt_ids, images, multimodal_fields, num_generations,
                               has_tool_images=False):
@@ -152,7 +171,7 @@ class PADATrainer(GRPOTrainer):
         if not (self.args.constrained_decoding and usable):
             return super()._generate_single_turn(prompt_ids, images, multimodal_fields, num_generations,
                                                  has_tool_images)
-        from physcene.train.constrained import CTRCConstraint
+        from physcene.train.constrained import CTRCConstraint, sampling_warpers
         from transformers import LogitsProcessorList
 
         texts = [p if isinstance(p, str) else str(p[-1]["content"]) for p in prompts]  # chat: the user turn
@@ -160,9 +179,15 @@ class PADATrainer(GRPOTrainer):
         plain_generate = model.generate
 
         def generate(*args, **kwargs):
-            processor = CTRCConstraint(self._tokenizer, texts, greedy=not self.generation_config.do_sample)
+            config = self.generation_config
+            # sampling: each row's token drawn by rejection from the same warped distribution TRL samples
+            processor = CTRCConstraint(self._tokenizer, texts, greedy=not config.do_sample,
+                                       warpers=sampling_warpers(config))
             kwargs["logits_processor"] = LogitsProcessorList([processor])
-            return plain_generate(*args, **kwargs)
+            output = plain_generate(*args, **kwargs)
+            mode = "train" if self.model.training else "eval"
+            self._metrics[mode]["time/constraint_s"].append(processor.seconds)
+            return output
 
         model.generate = generate  # an instance attribute shadows the method for this round only
         try:
@@ -261,8 +286,8 @@ class PhysicsRewardFunction:
 
     Each rank scores only its own completions (TRL gathers the rewards afterwards), so on N GPUs the
     engine runs N-way parallel. After each batch it logs, through the trainer's ``log_metric``:
-    ``parse_rate``, and over the parsed layouts ``penetration_mm`` (mean E_pen, mm),
-    ``max_depth_mm`` and ``collision_free_rate``.
+    ``time/reward_s`` (this rank's seconds), ``parse_rate``, and over the parsed layouts
+    ``penetration_mm`` (mean E_pen, mm), ``max_depth_mm`` and ``collision_free_rate``.
     """
 
     __name__ = "physics"
@@ -277,9 +302,12 @@ class PhysicsRewardFunction:
         self.reward = reward
 
     def __call__(self, prompts, completions, log_metric=None, **columns) -> list[float]:
+        start = time.perf_counter()
         rewards = self.reward(prompts, completions)
+        seconds = time.perf_counter() - start
         m = self.reward.last_metrics
         if log_metric is not None:
+            log_metric("time/reward_s", seconds)
             log_metric("parse_rate", 1.0 - m["parse_failure_rate"])
             if m["parse_failure_rate"] < 1.0:  # energy figures exist only for parsed layouts
                 log_metric("penetration_mm", m["mean_energy_mm"])
