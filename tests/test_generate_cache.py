@@ -184,9 +184,8 @@ def test_pada_cache_reaches_trl_generation_config(tmp_path, tokenizer):
                       max_completion_length=8, use_cpu=True, report_to="none", beta=0.0,
                       cache_implementation="static", generation_compile=True)
     trainer = PADATrainer(model, reward_funcs=[lambda prompts, completions, **kw: [0.0] * len(prompts)],
-                          args=args, train_dataset=Dataset.from_list([
-                              {"prompt": "a pen", "anchor": ""}, {"prompt": "a pen and a long ruler", "anchor": ""}]),
-                          processing_class=tokenizer)
+                          args=args, processing_class=tokenizer, train_dataset=Dataset.from_list(
+                              [{"prompt": p, "anchor": ""} for p in ("a pen", "a pen and a long ruler")]))
     g = trainer.generation_config
     assert g.cache_implementation == "static" and g.disable_compile is False and g.compile_config is not None
     # one cache size for the run (no recompile as longer batches come): longest prompt + completion
