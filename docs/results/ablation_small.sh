@@ -28,6 +28,8 @@ SFT_STEPS=${SFT_STEPS:--1}          # optimizer steps of SFT (-1: the config's e
 CONSTRAINED=${CONSTRAINED:-}        # 1 / 0: anchors, PADA groups and eval decode under the CTRC constraint
                                     # or not (unset: the config's choice; `small`: constrained)
 CACHE=${CACHE:-static_compile}      # KV cache of anchor and eval generation (H200: 3.4x dynamic)
+PADA_CACHE=${PADA_CACHE:-}          # KV cache of PADA's group generation (unset: the config's); a
+                                    # variant that fails with a static cache is run again with dynamic
 EXTRA=${EXTRA:-}                    # more key=value overrides for every stage
 STAGES=${STAGES:-"synth sft anchors grpo pada_star pada eval"}
 
@@ -57,11 +59,18 @@ if want anchors; then
   stamp "anchors ($ANCHORS records)"
   $LAUNCH -m physcene.cli train anchors --config "$CONFIG" $common
 fi
+pada_cache=${PADA_CACHE:+pada.cache=$PADA_CACHE}
 for variant in grpo pada_star pada; do
   want "$variant" || continue
-  stamp "$variant ($PADA_MIN min)"
-  $LAUNCH -m physcene.cli train pada --config "$CONFIG" --variant "$variant" $common pada.max_minutes="$PADA_MIN" \
-    || stamp "$variant failed (the ablation retries it within its budget or reports it skipped)"
+  stamp "$variant ($PADA_MIN min${PADA_CACHE:+, cache $PADA_CACHE})"
+  $LAUNCH -m physcene.cli train pada --config "$CONFIG" --variant "$variant" $common $pada_cache \
+    pada.max_minutes="$PADA_MIN" && continue
+  if [ -n "$PADA_CACHE" ] && [ "$PADA_CACHE" != dynamic ]; then
+    stamp "$variant failed with cache $PADA_CACHE; again with the dynamic cache"
+    $LAUNCH -m physcene.cli train pada --config "$CONFIG" --variant "$variant" $common pada.cache=dynamic \
+      pada.max_minutes="$PADA_MIN" && continue
+  fi
+  stamp "$variant failed (the ablation retries it within its budget or reports it skipped)"
 done
 if want eval; then
   stamp "eval ($N_TEST test scenes)"
