@@ -469,7 +469,7 @@ class CTRCConstraint(LogitsProcessor):
                 self.masked_steps += 1
                 self.refused_draws += k
                 exhausted.append(b)
-        out = scores.masked_fill(torch.ones_like(scores, dtype=torch.bool), float("-inf"))
+        out = torch.full_like(scores, float("-inf"))
         done = [b for b in range(scores.shape[0]) if b not in rules]  # finished rows: as they were
         if done:
             out[done] = scores[done]
@@ -477,8 +477,10 @@ class CTRCConstraint(LogitsProcessor):
             out[chosen_rows, chosen_tokens] = scores[chosen_rows, chosen_tokens]
         for b in exhausted:
             allowed = self._allowed_in_vocabulary(b, rules[b], scores)
-            # else nothing continues the rule: leave the row as it was, to the parser
-            out[b, allowed or slice(None)] = scores[b, allowed or slice(None)]
+            if allowed:
+                out[b, allowed] = scores[b, allowed]
+            else:  # nothing continues the rule: leave the row as it was, to the parser
+                out[b] = scores[b]
         return out
 
 
