@@ -12,6 +12,8 @@ the layout (almost all of it under a rule). Printed: ms per step, for
   token's logit is 0 and every other token's is drawn from N(-18, 2), so the true token holds ~99.9 %
   of the mass and ~5 others lie within the candidate margin of 12, as a trained model's tail does.
   ``candidates`` checks every token within the margin; ``draw`` draws one and checks it (rejection).
+
+Each round starts with an empty cache of compiled rule patterns, as a PADA step with new prompts does.
 """
 
 from __future__ import annotations
@@ -20,6 +22,7 @@ import time
 
 import pytest
 import torch
+from physcene.train import constrained
 from physcene.train.constrained import CTRCConstraint
 from physcene.train.tokenizer import build_tokenizer
 from transformers import LogitsProcessorList
@@ -46,6 +49,7 @@ def test_constrained_decoding_step_cost(benchmark, mode):
     greedy = kwargs["greedy"]
 
     def replay():
+        constrained._compiled.cache_clear()  # cold, as for the new prompts of every PADA step
         torch.manual_seed(0)
         processor = CTRCConstraint(tokenizer, [r["prompt"] for r in records], **kwargs)
         gen = torch.Generator().manual_seed(0)

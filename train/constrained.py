@@ -85,7 +85,7 @@ _LAYOUT_START = "\n\n" + LAYOUT_HEADER + "\n" + OBJECTS_OPEN + '{"layer": 0, "in
 _LAYER = r"[1-9]\d{0,3}"
 _NEXT_ENTRY = regex.escape(ENTRY_SEPARATOR + '{"layer": ') + _LAYER + regex.escape(', "instance_id":')
 _END_OF_OBJECTS = regex.escape(OBJECTS_CLOSE)
-_ROOT_KEYS = regex.escape(', "type": "zone", "bbox":')
+_ROOT_KEYS = ', "type": "zone", "bbox":'  # after the root's instance_id (plain text)
 _DESCRIPTION = r' "(?:[^"\\\x00-\x1f]|\\(?:["\\/bfnrt]|u[0-9a-fA-F]{4})){0,300}"'  # one JSON string, one line
 _TAIL = 600  # characters searched for the last anchor: longer than any constrained segment
 
@@ -93,16 +93,21 @@ _TAIL = 600  # characters searched for the last anchor: longer than any constrai
 class Rule(NamedTuple):
     """What the next tokens must continue: ``partial`` (the text since the anchor) + the new text must
     stay a prefix of ``pattern``, and numbers at ``ordered`` (min, max) positions of its JSON array
-    must leave room for max > min. ``pattern`` None: the completion is finished; only EOS may follow."""
+    must leave room for max > min. ``pattern`` None: the completion is finished; only EOS may follow.
+    ``choices``: the rule is one of these literal strings, then anything (the next anchor's rule): a
+    prefix test stands in for ``pattern``, so no regex is compiled per set of ids left."""
 
     partial: str
     pattern: str | None
     ordered: tuple[tuple[int, int], ...] = ()
+    choices: tuple[str, ...] = ()
 
     def admits(self, added: str) -> bool:
         if self.pattern is None:
             return False
         text = self.partial + added
+        if self.choices:
+            return any(c.startswith(text) or text.startswith(c) for c in self.choices)
         if _compiled(self.pattern).fullmatch(text, partial=True) is None:
             return False
         return not self.ordered or _extents_possible(text, self.ordered)
@@ -112,11 +117,25 @@ class _Core(NamedTuple):
     pattern: str
     ordered: tuple[tuple[int, int], ...] = ()
     then_eos: bool = False  # once the pattern is complete the completion ends
+    choices: tuple[str, ...] = ()  # literal alternatives instead of ``pattern`` (see Rule)
 
     def prefix_rule(self, partial: str) -> Rule:
         """The :class:`Rule` of this core after ``partial``: its pattern, then anything (the next
         anchor's rule takes over) unless the completion ends with it."""
-        return Rule(partial, self.pattern if self.then_eos else self.pattern + r"[\s\S]*", self.ordered)
+        pattern = self.pattern if self.then_eos else self.pattern + r"[\s\S]*"
+        return Rule(partial, pattern, self.ordered, self.choices)
+
+    def complete(self, partial: str) -> int | None:
+        """Where the rule's text ends if ``partial`` starts with all of it, else None."""
+        if self.choices:
+            return next((len(c) for c in self.choices if partial.startswith(c)), None)
+        done = _compiled(self.pattern).match(partial)
+        return None if done is None else done.end()
+
+
+def _literal(*strings: str) -> _Core:
+    """A rule that is one of ``strings`` (plain text, no regex)."""
+    return _Core("", choices=strings)
 
 
 def _extents_possible(text: str, pairs) -> bool:
@@ -195,9 +214,9 @@ def active_rule(partial: str, core: _Core | None) -> Rule | None:
     inside it; EOS only once a rule that ends the completion is complete; else None."""
     if core is None:
         return None
-    done = _compiled(core.pattern).match(partial)
-    if done:  # the segment is complete
-        return Rule(partial, None) if core.then_eos and done.end() == len(partial) else None
+    end = core.complete(partial)
+    if end is not None:  # the segment is complete
+        return Rule(partial, None) if core.then_eos and end == len(partial) else None
     return core.prefix_rule(partial) if _within(partial, core) else None
 
 
@@ -231,10 +250,10 @@ def _core(text: str, anchor, listed: Sequence[str] | None) -> _Core | None:
         placed = set(re.findall(r"\n\d+\. Place (\S+?)[ .]", text))
         left = [i for i in listed if i not in placed]
         if anchor.group("step") is not None:
-            return _Core(" " + _alternatives(left) + "[ .]") if left else None
+            return _literal(*(f" {i}{end}" for i in left for end in " .")) if left else None
         if left:
-            return _Core(regex.escape(f"\n{int(anchor.group('line')) + 1}. Place "))
-        return _Core(regex.escape(_LAYOUT_START))
+            return _literal(f"\n{int(anchor.group('line')) + 1}. Place ")
+        return _literal(_LAYOUT_START)
     if key in _ARRAY_LENGTH:
         n = _ARRAY_LENGTH[key]
         core = r" \[" + _NUMBER + f"(?:, {_NUMBER}){{{n - 1}}}\\]"
@@ -248,10 +267,10 @@ def _core(text: str, anchor, listed: Sequence[str] | None) -> _Core | None:
             core += _NEXT_ENTRY if any(i not in placed for i in listed) else _END_OF_OBJECTS
         return _Core(core)
     ids = re.findall(r'"instance_id": "([^"]*)"', text)
-    follow = _key(_NEXT_KEY[key])
+    follow = _key_text(_NEXT_KEY[key])
     if key == "instance_id":
         if not ids:
-            return _Core(' "' + regex.escape(TABLE) + '"' + _ROOT_KEYS)
+            return _literal(f' "{TABLE}"' + _ROOT_KEYS)
         if listed is None:
             return None
         allowed = [i for i in listed if i not in ids]
@@ -261,20 +280,26 @@ def _core(text: str, anchor, listed: Sequence[str] | None) -> _Core | None:
         allowed = [category_from_instance(ids[-1])]
     elif key == "parent_id":
         allowed = [TABLE, *[i for i in ids[:-1] if i != TABLE]]
-    else:  # relation_type, then the free description
+    else:  # relation_type, then the free description: a regex (two patterns in all: near / in, on)
         parents = re.findall(r'"parent_id": "([^"]*)"', text)
         if not parents:
             return None
         allowed = ["near"] if parents[-1] == TABLE else ["in", "on"]
-        follow += _DESCRIPTION + _key("relative_bbox")
+        return _Core(' "' + _alternatives(allowed) + '"' + regex.escape(follow) + _DESCRIPTION
+                     + _key("relative_bbox"))
     if not allowed:
         return None
-    return _Core(' "' + _alternatives(allowed) + '"' + follow)
+    return _literal(*(f' "{i}"' + follow for i in allowed))
+
+
+def _key_text(name: str) -> str:
+    """``, "name":``: one key of an entry, after the previous value."""
+    return f', "{name}":'
 
 
 def _key(name: str) -> str:
-    """The regex of ``, "name":`` (one key of an entry, after the previous value)."""
-    return regex.escape(f', "{name}":')
+    """The regex of :func:`_key_text`."""
+    return regex.escape(_key_text(name))
 
 
 @functools.lru_cache(maxsize=4096)
