@@ -150,11 +150,13 @@ class PADATrainer(GRPOTrainer):
         self._round_prompts = prompts
         start = time.perf_counter()
         output = super()._generate(prompts)
-        # seconds of this rank's generation round (with the constraint's host time, logged apart as
+        # this rank's generation round, with the constraint's host time (also logged apart as
         # time/constraint_s): where a step's time goes, next to time/reward_s and step_time
-        self._metrics["train" if self.model.training else "eval"]["time/generate_s"].append(
-            time.perf_counter() - start)
+        self._log_seconds("time/generate_s", time.perf_counter() - start)
         return output
+
+    def _log_seconds(self, name: str, seconds: float) -> None:
+        self._metrics["train" if self.model.training else "eval"][name].append(seconds)
 
     def _generate_single_turn(self, prompt_ids, images, multimodal_fields, num_generations,
                               has_tool_images=False):
@@ -185,8 +187,7 @@ class PADATrainer(GRPOTrainer):
                                        warpers=sampling_warpers(config))
             kwargs["logits_processor"] = LogitsProcessorList([processor])
             output = plain_generate(*args, **kwargs)
-            mode = "train" if self.model.training else "eval"
-            self._metrics[mode]["time/constraint_s"].append(processor.seconds)
+            self._log_seconds("time/constraint_s", processor.seconds)
             return output
 
         model.generate = generate  # an instance attribute shadows the method for this round only
