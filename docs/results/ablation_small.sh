@@ -20,6 +20,9 @@ ANCHORS=${ANCHORS:-256}
 N_TEST=${N_TEST:-200}
 MAX_TOKENS=${MAX_TOKENS:-4096}      # test-split completions are 914-2,791 tokens
 PADA_BATCH=${PADA_BATCH:-64}        # completions per GPU per step (G = 4 -> 16 prompts)
+PADA_MICRO=${PADA_MICRO:-$PADA_BATCH}  # of which per forward/backward (accumulation PADA_BATCH / PADA_MICRO;
+                                    # TRL still generates PADA_BATCH per GPU at once); lower it for long
+                                    # completions: ~1.2 GB of activations per 4,000-token row in bf16
 PADA_TOKENS=${PADA_TOKENS:-$MAX_TOKENS}  # max_completion_length of PADA generation
 WORKERS=${WORKERS:-$(nproc)}
 LAUNCH=${LAUNCH:-"accelerate launch --config_file configs/accelerate/multi_gpu.yaml --num_processes $NPROC"}
@@ -36,7 +39,7 @@ STAGES=${STAGES:-"synth sft anchors grpo pada_star pada eval"}
 stamp() { echo "[$(date +%T)] $*"; }
 common="output_dir=$RUN data.train=$DATA eval.max_new_tokens=$MAX_TOKENS anchors.max_new_tokens=$MAX_TOKENS"
 common="$common anchors.n_records=$ANCHORS"  # every stage: the eval stage checks the anchor file is complete
-common="$common pada.max_completion_length=$PADA_TOKENS pada.per_device_batch_size=$PADA_BATCH"
+common="$common pada.max_completion_length=$PADA_TOKENS pada.per_device_batch_size=$PADA_MICRO"
 common="$common pada.global_batch_size=$((PADA_BATCH * NPROC)) pada.max_level=$PADA_LEVEL"
 common="$common anchors.cache=$CACHE eval.cache=$CACHE"
 if [ "$CONSTRAINED" = 1 ]; then
