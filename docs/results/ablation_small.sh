@@ -22,7 +22,7 @@ MAX_TOKENS=${MAX_TOKENS:-4096}      # test-split completions are 914-2,791 token
 PADA_BATCH=${PADA_BATCH:-64}        # completions per GPU per step (G = 4 -> 16 prompts)
 PADA_MICRO=${PADA_MICRO:-$PADA_BATCH}  # of which per forward/backward (accumulation PADA_BATCH / PADA_MICRO;
                                     # TRL still generates PADA_BATCH per GPU at once); lower it for long
-                                    # completions: ~1.2 GB of activations per 4,000-token row in bf16
+                                    # completions: ~1 GB of activations per 4,000-token row in bf16
 PADA_TOKENS=${PADA_TOKENS:-$MAX_TOKENS}  # max_completion_length of PADA generation
 WORKERS=${WORKERS:-$(nproc)}
 LAUNCH=${LAUNCH:-"accelerate launch --config_file configs/accelerate/multi_gpu.yaml --num_processes $NPROC"}
