@@ -197,17 +197,38 @@ def bucket_points(points: np.ndarray, buckets: int = BUCKETS) -> tuple[np.ndarra
     return points[order], offsets
 
 
-def pack_assets(assets: Sequence, device: torch.device) -> dict[str, torch.Tensor]:
-    """Concatenate assets' SDF grids and points into the engine's flat arrays on ``device``."""
+def _derived_arrays(asset) -> tuple[np.ndarray, tuple[np.ndarray, np.ndarray]]:
+    """An asset's arrays that packing derives from its SDF and points: the axis-ray distances per
+    node (interleaved, flat) and its bucketed points (:func:`bucket_points`)."""
+    return np.moveaxis(axis_ray_distances(asset.sdf), 0, -1).reshape(-1), bucket_points(asset.points)
+
+
+def pack_assets(assets: Sequence, device: torch.device, derived: dict | None = None,
+                before: dict[str, torch.Tensor] | None = None) -> dict[str, torch.Tensor]:
+    """Concatenate assets' SDF grids and points into the engine's flat arrays on ``device``.
+
+    ``derived``: a cache of each asset's derived arrays by ``asset_id`` (filled here).
+    ``before``: the packed arrays of the assets that come first; ``assets`` are appended to them
+    (their offsets continue from its ends), so new assets cost host work for themselves only.
+    """
+    derived = {} if derived is None else derived
+    for a in assets:
+        if a.asset_id not in derived:
+            derived[a.asset_id] = _derived_arrays(a)
+    sdf_base = 0 if before is None else int(before["sdf"].numel())
+    pt_base = 0 if before is None else int(before["points"].shape[0])
     res = np.array([a.resolution for a in assets], dtype=np.int32)
     n_pt = np.array([len(a.points) for a in assets], dtype=np.int32)
-    bucketed = [bucket_points(a.points) for a in assets]
-    pt_start = np.concatenate([[0], np.cumsum(n_pt)[:-1]]).astype(np.int64)
+    bucketed = [derived[a.asset_id][1] for a in assets]
+    pt_start = pt_base + np.concatenate([[0], np.cumsum(n_pt)[:-1]]).astype(np.int64)
+    sdf_start = sdf_base + np.concatenate([[0], np.cumsum(res.astype(np.int64) ** 3)[:-1]])
+    if sdf_base + int((res.astype(np.int64) ** 3).sum()) >= 2**31:
+        raise ValueError(f"{len(assets)} assets exceed 2^31 SDF samples; use lower resolutions")
     arrays = {
         "sdf": np.concatenate([a.sdf.reshape(-1) for a in assets]).astype(np.float32),
         # per node its 3 axis-ray distances, interleaved, at 3 * sdf_start (penetration.world_phi)
-        "rays": np.concatenate([np.moveaxis(axis_ray_distances(a.sdf), 0, -1).reshape(-1) for a in assets]),
-        "sdf_start": np.concatenate([[0], np.cumsum(res.astype(np.int64) ** 3)[:-1]]).astype(np.int32),
+        "rays": np.concatenate([derived[a.asset_id][0] for a in assets]),
+        "sdf_start": sdf_start.astype(np.int32),
         "sdf_res": res,
         "points": np.concatenate([b[0] for b in bucketed]).astype(np.float32).reshape(-1, 3),
         "pt_start": pt_start.astype(np.int32),
@@ -216,9 +237,10 @@ def pack_assets(assets: Sequence, device: torch.device) -> dict[str, torch.Tenso
         "pt_zmin": np.array([a.points[:, 2].min() if len(a.points) else 0.0 for a in assets], np.float32),
         "pt_bucket": np.concatenate([b[1] + start for b, start in zip(bucketed, pt_start)]).astype(np.int32),
     }
-    if arrays["sdf"].size >= 2**31:
-        raise ValueError(f"{len(assets)} assets exceed 2^31 SDF samples; use lower resolutions")
-    return {k: torch.from_numpy(np.ascontiguousarray(v)).to(device) for k, v in arrays.items()}
+    packed = {k: torch.from_numpy(np.ascontiguousarray(v)).to(device) for k, v in arrays.items()}
+    if before is None:
+        return packed
+    return {k: torch.cat([before[k], v]) for k, v in packed.items()}
 
 
 class PhysicsEngine:
@@ -242,6 +264,7 @@ class PhysicsEngine:
         self._asset_slot: dict[str, int] = {}
         self._resolved: dict[tuple[str, str | None], tuple[int, str, str | None]] = {}
         self._packed: tuple[int, dict[str, torch.Tensor]] | None = None
+        self._derived: dict[str, tuple] = {}  # pack_assets' per-asset arrays, kept across repacks
         self._text_packer = None  # physcene.text_pack.TextPacker, built on the first pack_texts
 
     # Assets ------------------------------------------------------------------------------------
@@ -259,9 +282,13 @@ class PhysicsEngine:
         return hit
 
     def packed_assets(self) -> dict[str, torch.Tensor]:
-        """The flat asset arrays on the engine's device (re-uploaded only when new assets appear)."""
-        if self._packed is None or self._packed[0] != len(self._assets):
-            self._packed = (len(self._assets), pack_assets(self._assets, self.device))
+        """The flat asset arrays on the engine's device (new assets are appended as they appear)."""
+        if self._packed is None:
+            self._packed = (len(self._assets), pack_assets(self._assets, self.device, self._derived))
+        elif self._packed[0] != len(self._assets):  # append the new assets to what is uploaded
+            n, packed = self._packed
+            self._packed = (len(self._assets),
+                            pack_assets(self._assets[n:], self.device, self._derived, before=packed))
         return self._packed[1]
 
     # Packing -----------------------------------------------------------------------------------

@@ -315,3 +315,29 @@ def test_cuda_matches_cpu():
     e = gpu.penetration_energy(batch, poses)
     e.sum().backward()
     assert poses.grad.is_cuda and torch.equal(poses.grad, b["grad"])
+
+
+def test_assets_appended_pack_like_all_at_once():
+    """The engine appends new assets to the uploaded arrays (physics.pack_assets ``before``): the
+    result equals packing every asset at once, and scores do not depend on the order assets arrive."""
+    from physcene.physics import pack_assets
+
+    assets = [primitive_asset(k, resolution=r, n_points=n)
+              for k, r, n in (("box", 16, 200), ("sphere", 24, 300), ("cylinder", 16, 250))]
+    whole = pack_assets(assets, torch.device("cpu"))
+    derived: dict = {}
+    first = pack_assets(assets[:1], torch.device("cpu"), derived)
+    appended = pack_assets(assets[1:], torch.device("cpu"), derived, before=first)
+    assert whole.keys() == appended.keys()
+    for k in whole:
+        assert torch.equal(whole[k], appended[k]), k
+    assert set(derived) == {a.asset_id for a in assets}
+
+    scenes = random_scenes(np.random.default_rng(5), 6)
+    grown = PhysicsEngine(PrimitiveLibrary())
+    grown.score([scene(obj("ball", (10, 10, 5), (5, 5, 10), category="sphere"))])
+    assert grown.packed_assets()["sdf_res"].numel() == 1  # one asset uploaded, the others appended next
+    a, b = grown.score(scenes), PhysicsEngine(PrimitiveLibrary()).score(scenes)
+    assert grown.packed_assets()["sdf_res"].numel() == 3
+    assert torch.allclose(torch.as_tensor(a.energy), torch.as_tensor(b.energy))
+    assert any(e > 0 for e in torch.as_tensor(b.energy).tolist())
