@@ -191,11 +191,7 @@ def listed_instance_ids(prompt: str) -> list[str] | None:
 
 
 def _alternatives(strings: Sequence[str]) -> str:
-    return _alternatives_of(tuple(strings))
-
-
-@functools.lru_cache(maxsize=4096)
-def _alternatives_of(strings: tuple[str, ...]) -> str:
+    """A regex group of the literal ``strings`` (relation types; id choices are literal rules)."""
     return "(?:" + "|".join(regex.escape(s) for s in strings) + ")"
 
 
