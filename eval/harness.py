@@ -23,7 +23,8 @@ from tqdm.auto import tqdm
 from physcene.scene import Scene
 
 __all__ = ["BenchmarkItem", "EvalError", "evaluate_method", "generate", "load_benchmark", "make_judge",
-           "method_name", "method_report", "repair_outputs", "run_evaluation", "score_scenes", "write_json"]
+           "method_name", "method_report", "repair_outputs", "run_evaluation", "save_layouts", "score_scenes",
+           "write_json"]
 
 GENERATOR_KINDS = ("reference", "tto", "heuristic", "file:", "model:", "endpoint:")
 
@@ -154,6 +155,19 @@ def generate(items: Sequence[BenchmarkItem], generator: str, *, seed: int = 0, m
         raise EvalError(f"unknown generator {generator!r}; expected one of reference, tto, heuristic, "
                         "file:DIR, model:PATH, endpoint:URL")
     return [o if isinstance(o, ParseError) else _with_request(o, it) for o, it in zip(out, items)]
+
+
+def save_layouts(items: Sequence[BenchmarkItem], outputs: Sequence, directory: Path) -> int:
+    """Write each parsed output as ``directory/<id>.json`` (MesaTask layout), re-scorable with
+    ``--generator file:DIR``; outputs that did not parse are skipped. Returns how many were written."""
+    from physcene.layout import write_layout
+
+    written = 0
+    for it, scene in zip(items, outputs):
+        if isinstance(scene, Scene):
+            write_layout(scene, Path(directory) / f"{it.id}.json")
+            written += 1
+    return written
 
 
 def repair_outputs(outputs: list, *, tto_overrides: Sequence[str] = (), engine=None,
@@ -331,11 +345,7 @@ def run_evaluation(cfg, *, command: str = "", title: str = "physcene evaluation"
         methods[name] = report
         slug = name.lower().replace(" + ", "_").replace(" ", "_").replace("(", "").replace(")", "")
         if cfg.get("save_layouts", False):  # re-score later with --generator file:<out>/layouts/<slug>
-            from physcene.layout import write_layout
-
-            for it, scene in zip(items, outputs):
-                if isinstance(scene, Scene):
-                    write_layout(scene, out / "layouts" / slug / f"{it.id}.json")
+            save_layouts(items, outputs, out / "layouts" / slug)
         todo = list(zip(items, outputs))[:n_render]
         for it, scene in tqdm(todo, desc=f"render {name}", disable=not progress, unit="scene"):
             if not isinstance(scene, Scene) or not len(scene):

@@ -5,10 +5,17 @@ from __future__ import annotations
 import json
 
 import pytest
-from physcene.eval.harness import generate, load_benchmark, make_judge, method_name, score_scenes
+from physcene.eval.harness import (
+    generate,
+    load_benchmark,
+    make_judge,
+    method_name,
+    save_layouts,
+    score_scenes,
+)
 
 from physcene.cli import main
-from physcene.layout import write_layout
+from physcene.ctrc import ParseError
 
 
 @pytest.fixture(scope="module")
@@ -18,8 +25,11 @@ def items():
 
 def test_file_generator_reproduces_the_reference_scores(items, tmp_path):
     layouts = tmp_path / "layouts"
-    for it in items:
-        write_layout(it.reference, layouts / f"{it.id}.json")
+    outputs = generate(items, "reference", progress=False)
+    failed = ParseError("truncated JSON at char 1")
+    assert save_layouts(items, [failed, *outputs[1:]], layouts) == len(items) - 1  # a ParseError: no file
+    assert not (layouts / f"{items[0].id}.json").exists()
+    save_layouts(items, outputs, layouts)
     judge = make_judge("rule", [it.reference for it in items])
     ref = score_scenes(items, generate(items, "reference", progress=False), judge, progress=False)
     loaded = score_scenes(items, generate(items, f"file:{layouts}", progress=False), judge, progress=False)

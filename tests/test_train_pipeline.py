@@ -164,3 +164,29 @@ def test_chat_format_pretrained_checkpoint(tmp_path, one_thread):
     texts = generate(out, [r["prompt"] for r in records[:2]], max_new_tokens=8)
     # Completions only: neither the prompt nor the chat wrapping comes back.
     assert len(texts) == 2 and all(records[0]["prompt"][:30] not in t and "user\n" not in t for t in texts)
+
+
+def test_ablation_rows_per_level_and_per_checkpoint(tmp_path, one_thread):
+    """`physcene train ablation` with one RL variant and ``ablation.checkpoints``: the table has the
+    SFT, SFT + TTO and GRPO rows, each with its per-level figures, and a row for the intermediate
+    checkpoint (the final step is the GRPO row itself)."""
+    from physcene.train.ablation import run_ablation
+
+    write_records(_records(8, seed=0), tmp_path / "train.jsonl")
+    out = tmp_path / "run"
+    cfg = load_config("train_tiny", [
+        f"data.train={tmp_path / 'train.jsonl'}", f"output_dir={out}", "sft.max_steps=2",
+        "sft.max_length=1024", "anchors.max_new_tokens=16", f"anchors.tto=[{','.join(TTO_FAST)}]",
+        "pada.max_steps=2", "pada.save_steps=1", "pada.save_total_limit=null",
+        "pada.max_completion_length=16", "ablation.variants=[grpo]", "ablation.checkpoints=true",
+        "ablation.n_test=2", "eval.max_new_tokens=16"])
+    result = run_ablation(cfg, budget_min=30)
+    assert [r["name"] for r in result["rows"]] == ["sft", "sft+tto", "grpo"]
+    assert [r["name"] for r in result["checkpoint_rows"]] == ["grpo@1"]
+    for row in result["rows"] + result["checkpoint_rows"]:
+        assert sum(level["n"] for level in row["by_level"].values()) == row["n"] == 2
+    table = (out / "ablation.md").read_text()
+    assert "| grpo@1 |" in table and "SCR / ACR" in table
+    assert "pada" not in result["stages"] and not (out / "pada").exists()
+    written = json.loads((out / "ablation.json").read_text())
+    assert written["checkpoint_rows"][0]["by_level"] == result["checkpoint_rows"][0]["by_level"]

@@ -351,7 +351,7 @@ def pada_arguments(cfg, variant: str) -> PADAConfig:
         gradient_accumulation_steps=accumulation_steps(int(p.global_batch_size), int(p.per_device_batch_size),
                                                        world_size()),
         save_steps=int(p.save_steps),
-        save_total_limit=2,
+        save_total_limit=None if p.get("save_total_limit", 2) is None else int(p.save_total_limit),
         logging_steps=int(p.logging_steps),
         report_to="none",
         seed=int(cfg.seed),
