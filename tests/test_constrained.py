@@ -3,7 +3,13 @@ failures a small model makes (repeated ids, broken numbers, a missing close), an
 
 import pytest
 import torch
-from physcene.train.constrained import CTRCConstraint, constraint_rule, listed_instance_ids, sampling_warpers
+from physcene.train.constrained import (
+    CTRCConstraint,
+    constraint_rule,
+    listed_instance_ids,
+    prompt_zone,
+    sampling_warpers,
+)
 from physcene.train.tokenizer import build_tokenizer
 from transformers import GenerationConfig, LogitsProcessorList
 
@@ -216,6 +222,33 @@ def test_generate_runs_constrained_and_parses_a_forced_completion(records, token
     assert sorted(o.instance_id for o in scene.objects) == sorted(listed_instance_ids(r["prompt"]))
 
 
+def test_the_zone_is_copied_from_the_prompt(records):
+    prompt = records[0]["prompt"]
+    zone = prompt_zone(prompt)
+    assert zone is not None and zone[0] < zone[1] and zone[2] < zone[3]
+    assert prompt_zone("**item_placement_zone**: [0.0, 120.5, 0.0, 60.0] (cm)") == [0.0, 120.5, 0.0, 60.0]
+    for bad in ("no zone", "**item_placement_zone**: [0.0, 1.0, 0.0]",
+                "**item_placement_zone**: [5, 1, 0, 2]", "**item_placement_zone**: [0, nope, 0, 2]"):
+        assert prompt_zone(bad) is None, bad
+    listed, zone = ["1_mirror_0"], [0.0, 120.5, 0.0, 60.0]
+    root = ('**Scene Layout:**\n{\n  "objects": [\n'
+            '    {"layer": 0, "instance_id": "root_zone", "type": "zone", "bbox":')
+
+    def admitted(text, added, zone):
+        rule = constraint_rule(text, listed, zone)
+        return rule is None or rule.admits(added)
+
+    assert admitted(root, ' [0.0, 120.5, 0.0, 60.0, 0.0, 0.0], "z_rotation":', zone)
+    assert not admitted(root, " [0.0, 137", zone)  # the model's own guess: refused
+    assert admitted(root, " [0.0, 137", None)  # no zone given: the number grammar only
+    end = '\n  ],\n  "item_placement_zone":'
+    assert admitted(end, " [0.0, 120.5, 0.0, 60.0]\n}\n", zone)
+    assert not admitted(end, " [0.0, 120.5, 0.0, 60.0]\n}\nmore", zone)  # the completion's end
+    assert not admitted(end, " [0.0, 150.0", zone)
+    rule = constraint_rule(end + " [0.0, 120.5, 0.0, 60.0]\n}\n", listed, zone)
+    assert rule is not None and rule.pattern is None  # EOS only
+
+
 @pytest.mark.parametrize("mode", list(MODES))
 def test_a_model_of_random_logits_still_writes_layouts_that_parse(records, tokenizer, mode):
     """Everything in the layout constrained: given the reference plan, a model whose logits are noise
@@ -245,6 +278,10 @@ def test_a_model_of_random_logits_still_writes_layouts_that_parse(records, token
         scene = parse(text)
         assert not isinstance(scene, ParseError), (scene.reason, text[-400:])
         assert sorted(o.instance_id for o in scene.objects) == sorted(listed_instance_ids(r["prompt"]))
+        # the zone is the prompt's, in the root entry and at the end, whatever the logits said
+        zone = prompt_zone(r["prompt"])
+        assert scene.zone.to_list() == pytest.approx(zone)
+        assert f'"bbox": [{", ".join(str(v) for v in zone)}, 0.0, 0.0]' in text
 
 
 def _replay(proc, tokenizer, text: str, rows: int):
