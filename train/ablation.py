@@ -16,6 +16,7 @@ model exists is not rerun, so the pipeline can be driven by repeated commands un
 from __future__ import annotations
 
 import json
+import shutil
 import sys
 import time
 from pathlib import Path
@@ -112,7 +113,8 @@ def _evaluate(cfg: DictConfig, models: dict[str, Path], budget_s: float) -> list
 
     def add_row(name, outputs, results):
         rows.append(ablation_row(name, method_report(results, outputs)))
-        if layouts:
+        if layouts:  # this run's layouts only: a scene that no longer parses leaves no stale file
+            shutil.rmtree(Path(str(layouts)) / name, ignore_errors=True)
             save_layouts(items, outputs, Path(str(layouts)) / name)
 
     for name, path in models.items():
