@@ -73,7 +73,8 @@ def zone_probe(scorer: _Scorer, record: dict) -> dict | None:
     after = completion.index("\n", root.end())
     big_completion = completion.replace(root.group(0), big_root)
     big_after = big_completion.index("\n", root.start())
-    return {"digit_probabilities": digit_p, "nll": scorer.nll_after(prompt, completion, after),
+    rest = nll[n_prompt + scorer.tokens_before(completion[:after]) - 1:].sum().item()  # = nll_after
+    return {"digit_probabilities": digit_p, "nll": rest,
             "nll_bigger_zone": scorer.nll_after(big_prompt, big_completion, big_after)}
 
 
