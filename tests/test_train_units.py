@@ -314,3 +314,17 @@ def test_anchors_are_made_only_for_the_levels_pada_trains_on(tmp_path):
     assert both and all(r["level"] == 1 for r in both)  # the tighter of the two
     unfiltered = load_config("train_tiny", [*base, "pada.max_level=2", "anchors.max_level=null"])
     assert anchor_prompts(unfiltered) == every
+
+
+def test_records_read_from_jsonl_and_gzipped_jsonl(tmp_path):
+    import gzip
+
+    from physcene.train.records import load_records, write_records
+
+    rows = [{"id": f"r{k}", "level": 1 + k % 3, "prompt": f"p{k}", "completion": f"c{k}"} for k in range(5)]
+    write_records(rows, tmp_path / "a.jsonl")
+    with gzip.open(tmp_path / "a.jsonl.gz", "wt") as fh:
+        fh.write((tmp_path / "a.jsonl").read_text())
+    assert load_records(str(tmp_path / "a.jsonl")) == rows
+    assert load_records(str(tmp_path / "a.jsonl.gz")) == rows
+    assert load_records(str(tmp_path / "a.jsonl.gz"), max_level=1) == [r for r in rows if r["level"] == 1]

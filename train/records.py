@@ -8,6 +8,7 @@ with ``physcene.data.synthesize(SPLIT, N, seed)``, handy for tests and quick run
 
 from __future__ import annotations
 
+import gzip
 import json
 from pathlib import Path
 
@@ -17,7 +18,8 @@ __all__ = ["load_records", "to_chat", "training_dataset", "write_records"]
 
 
 def load_records(spec: str, *, seed: int = 0, max_level: int | None = None) -> list[dict]:
-    """Records from a JSONL path or ``synth:SPLIT:N``; only levels <= ``max_level`` when given."""
+    """Records from a JSONL path (gzipped if it ends in ``.gz``) or ``synth:SPLIT:N``; only levels <=
+    ``max_level`` when given."""
     if spec.startswith("synth:"):
         parts = spec.split(":")
         if len(parts) != 3 or not parts[2].isdigit():
@@ -32,7 +34,7 @@ def load_records(spec: str, *, seed: int = 0, max_level: int | None = None) -> l
         if not path.is_file():
             raise FileNotFoundError(f"training data {spec!r} does not exist (`physcene data synth` makes it)")
         records = []
-        with path.open() as f:
+        with (gzip.open(path, "rt") if path.suffix == ".gz" else path.open()) as f:
             for line_no, line in enumerate(f, 1):
                 if line.strip():
                     try:

@@ -11,13 +11,12 @@ the logged time is the constraint's own host work. Measured on an H100 (docs/tra
 from __future__ import annotations
 
 import argparse
-import gzip
-import json
 import time
 
 import physcene.train.constrained as constrained
 import torch
 from physcene.train.generate import generate_token_ids, load_for_generation
+from physcene.train.records import load_records
 
 made: list = []
 
@@ -43,9 +42,7 @@ def main() -> None:
     args = parser.parse_args()
     if not torch.cuda.is_available():
         raise SystemExit("constraint_timing: needs a CUDA device (the question is about GPU waits)")
-    opener = gzip.open if args.records.endswith(".gz") else open
-    with opener(args.records, "rt", encoding="utf-8") as fh:
-        prompts = [json.loads(line)["prompt"] for line, _ in zip(fh, range(args.n))]
+    prompts = [r["prompt"] for r in load_records(args.records)[:args.n]]
     model, tokenizer, _ = load_for_generation(args.model, device="cuda")
     runs = (("warm-up", _Logged, 32), ("logged", _Logged, args.steps),
             ("synchronized", _Synchronized, args.steps), ("logged again", _Logged, args.steps))

@@ -16,7 +16,6 @@ JSONL with ``prompt`` and ``completion`` (``physcene data synth``; ``.gz`` read 
 from __future__ import annotations
 
 import argparse
-import gzip
 import json
 import re
 import statistics
@@ -24,6 +23,7 @@ from pathlib import Path
 
 import torch
 from physcene.train.generate import load_for_generation
+from physcene.train.records import load_records
 
 _ZONE_PROMPT = re.compile(r"\*\*item_placement_zone\*\*: \[[^\]]*\]")
 _ZONE_ROOT = re.compile(r'"type": "zone", "bbox": \[([^\]]*)\]')
@@ -105,15 +105,6 @@ def neighbour_probe(scorer: _Scorer, record: dict) -> dict | None:
             "nll_moved_onto_next": scorer.nll_after(record["prompt"], edited, edited_after)}
 
 
-def _records(path: str, n: int) -> list[dict]:
-    opener = gzip.open if path.endswith(".gz") else open
-    with opener(path, "rt", encoding="utf-8") as fh:
-        rows = [json.loads(line) for line, _ in zip(fh, range(n))]
-    if not rows or not {"prompt", "completion"} <= set(rows[0]):
-        raise SystemExit(f"{path}: expected JSONL records with 'prompt' and 'completion'")
-    return rows
-
-
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("model", help="checkpoint directory (physcene train sft/pada output)")
@@ -123,7 +114,7 @@ def main() -> None:
     args = parser.parse_args()
     torch.set_num_threads(max(1, min(4, torch.get_num_threads())))
     scorer = _Scorer(args.model)
-    rows = _records(args.records, args.n)
+    rows = load_records(args.records)[:args.n]
     zone = [z for r in rows if (z := zone_probe(scorer, r))]
     near = [m for r in rows if (m := neighbour_probe(scorer, r))]
 
