@@ -144,6 +144,29 @@ def test_records_have_the_contract_fields_and_roundtrip():
     assert all(o.parent is not None for o in scene.objects)
 
 
+def test_record_decimals_set_the_completion_precision():
+    """record.decimals=2: every number of the completion has at most two decimals, the text is shorter,
+    and it parses to the 5-decimal record's layout within the rounding (0.005 cm a bound)."""
+    from physcene.config import ConfigError
+    from physcene.ctrc import parse
+
+    item = plan_split("test", 12, seed=0)[7]
+    fine = build_record("test", 0, item, DataConfig())
+    coarse = build_record("test", 0, item, DataConfig.load(["record.decimals=2"]))
+    assert {k: v for k, v in coarse.items() if k != "completion"} == {k: v for k, v in fine.items() if k != "completion"}
+    layout = coarse["completion"].split("**Scene Layout:**")[1]
+    assert max(len(m) for m in re.findall(r"\.(\d+)", layout)) == 2
+    assert max(len(m) for m in re.findall(r"\.(\d+)", fine["completion"].split("**Scene Layout:**")[1])) > 2
+    assert len(coarse["completion"]) < len(fine["completion"])
+    zone = load_layout(fine["layout"]).zone
+    a, b = (parse(r["completion"], zone=zone) for r in (fine, coarse))
+    for oa, ob in zip(a.objects, b.objects):
+        assert oa.category == ob.category and oa.parent == ob.parent
+        assert np.abs(np.asarray(oa.center) - np.asarray(ob.center)).max() < 0.02
+    with pytest.raises(ConfigError, match="record.decimals"):
+        DataConfig.load(["record.decimals=-1"])
+
+
 def test_same_seed_gives_identical_files_and_datasets_loads_them(tmp_path):
     config = DataConfig(workers=1)
     a = write_split(tmp_path / "a", "ood", 6, seed=7, config=config, progress=False, measure=False)

@@ -228,6 +228,42 @@ def test_sft_resumes_from_last_checkpoint(tmp_path):
     assert info["stage"] == "sft" and info["chat_format"] is False
 
 
+def test_sft_continues_an_earlier_scratch_checkpoint(tmp_path):
+    """model.init_from: a second SFT run on new data starts from the first run's weights (fp32) and
+    vocabulary, and saves in model.dtype like a scratch run."""
+    from physcene.train.models import TrainingSetupError, load_model
+    from physcene.train.sft import run_sft
+    from transformers import TrainerCallback
+
+    data = tmp_path / "train.jsonl"
+    data.write_text("".join(json.dumps({"id": f"r{i}", "prompt": f"Instruction {i}: place a pen.\nLayout:",
+                                        "completion": ANCHOR}) + "\n" for i in range(4)))
+    base = [f"data.train={data}", "sft.global_batch_size=2", "sft.per_device_batch_size=2", "sft.max_steps=1",
+            "sft.max_length=256", "model.dtype=bfloat16"]
+    first = run_sft(load_config("train_tiny", [*base, f"output_dir={tmp_path / 'a'}"]))
+    start = {k: v.float() for k, v in load_model(first, dtype="float32").state_dict().items()}
+
+    class Start(TrainerCallback):
+        def on_train_begin(self, args, state, control, model=None, **kw):
+            self.weights = {k: v.detach().clone() for k, v in model.state_dict().items()}
+            self.dtype = next(model.parameters()).dtype
+
+    seen = Start()
+    second = run_sft(load_config("train_tiny", [*base, f"output_dir={tmp_path / 'b'}", f"model.init_from={first}"]),
+                     callbacks=[seen])
+    assert seen.dtype == torch.float32 and seen.weights.keys() == start.keys()
+    assert all(torch.equal(seen.weights[k], start[k]) for k in start)
+    assert (second / "tokenizer.json").read_text() == (first / "tokenizer.json").read_text()
+    from safetensors import safe_open
+
+    with safe_open(str(second / "model.safetensors"), "pt") as f:
+        assert {f.get_tensor(k).dtype for k in f.keys()} == {torch.bfloat16}
+    assert json.loads((second / "physcene_run.json").read_text())["init_from"] == str(first)
+    with pytest.raises(TrainingSetupError, match="init_from"):
+        run_sft(load_config("train_tiny", [*base, f"output_dir={tmp_path / 'c'}",
+                                           f"model.init_from={tmp_path / 'missing'}"]))
+
+
 def test_ablation_row_and_table_from_an_eval_report():
     from physcene.train.ablation import ablation_row, markdown_table
 

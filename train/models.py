@@ -144,9 +144,16 @@ def prepare_model_and_tokenizer(cfg: DictConfig, texts: Iterable[str] | None = N
     """The stage-1 starting point of ``cfg.model``: (model, tokenizer).
 
     ``scratch`` trains a tokenizer on ``texts`` (saved to ``out_dir/tokenizer`` when given) and builds
-    a random Qwen3; ``pretrained`` loads ``cfg.model.path``.
+    a random Qwen3, or with ``model.init_from`` starts from an earlier scratch checkpoint (fp32);
+    ``pretrained`` loads ``cfg.model.path``.
     """
     m = cfg.model
+    if m.source == "scratch" and m.get("init_from"):
+        # Continue an earlier from-scratch run on new data: its weights and vocabulary, trained in fp32
+        # like a fresh scratch model and saved in model.dtype.
+        if not Path(m.init_from).is_dir():
+            raise TrainingSetupError(f"model.init_from={m.init_from!r} is not a checkpoint directory")
+        return load_model(m.init_from, dtype="float32", freeze_vision=False), load_tokenizer(m.init_from)
     if m.source == "scratch":
         if texts is None:
             raise TrainingSetupError("a scratch model needs training texts to build its tokenizer")

@@ -188,5 +188,6 @@ def run_sft(cfg: DictConfig, callbacks=()) -> Path:
                        eval_batch_size=int(cfg.eval.batch_size), steps=trainer.state.global_step,
                        stopped_by_budget=any(getattr(c, "stopped_early", False)
                                              for c in trainer.callback_handler.callbacks),
-                       base_model=str(cfg.model.path) if cfg.model.source == "pretrained" else "scratch")
+                       base_model=str(cfg.model.path) if cfg.model.source == "pretrained" else "scratch",
+                       **({"init_from": str(cfg.model.init_from)} if cfg.model.get("init_from") else {}))
     return out

@@ -34,6 +34,11 @@ CACHE=${CACHE:-static_compile}      # KV cache of anchor and eval generation (H2
 PADA_CACHE=${PADA_CACHE:-}          # KV cache of PADA's group generation (unset: the config's); a
                                     # variant that fails with a static cache is run again with dynamic
 EXTRA=${EXTRA:-}                    # more key=value overrides for every stage
+SFT_EXTRA=${SFT_EXTRA:-}            # overrides for the SFT stage only (e.g. model.init_from=DIR to go on
+                                    # from an earlier SFT checkpoint, sft.per_device_batch_size=32)
+N_TRAIN=${N_TRAIN:-}                # synthetic training scenes (unset: the train split's 9,429)
+DECIMALS=${DECIMALS:-}              # digits after the point in the synthesised completions and the anchors
+                                    # (unset: physcene.ctrc.DECIMALS = 5)
 STAGES=${STAGES:-"synth sft anchors grpo pada_star pada eval"}
 
 stamp() { echo "[$(date +%T)] $*"; }
@@ -47,16 +52,21 @@ if [ "$CONSTRAINED" = 1 ]; then
 elif [ "$CONSTRAINED" = 0 ]; then
   common="$common anchors.constrained=false eval.constrained=false pada.constrained=false"
 fi
+if [ -n "$DECIMALS" ]; then
+  common="$common anchors.decimals=$DECIMALS"
+fi
 common="$common ablation.n_test=$N_TEST $EXTRA"
 want() { [[ " $STAGES " == *" $1 "* ]]; }
 
 if want synth && [ ! -s "$DATA" ] && [[ "$DATA" != synth:* ]]; then
   stamp "synth -> $DATA"
-  physcene data synth --split train --out "$(dirname "$DATA")" --workers "$WORKERS"
+  physcene data synth --split train --out "$(dirname "$DATA")" --workers "$WORKERS" ${N_TRAIN:+--n $N_TRAIN} \
+    ${DECIMALS:+record.decimals=$DECIMALS}
 fi
 if want sft; then
   stamp "sft ($NPROC processes, $SFT_MIN min)"
-  $LAUNCH -m physcene.cli train sft --config "$CONFIG" $common sft.max_minutes="$SFT_MIN" sft.max_steps="$SFT_STEPS"
+  $LAUNCH -m physcene.cli train sft --config "$CONFIG" $common sft.max_minutes="$SFT_MIN" sft.max_steps="$SFT_STEPS" \
+    $SFT_EXTRA
 fi
 if want anchors; then
   stamp "anchors ($ANCHORS records)"

@@ -31,17 +31,18 @@ _NEAR_BOX = re.compile(r'"relation_type": "near", [^\n]*?"relative_bbox": \[([^\
 
 
 class _Scorer:
-    def __init__(self, model_path: str):
-        self.model, self.tokenizer, _ = load_for_generation(model_path, device="cpu", dtype="float32")
+    def __init__(self, model_path: str, device: str = "cpu"):
+        self.device = device
+        self.model, self.tokenizer, _ = load_for_generation(model_path, device=device, dtype="float32")
 
     def token_nll(self, prompt: str, completion: str) -> tuple[torch.Tensor, int]:
         """Per-token NLL of the completion's tokens (after the prompt's) and the prompt's length."""
         p = self.tokenizer(prompt, add_special_tokens=False)["input_ids"]
         c = self.tokenizer(completion, add_special_tokens=False)["input_ids"]
-        ids = torch.tensor([p + c])
+        ids = torch.tensor([p + c], device=self.device)
         with torch.no_grad():
-            lp = torch.log_softmax(self.model(ids).logits[0, :-1].float(), -1)
-        target = ids[0, 1:]
+            lp = torch.log_softmax(self.model(ids).logits[0, :-1].float(), -1).cpu()
+        target = ids[0, 1:].cpu()
         return -lp[torch.arange(len(target)), target], len(p)
 
     def tokens_before(self, text: str) -> int:
@@ -89,7 +90,8 @@ def moved_onto_next(completion: str) -> tuple[str, int, int] | None:
     va = [float(x) for x in a.group(1).split(",")]
     vb = [float(x) for x in b.group(1).split(",")]
     cx, cy, w, d = (vb[0] + vb[1]) / 2, (vb[2] + vb[3]) / 2, va[1] - va[0], va[3] - va[2]
-    moved = [round(cx - w / 2, 5), round(cx + w / 2, 5), round(cy - d / 2, 5), round(cy + d / 2, 5), *va[4:]]
+    places = max(len(x.split(".")[1]) if "." in x else 0 for x in (*a.group(1).split(","), *b.group(1).split(",")))
+    moved = [round(v, places) for v in (cx - w / 2, cx + w / 2, cy - d / 2, cy + d / 2)] + va[4:]
     if min(moved[0], moved[2]) < 0:
         return None
     edited = completion[:a.start(1)] + ", ".join(str(x) for x in moved) + completion[a.end(1):]
@@ -111,9 +113,10 @@ def main() -> None:
     parser.add_argument("records", help="CTRC JSONL (.gz ok) with prompt and completion")
     parser.add_argument("--n", type=int, default=24, help="records probed (the first N)")
     parser.add_argument("--out", help="write the result as JSON here")
+    parser.add_argument("--device", default="cpu", help="torch device (default: cpu)")
     args = parser.parse_args()
     torch.set_num_threads(max(1, min(4, torch.get_num_threads())))
-    scorer = _Scorer(args.model)
+    scorer = _Scorer(args.model, args.device)
     rows = load_records(args.records)[:args.n]
     zone = [z for r in rows if (z := zone_probe(scorer, r))]
     near = [m for r in rows if (m := neighbour_probe(scorer, r))]

@@ -123,6 +123,7 @@ def _run_import(args) -> int:
                 seed=args.seed,
                 instructor=_instructor(args),
                 prompt_objects=config.prompt_objects,
+                decimals=config.decimals,
                 skip_errors=args.skip_errors,
             ),
             desc="import",

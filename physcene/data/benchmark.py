@@ -18,6 +18,7 @@ from pathlib import Path
 
 from omegaconf import OmegaConf
 
+from physcene.ctrc import DECIMALS
 from physcene.data.captions import describe
 from physcene.data.mesatask_ctrc import ctrc_record, dumps_record
 from physcene.data.noise import NoiseConfig, apply_noise
@@ -46,6 +47,7 @@ class DataConfig:
     synth: SynthConfig = field(default_factory=SynthConfig)
     noise: NoiseConfig = field(default_factory=NoiseConfig)
     prompt_objects: bool = True
+    decimals: int = DECIMALS
     workers: int = 2
     measure: str = "auto"
 
@@ -77,9 +79,19 @@ class DataConfig:
             synth=build(SynthConfig, "synth"),
             noise=build(NoiseConfig, "noise"),
             prompt_objects=bool(rec.get("prompt_objects", True)),
+            decimals=_decimals(rec.get("decimals", DECIMALS)),
             workers=int(rec.get("workers", 2)),
             measure=str(rec.get("measure", "auto")).lower(),
         )
+
+
+def _decimals(value) -> int:
+    """``record.decimals``: digits after the point in completion text, 0-8 (the CTRC constraint's limit)."""
+    from physcene.config import ConfigError
+
+    if isinstance(value, bool) or not isinstance(value, int) or not 0 <= value <= 8:
+        raise ConfigError(f"record.decimals must be an integer from 0 to 8, got {value!r}")
+    return value
 
 
 _FIT: ContainerFit | None = None
@@ -100,7 +112,8 @@ def build_record(split: str, seed: int, item: PlanItem, config: DataConfig) -> d
     clean = clean.with_objects(o.moved(description=describe(o.category, o.size, rng)) for o in clean.objects)
     noisy, noise = apply_noise(clean, item.level, rng, config.noise)
     record = ctrc_record(
-        noisy, record_id=f"{split}-{item.index:05d}", rng=rng, prompt_objects=config.prompt_objects
+        noisy, record_id=f"{split}-{item.index:05d}", rng=rng, prompt_objects=config.prompt_objects,
+        decimals=config.decimals,
     )
     record.update(split=split, noise=noise.as_dict(), arrangement_style=clean.meta["arrangement_style"])
     return record

@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from physcene.ctrc import build_prompt, completion_text
+from physcene.ctrc import DECIMALS, build_prompt, completion_text
 from physcene.data.instructions import EndpointInstructor, check_instruction, template_instruction
 from physcene.data.splits import level_of
 from physcene.graph import GraphConfig, build_hierarchy
@@ -46,6 +46,7 @@ def ctrc_record(
     instructor: EndpointInstructor | None = None,
     prompt_objects: bool = True,
     graph_config: GraphConfig | None = None,
+    decimals: int = DECIMALS,
 ) -> dict:
     """One MesaTask-CTRC record of ``scene`` (Algorithm 1 over its absolute boxes).
 
@@ -89,7 +90,7 @@ def ctrc_record(
                 scene.zone,
                 objects=list(hierarchy.objects) if prompt_objects else None,
             ),
-            "completion": completion_text(hierarchy),
+            "completion": completion_text(hierarchy, decimals=decimals),
             "layout": layout_to_dict(hierarchy),
         }
     )
@@ -110,6 +111,7 @@ def import_layout_tree(
     instructor: EndpointInstructor | None = None,
     prompt_objects: bool = True,
     skip_errors: bool = False,
+    decimals: int = DECIMALS,
 ) -> Iterator[tuple[Path, dict]]:
     """(path, record) for every ``Layout_info/<table_type>/<scene>/layout.json`` under ``root``.
 
@@ -130,5 +132,6 @@ def import_layout_tree(
                 rng=record_rng(seed, "import", k),
                 instructor=instructor,
                 prompt_objects=prompt_objects,
+                decimals=decimals,
             ),
         )
