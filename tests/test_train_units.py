@@ -249,8 +249,8 @@ def test_sft_continues_an_earlier_scratch_checkpoint(tmp_path):
             self.dtype = next(model.parameters()).dtype
 
     seen = Start()
-    second = run_sft(load_config("train_tiny", [*base, f"output_dir={tmp_path / 'b'}", f"model.init_from={first}"]),
-                     callbacks=[seen])
+    second = run_sft(load_config("train_tiny", [*base, f"output_dir={tmp_path / 'b'}",
+                                                f"model.init_from={first}"]), callbacks=[seen])
     assert seen.dtype == torch.float32 and seen.weights.keys() == start.keys()
     assert all(torch.equal(seen.weights[k], start[k]) for k in start)
     assert (second / "tokenizer.json").read_text() == (first / "tokenizer.json").read_text()
@@ -262,6 +262,39 @@ def test_sft_continues_an_earlier_scratch_checkpoint(tmp_path):
     with pytest.raises(TrainingSetupError, match="init_from"):
         run_sft(load_config("train_tiny", [*base, f"output_dir={tmp_path / 'c'}",
                                            f"model.init_from={tmp_path / 'missing'}"]))
+
+
+def test_a_step_with_a_nan_gradient_is_dropped_not_applied(tmp_path):
+    """SkipNonFiniteSteps: a NaN in one gradient at step 2 leaves the weights as step 1 wrote them
+    (instead of NaN everywhere after clipping), step 3 trains again, and the run info names step 2."""
+    from physcene.train.sft import run_sft
+    from transformers import TrainerCallback
+
+    data = tmp_path / "train.jsonl"
+    data.write_text("".join(json.dumps({"id": f"r{i}", "prompt": f"Instruction {i}: place a pen.\nLayout:",
+                                        "completion": ANCHOR}) + "\n" for i in range(4)))
+
+    class PoisonStep2(TrainerCallback):  # runs before the guard (user callbacks come first)
+        def on_pre_optimizer_step(self, args, state, control, model=None, **kw):
+            if state.global_step + 1 == 2:
+                next(p for p in model.parameters() if p.grad is not None).grad.view(-1)[0] = float("nan")
+
+    class Weights(TrainerCallback):
+        def __init__(self):
+            self.after = {}
+
+        def on_step_end(self, args, state, control, model=None, **kw):
+            self.after[state.global_step] = [p.detach().clone() for p in model.parameters()]
+
+    seen = Weights()
+    out = run_sft(load_config("train_tiny", [f"data.train={data}", f"output_dir={tmp_path / 'run'}",
+                                             "sft.global_batch_size=2", "sft.per_device_batch_size=2",
+                                             "sft.max_steps=3", "sft.max_length=256"]),
+                  callbacks=[PoisonStep2(), seen])
+    assert all(torch.isfinite(w).all() for w in seen.after[3])
+    assert all(torch.equal(a, b) for a, b in zip(seen.after[1], seen.after[2]))
+    assert not all(torch.equal(a, b) for a, b in zip(seen.after[2], seen.after[3]))
+    assert json.loads((out / "physcene_run.json").read_text())["nonfinite_steps_dropped"] == [2]
 
 
 def test_ablation_row_and_table_from_an_eval_report():

@@ -377,7 +377,7 @@ def run_pada(cfg, variant: str | None = None, reward=None, callbacks=()) -> Path
     from omegaconf import OmegaConf
     from physcene.train.models import load_model, load_tokenizer, read_run_info, write_run_info
     from physcene.train.records import load_records, training_dataset
-    from physcene.train.sft import lora_config, time_budget_callbacks
+    from physcene.train.sft import SkipNonFiniteSteps, lora_config, skipped_steps, time_budget_callbacks
     from transformers.trainer_utils import get_last_checkpoint
 
     if variant is not None and variant != cfg.pada.variant:
@@ -408,7 +408,7 @@ def run_pada(cfg, variant: str | None = None, reward=None, callbacks=()) -> Path
         train_dataset=dataset,
         processing_class=tokenizer,
         peft_config=lora_config(cfg.pada.lora),
-        callbacks=[*callbacks, *time_budget_callbacks(cfg.pada)],
+        callbacks=[*callbacks, *time_budget_callbacks(cfg.pada), SkipNonFiniteSteps()],
     )
     kl = cfg.pada.adaptive_kl
     if kl is not None and args.beta > 0:
@@ -424,5 +424,6 @@ def run_pada(cfg, variant: str | None = None, reward=None, callbacks=()) -> Path
                        eval_batch_size=int(cfg.eval.batch_size), steps=trainer.state.global_step,
                        stopped_by_budget=any(getattr(c, "stopped_early", False)
                                              for c in trainer.callback_handler.callbacks),
+                       nonfinite_steps_dropped=skipped_steps(trainer),
                        base_model=str(model_dir.resolve()), n_records=len(records))
     return out

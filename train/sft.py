@@ -11,6 +11,7 @@ output directory.
 from __future__ import annotations
 
 import json
+import logging
 import math
 import time
 from pathlib import Path
@@ -24,7 +25,9 @@ from transformers import TrainerCallback
 from transformers.trainer_utils import get_last_checkpoint
 from trl import SFTConfig, SFTTrainer
 
-__all__ = ["accumulation_steps", "lora_config", "run_sft"]
+__all__ = ["SkipNonFiniteSteps", "accumulation_steps", "lora_config", "run_sft", "skipped_steps"]
+
+logger = logging.getLogger(__name__)
 
 
 class TimeBudget(TrainerCallback):
@@ -61,6 +64,37 @@ class TimeBudget(TrainerCallback):
         flag = torch.tensor([1.0 if stop else 0.0], device=args.device)
         dist.all_reduce(flag, op=dist.ReduceOp.MAX)
         return bool(flag.item())
+
+
+class SkipNonFiniteSteps(TrainerCallback):
+    """Drop an optimizer step whose (all-reduced, clipped) gradients hold a NaN or an inf.
+
+    Clipping by a NaN norm turns every gradient into NaN, and one such AdamW step writes NaN into
+    every trained weight: the run goes on, logging losses, while the model it saves generates
+    nothing parsable (a ``small`` PADA* run did this at step 15 of 16). Here every gradient is set
+    to None before ``optimizer.step()``, which AdamW then skips parameter by parameter; the LR
+    schedule still advances. Under DDP all ranks see the same reduced gradients and drop the same
+    step. The dropped steps are in ``self.steps`` (and the run's ``physcene_run.json``). DeepSpeed
+    keeps gradients in its own buffers (``p.grad`` is None), so there this check sees nothing.
+    """
+
+    def __init__(self):
+        self.steps: list[int] = []
+
+    def on_pre_optimizer_step(self, args, state, control, model=None, **kwargs):
+        grads = [p.grad for p in model.parameters() if p.grad is not None] if model is not None else []
+        if grads and not bool(torch.stack([torch.isfinite(g).all() for g in grads]).all()):
+            for p in model.parameters():
+                p.grad = None
+            self.steps.append(state.global_step + 1)
+            logger.warning("step %d: non-finite gradient, optimizer step dropped", state.global_step + 1)
+        return control
+
+
+def skipped_steps(trainer) -> list[int]:
+    """The optimizer steps a trainer's :class:`SkipNonFiniteSteps` dropped."""
+    guards = [c for c in trainer.callback_handler.callbacks if isinstance(c, SkipNonFiniteSteps)]
+    return [s for c in guards for s in c.steps]
 
 
 def time_budget_callbacks(stage_cfg) -> list[TimeBudget]:
@@ -172,7 +206,7 @@ def run_sft(cfg: DictConfig, callbacks=()) -> Path:
         train_dataset=training_dataset(records, chat_format=chat),
         processing_class=tokenizer,
         peft_config=lora_config(cfg.sft.lora),
-        callbacks=[*callbacks, *time_budget_callbacks(cfg.sft)],
+        callbacks=[*callbacks, *time_budget_callbacks(cfg.sft), SkipNonFiniteSteps()],
     )
     trainer.train(resume_from_checkpoint=get_last_checkpoint(str(out)) if out.is_dir() else None)
     if cfg.sft.lora is not None:
@@ -188,6 +222,7 @@ def run_sft(cfg: DictConfig, callbacks=()) -> Path:
                        eval_batch_size=int(cfg.eval.batch_size), steps=trainer.state.global_step,
                        stopped_by_budget=any(getattr(c, "stopped_early", False)
                                              for c in trainer.callback_handler.callbacks),
+                       nonfinite_steps_dropped=skipped_steps(trainer),
                        base_model=str(cfg.model.path) if cfg.model.source == "pretrained" else "scratch",
                        **({"init_from": str(cfg.model.init_from)} if cfg.model.get("init_from") else {}))
     return out
