@@ -385,6 +385,25 @@ def test_anchors_are_made_only_for_the_levels_pada_trains_on(tmp_path):
     assert anchor_prompts(unfiltered) == every
 
 
+def test_a_complete_anchor_file_needs_no_training_data(tmp_path):
+    """run_anchors keeps an anchor file holding anchors.n_records rows even where data.train is absent
+    (the RL and eval stages on a machine that got only the SFT model and the anchors); a short file
+    still needs the data to be completed."""
+    from physcene.train.anchors import run_anchors
+    from physcene.train.records import write_records
+
+    from physcene.data import synthesize
+
+    anchors = tmp_path / "anchors.jsonl"
+    write_records([{**r, "anchor": r["completion"]} for r in synthesize("train", 3, seed=1)], anchors)
+    cfg = [f"data.train={tmp_path / 'absent.jsonl'}", f"anchors.output={anchors}"]
+    before = anchors.read_bytes()
+    assert run_anchors(load_config("train_tiny", [*cfg, "anchors.n_records=3"])) == anchors
+    assert anchors.read_bytes() == before
+    with pytest.raises(FileNotFoundError, match="absent.jsonl"):
+        run_anchors(load_config("train_tiny", [*cfg, "anchors.n_records=4"]))
+
+
 def test_records_read_from_jsonl_and_gzipped_jsonl(tmp_path):
     import gzip
 

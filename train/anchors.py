@@ -147,8 +147,11 @@ def run_anchors(cfg: DictConfig) -> Path:
 
     a = cfg.anchors
     out = Path(str(a.output))
+    have = len(load_records(str(out))) if out.is_file() and not a.get("overwrite", False) else None
+    if have is not None and a.get("n_records") is not None and have == int(a.n_records):
+        return out  # complete: no need for the training data (a later stage on another machine)
     records = anchor_prompts(cfg)
-    if out.is_file() and not a.get("overwrite", False) and len(load_records(str(out))) == len(records):
+    if have == len(records):
         return out
     state = PartialState()
     device = str(state.device)
