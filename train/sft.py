@@ -71,7 +71,7 @@ class SkipNonFiniteSteps(TrainerCallback):
 
     Clipping by a NaN norm turns every gradient into NaN, and one such AdamW step writes NaN into
     every trained weight: the run goes on, logging losses, while the model it saves generates
-    nothing parsable (a ``small`` PADA* run did this at step 15 of 16). Here every gradient is set
+    nothing parsable (a ``small`` PADA* run did this at its last step, 15). Here every gradient is set
     to None before ``optimizer.step()``, which AdamW then skips parameter by parameter; the LR
     schedule still advances. Under DDP all ranks see the same reduced gradients and drop the same
     step. The dropped steps are in ``self.steps`` (and the run's ``physcene_run.json``). DeepSpeed

@@ -90,7 +90,8 @@ def moved_onto_next(completion: str) -> tuple[str, int, int] | None:
     va = [float(x) for x in a.group(1).split(",")]
     vb = [float(x) for x in b.group(1).split(",")]
     cx, cy, w, d = (vb[0] + vb[1]) / 2, (vb[2] + vb[3]) / 2, va[1] - va[0], va[3] - va[2]
-    places = max(len(x.split(".")[1]) if "." in x else 0 for x in (*a.group(1).split(","), *b.group(1).split(",")))
+    numbers = (*a.group(1).split(","), *b.group(1).split(","))  # the moved box keeps the text's precision
+    places = max(len(x.split(".")[1]) if "." in x else 0 for x in numbers)
     moved = [round(v, places) for v in (cx - w / 2, cx + w / 2, cy - d / 2, cy + d / 2)] + va[4:]
     if min(moved[0], moved[2]) < 0:
         return None
