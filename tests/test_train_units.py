@@ -328,6 +328,8 @@ def test_configs_carry_the_paper_hyperparameters(monkeypatch):
     assert sft.per_device_train_batch_size * sft.gradient_accumulation_steps * 8 == 64
     assert cfg.sft.lora is None and cfg.model.freeze_vision and cfg.model.chat_format
     monkeypatch.undo()
+    assert sft_arguments(load_config("train_small", ["sft.dataset_num_proc=8"])).dataset_num_proc == 8
+    assert sft_arguments(load_config("train_small")).dataset_num_proc is None
     for name in ("qwen3_vl_8b", "small"):
         c = load_config(f"train_{name}", ["model.path=/m"])
         pada = pada_arguments(c, "pada")

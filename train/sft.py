@@ -165,6 +165,8 @@ def sft_arguments(cfg: DictConfig) -> SFTConfig:
         seed=int(cfg.seed),
         deepspeed=deepspeed,
         dataloader_num_workers=0,
+        # processes for TRL's tokenizing/labelling map over the records (None: one process)
+        dataset_num_proc=int(s.dataset_num_proc) if s.get("dataset_num_proc") else None,
         # every trainable weight takes part in every forward (the 8B vision tower is frozen, so DDP
         # skips it): the unused-parameter search would only add a graph traversal per step
         ddp_find_unused_parameters=False,
