@@ -71,4 +71,5 @@ def test_constrained_decoding_step_cost(benchmark, mode):
     per_step = (time.perf_counter() - start) / steps
     print(f"\nCTRCConstraint {mode}: {rows} rows x {steps} steps, {1e3 * per_step:.2f} ms per step "
           f"(of which in the processor {1e3 * processor.seconds / steps:.2f}); rows x steps overruled "
-          f"{processor.masked_steps}")
+          f"{processor.masked_steps}; vocabulary scans {processor.vocabulary_scans} "
+          f"({1e3 * processor.scan_seconds / steps:.2f} ms per step)")

@@ -316,6 +316,9 @@ def test_rejection_draws_sample_the_allowed_part_of_the_distribution(records, to
         picked = torch.multinomial((out / 0.7).softmax(-1), 1).flatten()  # what generate does next
         counts = torch.bincount(picked, minlength=len(tokenizer)).float()
         assert counts.sum() == counts[allowed_ids].sum()  # nothing refused comes through
+        # accepted draws need no scan; where two tokens are allowed some rows exhaust their draws
+        assert (proc.vocabulary_scans > 0) == (len(allowed_ids) < len(tokenizer) // 2)
+        assert 0 <= proc.scan_seconds <= proc.seconds
         p = (logits / 0.7).softmax(-1)[allowed_ids]
         p = p / p.sum()
         freq = counts[allowed_ids] / rows

@@ -107,6 +107,8 @@ def test_tiny_pipeline_end_to_end(tmp_path, one_thread, monkeypatch):
         assert ("time/constraint_s" in step) == (variant == "pada")
         if variant == "pada":
             assert 0 < step["time/constraint_s"] < step["time/generate_s"]
+            assert 0 <= step["time/constraint_scan_s"] <= step["time/constraint_s"]
+            assert step["constraint/refused_draws"] >= 0 and step["constraint/vocabulary_scans"] >= 0
         assert ("anchor_ce" in step) == (variant != "grpo")
         if variant != "grpo":
             assert step["anchor_ce"] > 0

@@ -387,6 +387,8 @@ class CTRCConstraint(LogitsProcessor):
         self.masked_steps = 0  # rows x steps where the model's choice (greedy) or draw was overruled
         self.refused_draws = 0  # sampling by rejection (warpers): drawn tokens refused
         self.seconds = 0.0  # host time spent in __call__ (the constraint's cost inside generate)
+        self.vocabulary_scans = 0  # rows whose allowed set was looked for in the whole vocabulary
+        self.scan_seconds = 0.0  # of self.seconds, the time in those scans (one check per token)
 
     def _allowed(self, row: int, rule: Rule | None, candidates) -> list[int]:
         """The ``candidates`` that keep ``row`` inside its ``rule`` (None: free text) and inside the
@@ -493,8 +495,12 @@ class CTRCConstraint(LogitsProcessor):
 
     def _allowed_in_vocabulary(self, row: int, rule: Rule | None, scores: torch.Tensor) -> list[int]:
         """The allowed tokens of the whole vocabulary, less what other processors ruled out (-inf)."""
+        start = time.perf_counter()
         finite = torch.isfinite(scores[row]).nonzero().flatten().tolist()
-        return self._allowed(row, rule, finite)
+        allowed = self._allowed(row, rule, finite)
+        self.vocabulary_scans += 1
+        self.scan_seconds += time.perf_counter() - start
+        return allowed
 
     def _draw(self, rules: dict[int, Rule | None], input_ids: torch.LongTensor,
               scores: torch.FloatTensor) -> torch.FloatTensor:

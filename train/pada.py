@@ -188,6 +188,10 @@ class PADATrainer(GRPOTrainer):
             kwargs["logits_processor"] = LogitsProcessorList([processor])
             output = plain_generate(*args, **kwargs)
             self._log_seconds("time/constraint_s", processor.seconds)
+            # where that time goes: draws refused, and rows that fell back to scanning the vocabulary
+            self._log_seconds("time/constraint_scan_s", processor.scan_seconds)
+            self._log_seconds("constraint/refused_draws", float(processor.refused_draws))
+            self._log_seconds("constraint/vocabulary_scans", float(processor.vocabulary_scans))
             return output
 
         model.generate = generate  # an instance attribute shadows the method for this round only
