@@ -152,11 +152,11 @@ class PADATrainer(GRPOTrainer):
         output = super()._generate(prompts)
         # this rank's generation round, with the constraint's host time (also logged apart as
         # time/constraint_s): where a step's time goes, next to time/reward_s and step_time
-        self._log_seconds("time/generate_s", time.perf_counter() - start)
+        self._log_value("time/generate_s", time.perf_counter() - start)
         return output
 
-    def _log_seconds(self, name: str, seconds: float) -> None:
-        self._metrics["train" if self.model.training else "eval"][name].append(seconds)
+    def _log_value(self, name: str, value: float) -> None:
+        self._metrics["train" if self.model.training else "eval"][name].append(value)
 
     def _generate_single_turn(self, prompt_ids, images, multimodal_fields, num_generations,
                               has_tool_images=False):
@@ -187,11 +187,11 @@ class PADATrainer(GRPOTrainer):
                                        warpers=sampling_warpers(config))
             kwargs["logits_processor"] = LogitsProcessorList([processor])
             output = plain_generate(*args, **kwargs)
-            self._log_seconds("time/constraint_s", processor.seconds)
+            self._log_value("time/constraint_s", processor.seconds)
             # where that time goes: draws refused, and rows that fell back to scanning the vocabulary
-            self._log_seconds("time/constraint_scan_s", processor.scan_seconds)
-            self._log_seconds("constraint/refused_draws", float(processor.refused_draws))
-            self._log_seconds("constraint/vocabulary_scans", float(processor.vocabulary_scans))
+            self._log_value("time/constraint_scan_s", processor.scan_seconds)
+            self._log_value("constraint/refused_draws", float(processor.refused_draws))
+            self._log_value("constraint/vocabulary_scans", float(processor.vocabulary_scans))
             return output
 
         model.generate = generate  # an instance attribute shadows the method for this round only
