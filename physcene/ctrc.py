@@ -45,6 +45,7 @@ __all__ = [
     "ENTRY_SEPARATOR",
     "LAYOUT_HEADER",
     "MAX_ABS_CM",
+    "MAX_DECIMALS",
     "MAX_OBJECTS",
     "OBJECTS_CLOSE",
     "OBJECTS_OPEN",
@@ -65,6 +66,9 @@ __all__ = [
 # from the original by the rounding of the object's own numbers only (≤ 1e-5 cm, ≤ 1e-5 deg),
 # however deep the stack.
 DECIMALS = 5
+# Most digits after the point a completion may write: the CTRC constraint's number rule stops a model
+# there (no digits forever), so data written for training stays within it too.
+MAX_DECIMALS = 8
 # Coordinates or sizes beyond this (cm, 1 km) are model garbage, not a tabletop.
 MAX_ABS_CM = 1e5
 # Completions longer than this are not layouts; refusing them bounds parse time.

@@ -55,7 +55,14 @@ import regex
 import torch
 from transformers import GenerationConfig, LogitsProcessor, LogitsProcessorList, PreTrainedTokenizerBase
 
-from physcene.ctrc import BOX_EXTENTS, ENTRY_SEPARATOR, LAYOUT_HEADER, OBJECTS_CLOSE, OBJECTS_OPEN
+from physcene.ctrc import (
+    BOX_EXTENTS,
+    ENTRY_SEPARATOR,
+    LAYOUT_HEADER,
+    MAX_DECIMALS,
+    OBJECTS_CLOSE,
+    OBJECTS_OPEN,
+)
 from physcene.layout import category_from_instance
 from physcene.scene import TABLE
 
@@ -67,9 +74,9 @@ _ZONE = re.compile(r"\*\*item_placement_zone\*\*: (\[[^\]\n]*\])")
 _LIST_ITEM = re.compile(r"\s*([^,()]+?) \((\d+)\)")
 # A JSON number the parser accepts: no leading zero (JSON); at most 4 integer digits (100 m: a
 # tabletop is a few metres) keeps even a deep stack of relative offsets under MAX_ABS_CM (1e5 cm); at
-# most 8 decimals keeps a model from writing digits forever (the data has DECIMALS = 5).
+# most MAX_DECIMALS (8) decimals keeps a model from writing digits forever (the data has DECIMALS = 5).
 _INTEGER_DIGITS = 4
-_NUMBER = rf"-?(?:0|[1-9]\d{{0,{_INTEGER_DIGITS - 1}}})(?:\.\d{{1,8}})?"
+_NUMBER = rf"-?(?:0|[1-9]\d{{0,{_INTEGER_DIGITS - 1}}})(?:\.\d{{1,{MAX_DECIMALS}}})?"
 _ARRAY_LENGTH = {"relative_bbox": 6, "bbox": 6, "item_placement_zone": 4}
 # (min, max) index pairs of an array whose max must exceed its min (physcene.ctrc refuses a
 # non-positive extent); the root's "bbox" is the zone with a zero height, so it has none.

@@ -18,7 +18,7 @@ from pathlib import Path
 
 from omegaconf import OmegaConf
 
-from physcene.ctrc import DECIMALS
+from physcene.ctrc import DECIMALS, MAX_DECIMALS
 from physcene.data.captions import describe
 from physcene.data.mesatask_ctrc import ctrc_record, dumps_record
 from physcene.data.noise import NoiseConfig, apply_noise
@@ -86,11 +86,11 @@ class DataConfig:
 
 
 def _decimals(value) -> int:
-    """``record.decimals``: digits after the point in completion text, 0-8 (the CTRC constraint's limit)."""
+    """``record.decimals``: digits after the point in completion text, 0 to ``MAX_DECIMALS``."""
     from physcene.config import ConfigError
 
-    if isinstance(value, bool) or not isinstance(value, int) or not 0 <= value <= 8:
-        raise ConfigError(f"record.decimals must be an integer from 0 to 8, got {value!r}")
+    if isinstance(value, bool) or not isinstance(value, int) or not 0 <= value <= MAX_DECIMALS:
+        raise ConfigError(f"record.decimals must be an integer from 0 to {MAX_DECIMALS}, got {value!r}")
     return value
 
 
