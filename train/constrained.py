@@ -237,15 +237,16 @@ def constraint_rule(text: str, listed: Sequence[str] | None,
     return None if found is None else active_rule(text[found[0]:], found[1])
 
 
-def active_rule(partial: str, core: _Core | None) -> Rule | None:
+def active_rule(partial: str, core: _Core | None, within: bool = False) -> Rule | None:
     """The rule of ``core`` (from :func:`last_anchor`) while ``partial``, the text since its anchor, is
-    inside it; EOS only once a rule that ends the completion is complete; else None."""
+    inside it; EOS only once a rule that ends the completion is complete; else None. ``within``: the
+    caller already knows ``partial`` continues the rule (its last token was checked against it)."""
     if core is None:
         return None
     end = core.complete(partial)
     if end is not None:  # the segment is complete
         return Rule(partial, None) if core.then_eos and end == len(partial) else None
-    return core.prefix_rule(partial) if _within(partial, core) else None
+    return core.prefix_rule(partial) if within or _within(partial, core) else None
 
 
 def _within(partial: str, core: _Core | None) -> bool:
@@ -348,11 +349,20 @@ def _compiled(pattern: str):
 _UNSET = object()
 
 
-def _may_end_anchor(added: str) -> bool:
-    """Whether appending ``added`` can complete an anchor: a key's ``":``, a plan step's ``Place`` (a
-    ``Place`` split over tokens is caught by the caller's ``endswith``) or the ``.`` that ends a plan
-    line (also a decimal point: a harmless extra search)."""
-    return ":" in added or "Place" in added or "." in added
+_STEP_LINE = re.compile(r"\n\d+\. Place")
+
+
+def _may_end_anchor(text: str, added: str) -> bool:
+    """Whether appending ``added`` to ``text`` can complete an anchor: a key's ``":``, a plan step's
+    ``Place`` (also one split over tokens), or the ``.`` that ends a plan line: only on a line that
+    starts ``N. Place``, so a layout's decimal points (most of its ``.``) start no search."""
+    if ":" in added or "Place" in text[-5:] + added or "\n" in added:
+        return True
+    dot = added.find(".")
+    if dot < 0:
+        return False
+    line = text.rfind("\n", 0, len(text) + dot)
+    return line >= 0 and _STEP_LINE.match(text, line) is not None
 
 
 class CTRCConstraint(LogitsProcessor):
@@ -383,6 +393,9 @@ class CTRCConstraint(LogitsProcessor):
         # each row's last anchor (position, rule regex): looked for again only when a token that can
         # end an anchor arrives (_may_end_anchor), so a step costs O(1) regex work per row
         self.anchors: list = [_UNSET] * len(prompts)
+        # each row's texts since its anchor that the last step found inside the anchor's rule (the
+        # tokens it allowed): the next step need not match the rule again for the one that came
+        self.admitted: list[set[str]] = [set() for _ in prompts]
         self.seen = 0  # completion tokens consumed (all rows advance together)
         self.finished = [False] * len(prompts)
         self.top_k = int(top_k)
@@ -415,11 +428,13 @@ class CTRCConstraint(LogitsProcessor):
                 continue
             if self._next_rule_holds(row, added):
                 out.append(t)
+                if rule is not None:
+                    self.admitted[row].add(rule.partial + added)
         return out
 
     def _next_rule_holds(self, row: int, added: str) -> bool:
         text = self.texts[row]
-        if not (_may_end_anchor(added) or "Place" in text[-5:] + added):
+        if not _may_end_anchor(text, added):
             return True
         full = text + added
         found = last_anchor(full, self.listed[row], self.zones[row])
@@ -493,11 +508,17 @@ class CTRCConstraint(LogitsProcessor):
                 added += self.token_text[t]
             if self.finished[b]:
                 continue
+            searched = self.anchors[b] is _UNSET or _may_end_anchor(self.texts[b], added)
             self.texts[b] += added
-            if self.anchors[b] is _UNSET or _may_end_anchor(added) or self.texts[b].endswith("Place"):
+            if searched:
                 self.anchors[b] = last_anchor(self.texts[b], self.listed[b], self.zones[b])
             found = self.anchors[b]
-            rules[b] = None if found is None else active_rule(self.texts[b][found[0]:], found[1])
+            admitted, self.admitted[b] = self.admitted[b], set()
+            if found is None:
+                rules[b] = None
+            else:
+                partial = self.texts[b][found[0]:]
+                rules[b] = active_rule(partial, found[1], within=not searched and partial in admitted)
         return rules
 
     def _allowed_in_vocabulary(self, row: int, rule: Rule | None, scores: torch.Tensor) -> list[int]:
@@ -519,8 +540,11 @@ class CTRCConstraint(LogitsProcessor):
         of the whole vocabulary. Each row comes back with only its chosen token(s) finite, so the
         sampler that follows picks it."""
         rows = list(rules)
-        index = torch.tensor(rows, device=scores.device)
-        warped = self.warpers(input_ids[index], scores[index].float())
+        if len(rows) == scores.shape[0]:  # no row finished yet: no gather
+            warped = self.warpers(input_ids, scores.float())
+        else:
+            index = torch.tensor(rows).to(scores.device, non_blocking=True)
+            warped = self.warpers(input_ids[index], scores[index].float())
         uniform = torch.rand_like(warped).clamp_(min=torch.finfo(warped.dtype).tiny)
         gumbel = -(-uniform.log()).log()  # Gumbel(0, 1)
         k = min(self.redraws, warped.shape[-1])
@@ -543,8 +567,9 @@ class CTRCConstraint(LogitsProcessor):
         done = [b for b in range(scores.shape[0]) if b not in rules]  # finished rows: as they were
         if done:
             out[done] = scores[done]
-        if chosen_rows:
-            out[chosen_rows, chosen_tokens] = scores[chosen_rows, chosen_tokens]
+        if chosen_rows:  # one host-to-device copy of the (row, token) pairs
+            chosen = tuple(torch.tensor([chosen_rows, chosen_tokens]).to(scores.device, non_blocking=True))
+            out[chosen] = scores[chosen]
         for b in exhausted:
             allowed = self._allowed_in_vocabulary(b, rules[b], scores)
             if allowed:

@@ -6,6 +6,7 @@
 #   NPROC=1 SFT_MIN=30 PADA_MIN=10 bash docs/results/ablation_small.sh   # longer, one GPU
 #   STAGES="synth sft" bash docs/results/ablation_small.sh                # part of it (then the rest:
 #   STAGES="anchors grpo pada_star pada eval" EXTRA="anchors.cache=static" bash ...)
+#   NPROC=1 PARALLEL=1 PADA_MIN=17 STAGES="grpo pada_star pada" bash ...  # the 3 RL variants at once
 #
 # Stages resume: rerunning continues SFT from its last checkpoint, keeps a complete anchor file
 # and reuses finished models (`ablation.reuse`). Step times land in each stage's train_log.json.
@@ -39,6 +40,9 @@ SFT_EXTRA=${SFT_EXTRA:-}            # overrides for the SFT stage only (e.g. mod
 N_TRAIN=${N_TRAIN:-}                # synthetic training scenes (unset: the train split's 9,429)
 DECIMALS=${DECIMALS:-}              # digits after the point in the synthesised completions and the anchors
                                     # (unset: physcene.ctrc.DECIMALS = 5)
+PARALLEL=${PARALLEL:-}              # 1: the RL variants train at the same time on the same GPU(s), each
+                                    # logging to $RUN/<variant>.log (the small model leaves an H100 mostly
+                                    # idle: its generation is bound by host work, so three share one well)
 STAGES=${STAGES:-"synth sft anchors grpo pada_star pada eval"}
 
 stamp() { echo "[$(date +%T)] $*"; }
@@ -73,18 +77,32 @@ if want anchors; then
   $LAUNCH -m physcene.cli train anchors --config "$CONFIG" $common
 fi
 pada_cache=${PADA_CACHE:+pada.cache=$PADA_CACHE}
+train_variant() {  # $1: the variant, $2: a rendezvous port of its own (variants may run at once)
+  local launch="$LAUNCH"
+  [[ "$LAUNCH" == *"accelerate launch"* ]] && launch="$LAUNCH --main_process_port $2"
+  stamp "$1 ($PADA_MIN min${PADA_CACHE:+, cache $PADA_CACHE})"
+  $launch -m physcene.cli train pada --config "$CONFIG" --variant "$1" $common $pada_cache \
+    pada.max_minutes="$PADA_MIN" && return 0
+  if [ -n "$PADA_CACHE" ] && [ "$PADA_CACHE" != dynamic ]; then
+    stamp "$1 failed with cache $PADA_CACHE; again with the dynamic cache"
+    $launch -m physcene.cli train pada --config "$CONFIG" --variant "$1" $common pada.cache=dynamic \
+      pada.max_minutes="$PADA_MIN" && return 0
+  fi
+  stamp "$1 failed (the ablation retries it within its budget or reports it skipped)"
+}
+port=29510
 for variant in grpo pada_star pada; do
   want "$variant" || continue
-  stamp "$variant ($PADA_MIN min${PADA_CACHE:+, cache $PADA_CACHE})"
-  $LAUNCH -m physcene.cli train pada --config "$CONFIG" --variant "$variant" $common $pada_cache \
-    pada.max_minutes="$PADA_MIN" && continue
-  if [ -n "$PADA_CACHE" ] && [ "$PADA_CACHE" != dynamic ]; then
-    stamp "$variant failed with cache $PADA_CACHE; again with the dynamic cache"
-    $LAUNCH -m physcene.cli train pada --config "$CONFIG" --variant "$variant" $common pada.cache=dynamic \
-      pada.max_minutes="$PADA_MIN" && continue
+  port=$((port + 1))
+  if [ "$PARALLEL" = 1 ]; then
+    mkdir -p "$RUN"
+    stamp "$variant started in the background, log $RUN/$variant.log"
+    train_variant "$variant" "$port" > "$RUN/$variant.log" 2>&1 &
+  else
+    train_variant "$variant" "$port"
   fi
-  stamp "$variant failed (the ablation retries it within its budget or reports it skipped)"
 done
+wait  # the variants started in the background (PARALLEL=1)
 if want eval; then
   stamp "eval ($N_TEST test scenes)"
   $LAUNCH -m physcene.cli train ablation --config "$CONFIG" $common \
