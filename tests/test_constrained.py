@@ -345,3 +345,43 @@ def test_sampling_warpers_rebuild_what_generate_applies():
         GenerationConfig(do_sample=True, temperature=0.5, top_k=20, top_p=0.9, min_p=0.05))]
     assert kinds == ["TemperatureLogitsWarper", "TopKLogitsWarper", "TopPLogitsWarper", "MinPLogitsWarper"]
     assert len(sampling_warpers(GenerationConfig(do_sample=True, temperature=1.0, top_k=0))) == 0
+
+
+@pytest.mark.parametrize("mode", ["greedy", "draw"])
+def test_the_rule_kept_between_steps_is_the_rule_of_the_whole_text(records, tokenizer, mode):
+    """The processor keeps each row's anchor and skips the anchor search for tokens that cannot end one
+    (a layout's decimal points) and the rule match for text its last step admitted; at every step of
+    a noisy model's generation its rule equals the one found from scratch in the text so far."""
+    from physcene.train import constrained
+
+    vocab = len(tokenizer)
+    gen = torch.Generator().manual_seed(11)
+    torch.manual_seed(11)
+    r = min(records, key=lambda r: len(r["completion"]))
+    plan = r["completion"].split("**Scene Layout:**")[0].rstrip("\n")
+    forced = tokenizer(plan, add_special_tokens=False)["input_ids"]
+    proc = CTRCConstraint(tokenizer, [r["prompt"]], **MODES[mode])
+    kept = []
+    advance = proc._advance
+    proc._advance = lambda input_ids: kept.append(advance(input_ids)) or kept[-1]
+    ids: list[int] = []
+    compared = 0
+    for step in range(3000):
+        scores = 4.0 * torch.randn(1, vocab, generator=gen)
+        if step < len(forced):  # the reference plan, then noise: the layout is all the constraint's
+            scores[0, forced[step]] = 100.0
+        scores = proc(torch.tensor([[tokenizer.pad_token_id] + ids], dtype=torch.long), scores)
+        if kept[-1]:
+            scratch = constraint_rule(proc.texts[0], proc.listed[0], proc.zones[0])
+            assert kept[-1][0] == scratch, proc.texts[0][-80:]
+            compared += kept[-1][0] is not None
+        probs = scores.softmax(-1)
+        t = int(scores.argmax()) if mode == "greedy" else int(torch.multinomial(probs, 1, generator=gen))
+        if t == tokenizer.eos_token_id:
+            break
+        ids.append(t)
+    assert compared > 100  # the comparison ran inside rules, not only in free text
+    # a decimal point inside the layout starts no anchor search; the "." that ends a plan line does
+    assert not constrained._may_end_anchor('**Scene Layout:**\n{"objects": [{"bbox": [12', ".")
+    assert constrained._may_end_anchor("1. Place 1_mirror_0 on the table\n2. Place 2_tray_0 near it", ".")
+    assert not constrained._may_end_anchor("1. Place 1_mirror_0 on the table\n2", ".")
