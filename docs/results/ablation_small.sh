@@ -6,7 +6,7 @@
 #   NPROC=1 SFT_MIN=30 PADA_MIN=10 bash docs/results/ablation_small.sh   # longer, one GPU
 #   STAGES="synth sft" bash docs/results/ablation_small.sh                # part of it (then the rest:
 #   STAGES="anchors grpo pada_star pada eval" EXTRA="anchors.cache=static" bash ...)
-#   NPROC=1 PARALLEL=1 PADA_MIN=17 STAGES="grpo pada_star pada" bash ...  # the 3 RL variants at once
+#   NPROC=1 PARALLEL=1 PADA_MIN=14 STAGES="grpo pada_star pada" bash ...  # the 3 RL variants at once
 #
 # Stages resume: rerunning continues SFT from its last checkpoint, keeps a complete anchor file
 # and reuses finished models (`ablation.reuse`). Step times land in each stage's train_log.json.
@@ -21,9 +21,14 @@ ANCHORS=${ANCHORS:-256}
 N_TEST=${N_TEST:-200}
 MAX_TOKENS=${MAX_TOKENS:-4096}      # test-split completions are 914-2,791 tokens
 PADA_BATCH=${PADA_BATCH:-64}        # completions per GPU per step (G = 4 -> 16 prompts)
-PADA_MICRO=${PADA_MICRO:-$PADA_BATCH}  # of which per forward/backward (accumulation PADA_BATCH / PADA_MICRO;
-                                    # TRL still generates PADA_BATCH per GPU at once); lower it for long
-                                    # completions: ~1 GB of activations per 4,000-token row in bf16
+PARALLEL=${PARALLEL:-}              # 1: the RL variants train at the same time on the same GPU(s), each
+                                    # logging to $RUN/<variant>.log (one H100: 1.37x the steps per hour of
+                                    # one variant at a time; docs/training.md)
+PADA_MICRO=${PADA_MICRO:-$([ "$PARALLEL" = 1 ] && echo 8 || echo "$PADA_BATCH")}
+                                    # of PADA_BATCH, per forward/backward (accumulation PADA_BATCH /
+                                    # PADA_MICRO; TRL still generates PADA_BATCH per GPU at once); lower it
+                                    # for long completions: ~1 GB of activations per 4,000-token row in
+                                    # bf16 (PARALLEL=1: 8; three processes at 64 ran an H100 out of memory)
 PADA_TOKENS=${PADA_TOKENS:-$MAX_TOKENS}  # max_completion_length of PADA generation
 WORKERS=${WORKERS:-$(nproc)}
 LAUNCH=${LAUNCH:-"accelerate launch --config_file configs/accelerate/multi_gpu.yaml --num_processes $NPROC"}
@@ -40,9 +45,6 @@ SFT_EXTRA=${SFT_EXTRA:-}            # overrides for the SFT stage only (e.g. mod
 N_TRAIN=${N_TRAIN:-}                # synthetic training scenes (unset: the train split's 9,429)
 DECIMALS=${DECIMALS:-}              # digits after the point in the synthesised completions and the anchors
                                     # (unset: physcene.ctrc.DECIMALS = 5)
-PARALLEL=${PARALLEL:-}              # 1: the RL variants train at the same time on the same GPU(s), each
-                                    # logging to $RUN/<variant>.log (the small model leaves an H100 mostly
-                                    # idle: its generation is bound by host work, so three share one well)
 STAGES=${STAGES:-"synth sft anchors grpo pada_star pada eval"}
 
 stamp() { echo "[$(date +%T)] $*"; }
