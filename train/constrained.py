@@ -396,6 +396,9 @@ class CTRCConstraint(LogitsProcessor):
         # each row's texts since its anchor that the last step found inside the anchor's rule (the
         # tokens it allowed): the next step need not match the rule again for the one that came
         self.admitted: list[set[str]] = [set() for _ in prompts]
+        # each row's last anchors of text + token, found by the last step's check of a token that can
+        # end an anchor: the next step takes the one for the token that came instead of searching again
+        self.ahead: list[dict[str, tuple | None]] = [{} for _ in prompts]
         self.seen = 0  # completion tokens consumed (all rows advance together)
         self.finished = [False] * len(prompts)
         self.top_k = int(top_k)
@@ -438,6 +441,7 @@ class CTRCConstraint(LogitsProcessor):
             return True
         full = text + added
         found = last_anchor(full, self.listed[row], self.zones[row])
+        self.ahead[row][added] = found
         if found is None or found[0] <= len(text):  # no anchor ends inside the new token
             return True
         position, core = found
@@ -510,10 +514,13 @@ class CTRCConstraint(LogitsProcessor):
                 continue
             searched = self.anchors[b] is _UNSET or _may_end_anchor(self.texts[b], added)
             self.texts[b] += added
-            if searched:
-                self.anchors[b] = last_anchor(self.texts[b], self.listed[b], self.zones[b])
-            found = self.anchors[b]
             admitted, self.admitted[b] = self.admitted[b], set()
+            ahead, self.ahead[b] = self.ahead[b], {}
+            if searched:
+                found = ahead.get(added, _UNSET)
+                self.anchors[b] = (last_anchor(self.texts[b], self.listed[b], self.zones[b])
+                                   if found is _UNSET else found)
+            found = self.anchors[b]
             if found is None:
                 rules[b] = None
             else:
