@@ -347,7 +347,7 @@ def test_sampling_warpers_rebuild_what_generate_applies():
     assert len(sampling_warpers(GenerationConfig(do_sample=True, temperature=1.0, top_k=0))) == 0
 
 
-@pytest.mark.parametrize("mode", ["greedy", "draw"])
+@pytest.mark.parametrize("mode", list(MODES))
 def test_the_rule_kept_between_steps_is_the_rule_of_the_whole_text(records, tokenizer, mode):
     """The processor keeps each row's anchor and skips the anchor search for tokens that cannot end one
     (a layout's decimal points) and the rule match for text its last step admitted; at every step of
