@@ -102,6 +102,7 @@ def test_tiny_pipeline_end_to_end(tmp_path, one_thread, monkeypatch):
         assert outs[variant].name == variant and (outs[variant] / "adapter_model.safetensors").is_file()
         step = [e for e in json.loads((outs[variant] / "train_log.json").read_text()) if "reward" in e][0]
         assert {"parse_rate", "kl", "rewards/physics/mean"} <= set(step)
+        assert 0 < step["beta"] <= 1.0  # the adaptive KL coefficient after this step (configs: 0.04 to start)
         # where the step's time went: generation (with the constraint's host time) and the reward
         assert 0 < step["time/reward_s"] and 0 < step["time/generate_s"] < step["step_time"]
         assert ("time/constraint_s" in step) == (variant == "pada")

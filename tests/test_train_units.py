@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import json
-from collections import defaultdict
 from types import SimpleNamespace
 
 import pytest
@@ -165,17 +164,44 @@ def test_grpo_variant_has_alpha_zero_and_ignores_anchors(tokenizer, tmp_path):
 
 
 def test_adaptive_kl_moves_beta_toward_target():
-    # The callback reads and writes only the trainer's beta and its metrics buffer.
-    trainer = SimpleNamespace(beta=0.04, _metrics=defaultdict(lambda: defaultdict(list)))
+    # The callback reads and writes only the trainer's beta.
+    trainer = SimpleNamespace(beta=0.04)
     kl = AdaptiveKLCallback(trainer, target=0.05, horizon=10, min_beta=0.01, max_beta=0.05)
     assert kl.update(1.0, 1) == pytest.approx(0.04 * 1.02)  # error clipped at +0.2, n/horizon = 0.1
     assert kl.update(0.0, 6) == pytest.approx(0.04 * 1.02 * 0.9)  # -0.2 over 5 steps
     for step in range(7, 200):
         kl.update(0.0, step)
     assert trainer.beta == pytest.approx(0.01)  # clamped at min_beta (> 0 keeps the reference model)
-    assert trainer._metrics["train"]["beta"][-1] == trainer.beta
     with pytest.raises(ValueError, match="initial beta > 0"):
         AdaptiveKLCallback(SimpleNamespace(beta=0.0))
+
+
+def test_adaptive_kl_logs_beta_and_a_resumed_run_goes_on_from_it():
+    """β lands in the log entry of the KL that moved it (GRPOTrainer empties its metric buffers after
+    each log, so a β put there is never written), and a resumed run starts from the last logged β."""
+    from transformers import TrainerControl, TrainerState
+
+    trainer = SimpleNamespace(beta=0.04)
+    callback = AdaptiveKLCallback(trainer, target=0.05, horizon=10)
+    state = TrainerState()
+    for step, kl in ((1, 1.0), (2, 1.0)):
+        state.global_step = step
+        logs = {"kl": kl, "loss": 0.1}
+        state.log_history.append({**logs, "step": step})  # what Trainer.log does before on_log
+        callback.on_log(None, state, TrainerControl(), logs=logs)
+    assert [e["beta"] for e in state.log_history] == pytest.approx([0.04 * 1.02, 0.04 * 1.02 ** 2])
+    # resumed: a new trainer and callback with the configured β, the checkpoint's history and step
+    resumed = SimpleNamespace(beta=0.04)
+    again = AdaptiveKLCallback(resumed, target=0.05, horizon=10)
+    again.on_train_begin(None, state, TrainerControl())
+    assert resumed.beta == pytest.approx(0.04 * 1.02 ** 2)
+    state.global_step = 3
+    state.log_history.append({"kl": 1.0, "step": 3})
+    again.on_log(None, state, TrainerControl(), logs={"kl": 1.0})
+    assert state.log_history[-1]["beta"] == pytest.approx(0.04 * 1.02 ** 3)  # one step since step 2
+    fresh = SimpleNamespace(beta=0.04)  # a run from step 0 keeps the configured β
+    AdaptiveKLCallback(fresh).on_train_begin(None, TrainerState(), TrainerControl())
+    assert fresh.beta == 0.04
 
 
 def test_accumulation_steps_make_the_global_batch():

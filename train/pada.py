@@ -258,7 +258,9 @@ class AdaptiveKLCallback(TrainerCallback):
 
     Reads the ``kl`` that GRPOTrainer logs (mean per-token KL to the reference), ``n`` = optimizer
     steps since the last update; β stays in ``[min_beta, max_beta]`` (it must stay > 0: TRL only
-    computes reference log-probs when β ≠ 0). The new β is logged as ``beta``.
+    computes reference log-probs when β ≠ 0). The new β goes into the log entry that carried the KL
+    (``beta`` in ``train_log.json`` and the checkpoints' ``trainer_state.json``), and a run resumed
+    from a checkpoint goes on from the last β logged there instead of the configured one.
     """
 
     def __init__(self, trainer: GRPOTrainer, target: float = 0.05, horizon: int = 100,
@@ -278,12 +280,21 @@ class AdaptiveKLCallback(TrainerCallback):
         self._last_step = global_step
         beta = self.trainer.beta * (1.0 + error * steps / self.horizon)
         self.trainer.beta = min(max(beta, self.min_beta), self.max_beta)
-        self.trainer._metrics["train"]["beta"].append(self.trainer.beta)
         return self.trainer.beta
+
+    def on_train_begin(self, args, state, control, **kwargs):
+        logged = [entry for entry in state.log_history if "beta" in entry]
+        if state.global_step > 0 and logged:  # resumed: the history is the checkpoint's
+            self.trainer.beta = float(logged[-1]["beta"])
+            self._last_step = int(logged[-1].get("step", state.global_step))
 
     def on_log(self, args, state, control, logs=None, **kwargs):
         if logs and "kl" in logs and state.global_step > self._last_step:
             self.update(float(logs["kl"]), state.global_step)
+            # GRPOTrainer empties its metric buffers once a log is written, so β goes straight into
+            # the entry the Trainer has just appended for these logs
+            if state.log_history and state.log_history[-1].get("step") == state.global_step:
+                state.log_history[-1]["beta"] = self.trainer.beta
 
 
 class PhysicsRewardFunction:
