@@ -193,3 +193,45 @@ def test_ablation_rows_per_level_and_per_checkpoint(tmp_path, one_thread):
     assert "pada" not in result["stages"] and not (out / "pada").exists()
     written = json.loads((out / "ablation.json").read_text())
     assert written["checkpoint_rows"][0]["by_level"] == result["checkpoint_rows"][0]["by_level"]
+
+
+def test_pada_resumes_from_its_last_checkpoint_with_its_beta(tmp_path, one_thread):
+    """RL split over machines: a rerun of the same PADA command goes on from the last checkpoint (the
+    optimizer steps already taken are not repeated) and from the adaptive-KL β logged there, not the
+    configured one."""
+    from transformers import TrainerCallback
+
+    train = _records(8, seed=1)
+    write_records(train, tmp_path / "train.jsonl")
+    base = [f"data.train={tmp_path / 'train.jsonl'}", f"output_dir={tmp_path / 'run'}", "sft.max_steps=2",
+            "sft.max_length=1024", f"pada.anchors={tmp_path / 'train.jsonl'}",
+            "pada.max_completion_length=16", "pada.logging_steps=1", "pada.save_steps=1",
+            "pada.constrained=false", "pada.adaptive_kl.horizon=2"]  # β moves ~10 % a step
+
+    class Steps(TrainerCallback):
+        def __init__(self):
+            self.begin, self.steps = None, 0
+
+        def on_train_begin(self, args, state, control, **kw):
+            self.begin = state.global_step
+
+        def on_step_end(self, args, state, control, **kw):
+            self.steps += 1
+
+    cfg = load_config("train_tiny", [*base, "pada.max_steps=2"])
+    run_sft(cfg)
+    reward = PhysicsReward(RewardConfig(device="cpu"))
+    first, second = Steps(), Steps()
+    out = run_pada(cfg, variant="grpo", reward=reward, callbacks=[first])
+    assert (first.begin, first.steps) == (0, 2) and (out / "checkpoint-2").is_dir()
+    logged = json.loads((out / "checkpoint-2" / "trainer_state.json").read_text())["log_history"]
+    betas = [e["beta"] for e in logged if "beta" in e]
+    assert len(betas) == 2 and betas[-1] != 0.04  # moved by the KL of each step
+    run_pada(load_config("train_tiny", [*base, "pada.max_steps=3"]), variant="grpo", reward=reward,
+             callbacks=[second])
+    assert (second.begin, second.steps) == (2, 1)  # resumed at step 2: only step 3 ran
+    log = json.loads((out / "train_log.json").read_text())
+    step3 = [e for e in log if e.get("step") == 3 and "kl" in e][0]
+    kl = cfg.pada.adaptive_kl
+    error = min(max(step3["kl"] / kl.target - 1.0, -0.2), 0.2)
+    assert step3["beta"] == pytest.approx(betas[-1] * (1.0 + error / kl.horizon))  # from step 2's β
