@@ -195,12 +195,10 @@ def test_ablation_rows_per_level_and_per_checkpoint(tmp_path, one_thread):
     assert written["checkpoint_rows"][0]["by_level"] == result["checkpoint_rows"][0]["by_level"]
 
 
-def test_pada_resumes_from_its_last_checkpoint_with_its_beta(tmp_path, one_thread):
+def test_pada_resumes_from_its_last_checkpoint_with_its_beta(tmp_path, one_thread, step_counter):
     """RL split over machines: a rerun of the same PADA command goes on from the last checkpoint (the
     optimizer steps already taken are not repeated) and from the adaptive-KL β logged there, not the
     configured one."""
-    from transformers import TrainerCallback
-
     train = _records(8, seed=1)
     write_records(train, tmp_path / "train.jsonl")
     base = [f"data.train={tmp_path / 'train.jsonl'}", f"output_dir={tmp_path / 'run'}", "sft.max_steps=2",
@@ -208,20 +206,10 @@ def test_pada_resumes_from_its_last_checkpoint_with_its_beta(tmp_path, one_threa
             "pada.max_completion_length=16", "pada.logging_steps=1", "pada.save_steps=1",
             "pada.constrained=false", "pada.adaptive_kl.horizon=2"]  # β moves ~10 % a step
 
-    class Steps(TrainerCallback):
-        def __init__(self):
-            self.begin, self.steps = None, 0
-
-        def on_train_begin(self, args, state, control, **kw):
-            self.begin = state.global_step
-
-        def on_step_end(self, args, state, control, **kw):
-            self.steps += 1
-
     cfg = load_config("train_tiny", [*base, "pada.max_steps=2"])
     run_sft(cfg)
     reward = PhysicsReward(RewardConfig(device="cpu"))
-    first, second = Steps(), Steps()
+    first, second = step_counter(), step_counter()
     out = run_pada(cfg, variant="grpo", reward=reward, callbacks=[first])
     assert (first.begin, first.steps) == (0, 2) and (out / "checkpoint-2").is_dir()
     logged = json.loads((out / "checkpoint-2" / "trainer_state.json").read_text())["log_history"]

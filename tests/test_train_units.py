@@ -222,9 +222,8 @@ def test_small_config_is_20_to_60m_params_and_fits_64mb():
     assert n == 27_272_704
 
 
-def test_sft_resumes_from_last_checkpoint(tmp_path):
+def test_sft_resumes_from_last_checkpoint(tmp_path, step_counter):
     from physcene.train.sft import run_sft
-    from transformers import TrainerCallback
 
     records = [{"id": f"r{i}", "prompt": f"Instruction {i}: place a pen.\nLayout:", "completion": ANCHOR}
                for i in range(4)]
@@ -233,17 +232,7 @@ def test_sft_resumes_from_last_checkpoint(tmp_path):
     base = [f"data.train={data}", f"output_dir={tmp_path / 'run'}", "sft.global_batch_size=2",
             "sft.per_device_batch_size=2", "sft.save_steps=1", "sft.max_length=256"]
 
-    class Steps(TrainerCallback):
-        def __init__(self):
-            self.begin, self.steps = None, 0
-
-        def on_train_begin(self, args, state, control, **kw):
-            self.begin = state.global_step
-
-        def on_step_end(self, args, state, control, **kw):
-            self.steps += 1
-
-    first, second = Steps(), Steps()
+    first, second = step_counter(), step_counter()
     out = run_sft(load_config("train_tiny", [*base, "sft.max_steps=2"]), callbacks=[first])
     assert (first.begin, first.steps) == (0, 2) and (out / "checkpoint-2").is_dir()
     run_sft(load_config("train_tiny", [*base, "sft.max_steps=3"]), callbacks=[second])
