@@ -223,3 +223,38 @@ def test_pada_resumes_from_its_last_checkpoint_with_its_beta(tmp_path, one_threa
     kl = cfg.pada.adaptive_kl
     error = min(max(step3["kl"] / kl.target - 1.0, -0.2), 0.2)
     assert step3["beta"] == pytest.approx(betas[-1] * (1.0 + error / kl.horizon))  # from step 2's β
+
+
+def test_one_generation_round_feeds_several_optimizer_steps(tmp_path, one_thread, step_counter,
+                                                              monkeypatch):
+    """``pada.generation_batches`` x ``pada.num_iterations`` optimizer steps per generation round:
+    TRL generates the round's completions once (with their anchors), splits them into batches of
+    ``global_batch_size`` and passes over them ``num_iterations`` times; every step still adds the
+    anchor CE."""
+    from physcene.train.pada import PADATrainer
+
+    train = [dict(r, anchor=r["completion"]) for r in _records(8, seed=2)]
+    write_records(train, tmp_path / "train.jsonl")
+    cfg = load_config("train_tiny", [
+        f"data.train={tmp_path / 'train.jsonl'}", f"output_dir={tmp_path / 'run'}", "sft.max_steps=1",
+        "sft.max_length=1024", f"pada.anchors={tmp_path / 'train.jsonl'}", "pada.max_completion_length=16",
+        "pada.logging_steps=1", "pada.save_steps=100", "pada.constrained=false", "pada.max_steps=4",
+        "pada.generation_batches=2", "pada.num_iterations=2"])
+    run_sft(cfg)
+    rounds = []
+    original = PADATrainer._generate_and_score_completions
+
+    def counted(self, inputs):
+        output = original(self, inputs)
+        rounds.append((len(inputs), tuple(output["anchor_ids"].shape)))
+        return output
+
+    monkeypatch.setattr(PADATrainer, "_generate_and_score_completions", counted)
+    counter = step_counter()
+    out = run_pada(cfg, variant="pada", reward=PhysicsReward(RewardConfig(device="cpu")), callbacks=[counter])
+    assert counter.steps == 4
+    assert len(rounds) == 1 and rounds[0][0] == 2 * int(cfg.pada.global_batch_size)  # 16 completions once
+    assert rounds[0][1][0] == 16  # one anchor row per completion, split with them
+    log = json.loads((out / "train_log.json").read_text())
+    steps = [e for e in log if "anchor_ce" in e]
+    assert [e["step"] for e in steps] == [1, 2, 3, 4]

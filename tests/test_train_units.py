@@ -355,6 +355,19 @@ def test_configs_carry_the_paper_hyperparameters(monkeypatch):
                                                    "up_proj", "down_proj"}
 
 
+
+def test_generation_rounds_map_to_trl_micro_steps():
+    """pada.generation_batches counts optimizer steps per generation round; TRL counts micro-batches."""
+    cfg = load_config("train_small", ["pada.global_batch_size=64", "pada.per_device_batch_size=16",
+                                      "pada.generation_batches=4", "pada.num_iterations=2"])
+    args = pada_arguments(cfg, "pada")
+    assert args.gradient_accumulation_steps == 4 and args.steps_per_generation == 16
+    assert args.generation_batch_size == 256 and args.num_iterations == 2
+    assert pada_arguments(load_config("train_small"), "pada").steps_per_generation == 4  # TRL's default
+    for key in ("generation_batches", "num_iterations"):
+        with pytest.raises(ValueError, match=f"pada.{key} must be a positive integer"):
+            pada_arguments(load_config("train_small", [f"pada.{key}=0"]), "pada")
+
 @pytest.mark.cuda
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
 def test_reward_function_on_the_rank_device_matches_cpu():

@@ -345,6 +345,12 @@ def pada_arguments(cfg, variant: str) -> PADAConfig:
     column, numeric_mask = VARIANTS[variant]
     cache = check_cache(str(p.get("cache", "dynamic")))
     deepspeed = OmegaConf.to_container(p.deepspeed, resolve=True) if p.deepspeed is not None else None
+    accumulation = accumulation_steps(int(p.global_batch_size), int(p.per_device_batch_size), world_size())
+    generation_batches = int(p.get("generation_batches", 1))
+    num_iterations = int(p.get("num_iterations", 1))
+    for key, value in (("generation_batches", generation_batches), ("num_iterations", num_iterations)):
+        if value < 1:
+            raise ValueError(f"pada.{key} must be a positive integer, got {value}")
     return PADAConfig(
         output_dir=str(p.output_dir),
         anchor_alpha=0.0 if column is None else float(p.alpha),
@@ -363,8 +369,11 @@ def pada_arguments(cfg, variant: str) -> PADAConfig:
         num_train_epochs=float(p.epochs),
         max_steps=int(p.max_steps),
         per_device_train_batch_size=int(p.per_device_batch_size),
-        gradient_accumulation_steps=accumulation_steps(int(p.global_batch_size), int(p.per_device_batch_size),
-                                                       world_size()),
+        gradient_accumulation_steps=accumulation,
+        # TRL counts steps_per_generation in micro-batches: one generation round feeds
+        # `generation_batches` optimizer steps of global_batch_size completions each.
+        steps_per_generation=accumulation * generation_batches,
+        num_iterations=num_iterations,
         save_steps=int(p.save_steps),
         save_total_limit=None if p.get("save_total_limit", 2) is None else int(p.save_total_limit),
         logging_steps=int(p.logging_steps),
