@@ -64,6 +64,7 @@ def test_reference_completions_pass_unchanged(records, tokenizer, mode):
             assert out[0, t] == 50.0, (r["id"], repr(proc.texts[0][-60:]), repr(tokenizer.decode([t])))
         if greedy:  # the first choice was always allowed: no row was ever masked
             assert proc.masked_steps == 0
+        assert proc.overruled == [[]]  # every token was the model's own choice
 
 
 def test_repeated_instance_id_is_refused():
@@ -197,7 +198,7 @@ def test_generate_runs_constrained_and_parses_a_forced_completion(records, token
     broken = reference.replace(f'"instance_id": "{second}"', f'"instance_id": "{first}"')
     assert isinstance(parse(broken), ParseError)  # the repeated id alone breaks the layout
     proc = CTRCConstraint(tokenizer, [r["prompt"]])
-    vocab, text, out = len(tokenizer), "", []
+    vocab, text, out, changed = len(tokenizer), "", [], []
     for _ in range(2 * len(tokenizer(reference)["input_ids"])):
         scores = torch.full((1, vocab), -10.0)
         for script, bonus in ((reference, 5.0), (broken, 10.0)):  # later wins
@@ -210,13 +211,17 @@ def test_generate_runs_constrained_and_parses_a_forced_completion(records, token
                 piece = proc.token_text[t]
                 if piece and rest.startswith(piece):
                     scores[0, t] = bonus + len(piece)
+        favourite = int(scores.argmax())
         scores = proc(torch.tensor([[tokenizer.pad_token_id] + out], dtype=torch.long), scores)
         t = int(scores.argmax())
+        if t != favourite:
+            changed.append(len(out))  # the completion position of the token the constraint chose
         if t == tokenizer.eos_token_id:
             break
         out.append(t)
         text += proc.token_text[t]
     assert proc.masked_steps >= 1
+    assert proc.overruled == [changed] and changed  # exactly the positions where it overruled the model
     scene = parse(text)
     assert not isinstance(scene, ParseError), scene
     assert sorted(o.instance_id for o in scene.objects) == sorted(listed_instance_ids(r["prompt"]))

@@ -96,7 +96,9 @@ def test_tiny_pipeline_end_to_end(tmp_path, one_thread, monkeypatch):
     monkeypatch.setattr(CTRCConstraint, "__call__", lambda self, *a: calls.append(1) or plain_call(self, *a))
     for variant in ("grpo", "pada_star", "pada"):
         # pada samples its groups under the CTRC constraint (pada.constrained), the others without
-        constrained = OmegaConf.merge(vcfg, {"pada": {"constrained": variant == "pada"}})
+        # (and leaves the tokens the constraint chose out of its loss: pada.mask_overruled)
+        constrained = OmegaConf.merge(vcfg, {"pada": {"constrained": variant == "pada",
+                                                      "mask_overruled": variant == "pada"}})
         outs[variant] = run_pada(constrained, variant=variant, reward=reward)
         assert bool(calls) == (variant == "pada")
         assert outs[variant].name == variant and (outs[variant] / "adapter_model.safetensors").is_file()
@@ -110,6 +112,7 @@ def test_tiny_pipeline_end_to_end(tmp_path, one_thread, monkeypatch):
             assert 0 < step["time/constraint_s"] < step["time/generate_s"]
             assert 0 <= step["time/constraint_scan_s"] <= step["time/constraint_s"]
             assert step["constraint/refused_draws"] >= 0 and step["constraint/vocabulary_scans"] >= 0
+            assert 0 <= step["constraint/overruled_frac"] <= 1
         assert ("anchor_ce" in step) == (variant != "grpo")
         if variant != "grpo":
             assert step["anchor_ce"] > 0

@@ -356,6 +356,36 @@ def test_configs_carry_the_paper_hyperparameters(monkeypatch):
 
 
 
+
+def test_tokens_the_constraint_chose_leave_the_policy_loss(tokenizer, tmp_path):
+    """pada.mask_overruled: the positions the CTRC constraint overruled join TRL's tool_mask, so the
+    GRPO loss (and its token count) ignores them: changing such a token's advantage-weighted
+    log-probability changes nothing, while the same change at a kept position does."""
+    trainer = _trainer(tokenizer, tmp_path, alpha=0.0)
+    trainer.beta = 0.1  # the KL term (against the given reference log-probs) reads every log-prob
+    model = trainer.model.eval()
+    batch = _controlled_batch(tokenizer)
+    batch["ref_per_token_logps"] = -torch.rand(4, 5, generator=torch.Generator().manual_seed(2))
+    trainer._mask_overruled(batch, [[1, 3], [], [0, 9], [4]])  # 9: past the completion, ignored
+    expected = torch.ones(4, 5, dtype=torch.long)
+    expected[0, 1] = expected[0, 3] = expected[2, 0] = expected[3, 4] = 0
+    assert torch.equal(batch["tool_mask"], expected)
+    assert int(batch["num_items_in_batch"]) == int((batch["completion_mask"] * expected).sum())
+    assert trainer._metrics["train" if model.training else "eval"]["constraint/overruled_frac"][-1] == \
+        pytest.approx(4 / int(batch["completion_mask"].sum()))
+
+    def loss_with(ids):
+        return float(trainer._compute_loss(model, dict(batch, completion_ids=ids)))
+
+    with torch.no_grad():
+        base = loss_with(batch["completion_ids"])
+        last = batch["completion_ids"].clone()
+        last[3, 4] = (last[3, 4] + 1) % len(tokenizer)  # an overruled last token: nothing reads it
+        assert loss_with(last) == pytest.approx(base, abs=1e-7)
+        kept = batch["completion_ids"].clone()
+        kept[2, 4] = (kept[2, 4] + 1) % len(tokenizer)  # a kept last token of the same kind
+        assert loss_with(kept) != pytest.approx(base, abs=1e-7)
+
 def test_generation_rounds_map_to_trl_micro_steps():
     """pada.generation_batches counts optimizer steps per generation round; TRL counts micro-batches."""
     cfg = load_config("train_small", ["pada.global_batch_size=64", "pada.per_device_batch_size=16",

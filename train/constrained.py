@@ -408,6 +408,10 @@ class CTRCConstraint(LogitsProcessor):
         self.warpers = None if greedy else warpers
         self.redraws = int(redraws)
         self.masked_steps = 0  # rows x steps where the model's choice (greedy) or draw was overruled
+        # each row's completion positions where the token is the constraint's, not the model's: its
+        # first choice (greedy) or draw was refused, or (sampling without warpers) a likely candidate
+        # was masked. PADA leaves them out of the policy loss, like tool output (pada.mask_overruled).
+        self.overruled: list[list[int]] = [[] for _ in prompts]
         self.refused_draws = 0  # sampling by rejection (warpers): drawn tokens refused
         self.seconds = 0.0  # host time spent in __call__ (the constraint's cost inside generate)
         self.vocabulary_scans = 0  # rows whose allowed set was looked for in the whole vocabulary
@@ -475,10 +479,14 @@ class CTRCConstraint(LogitsProcessor):
                 allowed = self._allowed(b, rules[b], candidates)
                 if rules[b] is None and not self.greedy and len(allowed) == len(candidates):
                     continue  # sampling in free text: every likely candidate is fine
+                # greedy: the first choice broke the rule; sampling: a likely candidate is refused
+                overruled = self.greedy or len(allowed) < len(candidates)
                 if not allowed:
                     allowed = self._allowed_in_vocabulary(b, rules[b], scores)
                 if allowed:  # else: nothing in the vocabulary continues the rule; leave it to the parser
                     keep[b] = allowed
+                    if overruled:
+                        self.overruled[b].append(self.seen)
         if not keep:
             return scores
         self.masked_steps += len(keep)
@@ -563,12 +571,14 @@ class CTRCConstraint(LogitsProcessor):
                     if n:
                         self.masked_steps += 1
                         self.refused_draws += n
+                        self.overruled[b].append(self.seen)
                     chosen_rows.append(b)
                     chosen_tokens.append(t)
                     break
             else:
                 self.masked_steps += 1
                 self.refused_draws += k
+                self.overruled[b].append(self.seen)
                 exhausted.append(b)
         out = torch.full_like(scores, float("-inf"))
         done = [b for b in range(scores.shape[0]) if b not in rules]  # finished rows: as they were

@@ -78,6 +78,9 @@ class PADAConfig(GRPOConfig):
     constrained_decoding: bool = field(
         default=False, metadata={"help": "Sample the groups under the CTRC constraint "
                                          "(physcene.train.constrained; HF generate only, not vLLM)."})
+    mask_overruled: bool = field(
+        default=False, metadata={"help": "Leave the tokens the CTRC constraint chose instead of the "
+                                         "policy's draw out of the GRPO loss and KL (like tool output)."})
 
 
 def numeric_spans(text: str, keys: tuple[str, ...] | list[str] = GEOMETRY_KEYS) -> list[tuple[int, int]]:
@@ -187,6 +190,7 @@ class PADATrainer(GRPOTrainer):
                                        warpers=sampling_warpers(config))
             kwargs["logits_processor"] = LogitsProcessorList([processor])
             output = plain_generate(*args, **kwargs)
+            self._round_overruled = processor.overruled  # row order = this round's prompts
             self._log_value("time/constraint_s", processor.seconds)
             # where that time goes: draws refused, and rows that fell back to scanning the vocabulary
             self._log_value("time/constraint_scan_s", processor.scan_seconds)
@@ -208,7 +212,10 @@ class PADATrainer(GRPOTrainer):
             self._signature_columns.append(self.args.anchor_column)
 
     def _generate_and_score_completions(self, inputs):
+        self._round_overruled = None
         output = super()._generate_and_score_completions(inputs)
+        if self.args.mask_overruled and self._round_overruled is not None:
+            self._mask_overruled(output, self._round_overruled)
         if self.anchor_alpha == 0.0:
             return output
         device = self.accelerator.device
@@ -226,6 +233,33 @@ class PADATrainer(GRPOTrainer):
         output["anchor_loss_mask"] = torch.tensor([m + [0] * (width - len(m)) for _, m in rows],
                                                   device=device)
         return output
+
+    def _mask_overruled(self, output: dict, overruled: list[list[int]]) -> None:
+        """Zero the loss mask where the constraint, not the policy, chose the token.
+
+        There the unmasked log-probability is not the probability the token was sampled with (it
+        was forced or redrawn), and the policy gradient would push it anywhere at no cost to what
+        is sampled: with a negative advantage, down without bound, which shows as KL spikes against
+        the reference. TRL's ``tool_mask`` (tool output in a completion) already leaves tokens out of
+        the loss, the KL and ``num_items_in_batch``; the overruled ones are added to it.
+        """
+        completion_ids = output["completion_ids"]
+        if len(overruled) != completion_ids.size(0):
+            raise ValueError(f"constraint rows {len(overruled)} != completions {completion_ids.size(0)}")
+        keep = torch.ones_like(completion_ids, dtype=output["completion_mask"].dtype)
+        rows = [b for b, positions in enumerate(overruled) for p in positions if p < keep.size(1)]
+        cols = [p for positions in overruled for p in positions if p < keep.size(1)]
+        if rows:
+            keep[torch.tensor(rows, device=keep.device), torch.tensor(cols, device=keep.device)] = 0
+        tool_mask = output.get("tool_mask")
+        output["tool_mask"] = keep if tool_mask is None else tool_mask * keep
+        loss_mask = output["completion_mask"] * output["tool_mask"]
+        output["num_items_in_batch"] = self.accelerator.gather(loss_mask.sum()).sum()
+        mode = "train" if self.model.training else "eval"
+        masked = (output["completion_mask"] * (1 - keep)).sum()
+        counts = self.accelerator.gather(torch.stack([masked, output["completion_mask"].sum()]).reshape(1, 2))
+        share = counts[:, 0].sum() / counts[:, 1].sum().clamp(min=1)
+        self._metrics[mode]["constraint/overruled_frac"].append(share.item())
 
     def anchor_cross_entropy(self, model, inputs) -> torch.Tensor:
         """Mean token NLL of the anchors given their prompts, over the supervised anchor tokens (scalar)."""
@@ -364,6 +398,7 @@ def pada_arguments(cfg, variant: str) -> PADAConfig:
         cache_implementation=None if cache == "dynamic" else "static",
         generation_compile=cache == "static_compile",
         constrained_decoding=bool(p.get("constrained", False)),
+        mask_overruled=bool(p.get("mask_overruled", False)),
         learning_rate=float(p.learning_rate),
         lr_scheduler_type=str(p.lr_scheduler_type),
         num_train_epochs=float(p.epochs),
