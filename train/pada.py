@@ -14,6 +14,10 @@ subclass :class:`PADATrainer` overrides only
 - ``_compute_loss``: ``loss = GRPO loss + α · CE(anchor)``, with the same gradient-accumulation scaling
   TRL applies to its own loss, and the CE logged as ``anchor_ce``.
 
+Under CTRC-constrained sampling (``pada.constrained``) the tokens the constraint chose instead of the
+policy's draw join TRL's ``tool_mask`` (``pada.mask_overruled``): they are the grammar's, not the
+policy's, and left in the loss they drift without bound (docs/training.md, "Tokens the constraint chose").
+
 Variants (``pada.variant``): ``pada`` (TTO-repaired anchors), ``pada_star`` (raw SFT output as the
 anchor, CE masked to non-numeric tokens: the box and rotation values are left to GRPO, as the
 paper's PADA*), ``grpo`` (α = 0: plain GRPO, no anchor forward pass). Rows whose anchor is empty (the
@@ -79,8 +83,8 @@ class PADAConfig(GRPOConfig):
         default=False, metadata={"help": "Sample the groups under the CTRC constraint "
                                          "(physcene.train.constrained; HF generate only, not vLLM)."})
     mask_overruled: bool = field(
-        default=False, metadata={"help": "Leave the tokens the CTRC constraint chose instead of the "
-                                         "policy's draw out of the GRPO loss and KL (like tool output)."})
+        default=True, metadata={"help": "Leave the tokens the CTRC constraint chose instead of the "
+                                        "policy's draw out of the GRPO loss and KL (like tool output)."})
 
 
 def numeric_spans(text: str, keys: tuple[str, ...] | list[str] = GEOMETRY_KEYS) -> list[tuple[int, int]]:
@@ -167,9 +171,12 @@ class PADATrainer(GRPOTrainer):
         ``generate`` when ``constrained_decoding`` is on (TRL passes no logits processors itself).
 
         The completions are sampled from the policy restricted to valid CTRC continuations; their
-        log-probabilities are then taken under the unrestricted policy as usual, so the update also
-        raises the probability of the valid tokens the mask picked (TRL's vLLM guided decoding,
-        ``structured_outputs_regex``, is the same idea).
+        log-probabilities are then taken under the unrestricted policy as usual (TRL's vLLM guided
+        decoding, ``structured_outputs_regex``, does the same). The positions where the constraint
+        overruled the policy's draw (~1 % of tokens for ``small``) are kept per row for
+        ``pada.mask_overruled`` (:meth:`_mask_overruled`): left in the loss, a negative advantage
+        pushes such a token down at no cost to what is sampled (it is forced anyway), and its KL
+        term to the reference grows without bound.
         """
         prompts = getattr(self, "_round_prompts", None)
         usable = prompts is not None and len(prompts) == len(prompt_ids) and not self.use_vllm
@@ -398,7 +405,7 @@ def pada_arguments(cfg, variant: str) -> PADAConfig:
         cache_implementation=None if cache == "dynamic" else "static",
         generation_compile=cache == "static_compile",
         constrained_decoding=bool(p.get("constrained", False)),
-        mask_overruled=bool(p.get("mask_overruled", False)),
+        mask_overruled=bool(p.get("mask_overruled", True)),
         learning_rate=float(p.learning_rate),
         lr_scheduler_type=str(p.lr_scheduler_type),
         num_train_epochs=float(p.epochs),
