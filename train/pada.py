@@ -253,20 +253,19 @@ class PADATrainer(GRPOTrainer):
         completion_ids = output["completion_ids"]
         if len(overruled) != completion_ids.size(0):
             raise ValueError(f"constraint rows {len(overruled)} != completions {completion_ids.size(0)}")
-        keep = torch.ones_like(completion_ids, dtype=output["completion_mask"].dtype)
-        rows = [b for b, positions in enumerate(overruled) for p in positions if p < keep.size(1)]
-        cols = [p for positions in overruled for p in positions if p < keep.size(1)]
-        if rows:
-            keep[torch.tensor(rows, device=keep.device), torch.tensor(cols, device=keep.device)] = 0
+        completion_mask = output["completion_mask"]
+        keep = torch.ones_like(completion_ids, dtype=completion_mask.dtype)
+        pairs = [(b, p) for b, positions in enumerate(overruled) for p in positions if p < keep.size(1)]
+        if pairs:
+            keep[tuple(torch.tensor(pairs, device=keep.device).T)] = 0
         tool_mask = output.get("tool_mask")
         output["tool_mask"] = keep if tool_mask is None else tool_mask * keep
-        loss_mask = output["completion_mask"] * output["tool_mask"]
-        output["num_items_in_batch"] = self.accelerator.gather(loss_mask.sum()).sum()
-        mode = "train" if self.model.training else "eval"
-        masked = (output["completion_mask"] * (1 - keep)).sum()
-        counts = self.accelerator.gather(torch.stack([masked, output["completion_mask"].sum()]).reshape(1, 2))
-        share = counts[:, 0].sum() / counts[:, 1].sum().clamp(min=1)
-        self._metrics[mode]["constraint/overruled_frac"].append(share.item())
+        # one gather for the loss's token count and the logged share of overruled tokens
+        local = torch.stack([(completion_mask * output["tool_mask"]).sum(),
+                             (completion_mask * (1 - keep)).sum(), completion_mask.sum()])
+        loss_items, masked, total = self.accelerator.gather(local.reshape(1, 3)).sum(0)
+        output["num_items_in_batch"] = loss_items
+        self._log_value("constraint/overruled_frac", (masked / total.clamp(min=1)).item())
 
     def anchor_cross_entropy(self, model, inputs) -> torch.Tensor:
         """Mean token NLL of the anchors given their prompts, over the supervised anchor tokens (scalar)."""
