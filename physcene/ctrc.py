@@ -54,6 +54,7 @@ __all__ = [
     "build_prompt",
     "coarse_location",
     "completion_text",
+    "decimals_of",
     "decode",
     "encode",
     "parse",
@@ -376,6 +377,20 @@ def completion_text(scene: Scene, *, decimals: int = DECIMALS) -> str:
     body = ENTRY_SEPARATOR.join(_json_line(r) for r in rows)
     return (PLAN_HEADER + "\n" + "\n".join(plan) + "\n\n" + LAYOUT_HEADER + "\n"
             + OBJECTS_OPEN + body + OBJECTS_CLOSE + " " + _json_line(zone) + "\n}\n")
+
+
+_FRACTION = re.compile(r"-?\d+\.(\d+)")
+
+
+def decimals_of(completion: str) -> int:
+    """Digits after the point a completion's layout was written with: the most any of its numbers
+    has (0 when all are whole: JSON writes ``12.0``), at most ``MAX_DECIMALS``. The inverse of
+    ``completion_text(scene, decimals=...)`` for text that function wrote, which is how a dataset's
+    completions are re-written at their own precision after their layouts change.
+    """
+    start = completion.find(LAYOUT_HEADER)
+    digits = [len(m.group(1).rstrip("0")) for m in _FRACTION.finditer(completion, max(start, 0))]
+    return min(max(digits, default=0), MAX_DECIMALS)
 
 
 def _object_list(objects) -> str:

@@ -5,10 +5,11 @@ from __future__ import annotations
 import json
 from dataclasses import replace
 
+import numpy as np
 import pytest
 
 from physcene.cli import main
-from physcene.layout import layout_to_dict, read_layout, write_layout
+from physcene.layout import layout_to_dict, load_layout, read_layout, write_layout
 from physcene.noisy_scenes import noisy_scenes
 
 
@@ -65,6 +66,36 @@ def test_repair_jsonl_keeps_records(tmp_path, scenes):
     assert [r["id"] for r in report] == ["s0", "s1", "s2"]
     for entry in report:
         _check_report(entry)
+
+
+def test_repair_jsonl_writes_the_completion_of_the_repaired_layout(tmp_path, scenes):
+    """`physcene data` records carry the CTRC completion of their layout: repairing the dataset
+    re-writes it from the repaired layout at the precision it had (SFT reads the completion)."""
+    from physcene.ctrc import completion_text, decimals_of, parse
+    from physcene.graph import build_hierarchy
+
+    hierarchies = [build_hierarchy(s) for s in scenes]
+    src = tmp_path / "train.jsonl"
+    src.write_text("".join(json.dumps({"id": f"s{k}", "prompt": "p", "layout": layout_to_dict(h),
+                                       "completion": completion_text(h, decimals=2)}) + "\n"
+                           for k, h in enumerate(hierarchies)))
+    out = tmp_path / "fixed.jsonl"
+    assert main(["repair", str(src), "-o", str(out), "--device", "cpu", "steps=40"]) == 0
+    assert decimals_of(completion_text(hierarchies[0], decimals=2)) == 2  # the noisy poses have 2
+    report = json.loads((tmp_path / "fixed.report.json").read_text())
+    for record, before in zip(map(json.loads, out.read_text().splitlines()), hierarchies):
+        assert record["prompt"] == "p" and decimals_of(record["completion"]) == 2
+        written = parse(record["completion"])
+        repaired = load_layout(record["layout"])
+        for o in written.objects:
+            np.testing.assert_allclose(o.center, repaired.get(o.instance_id).center, atol=0.02)
+        assert written.ids() != [] and sorted(written.ids()) == sorted(before.ids())
+    assert max(entry["max_displacement_cm"] for entry in report) > 0.5  # the old text would be wrong
+
+
+def test_repair_refuses_decimals_out_of_range(tmp_path, capsys):
+    assert main(["repair", "x.jsonl", "-o", str(tmp_path / "o.jsonl"), "--decimals", "9"]) == 2
+    assert "--decimals must be from 0 to 8, got 9" in capsys.readouterr().err
 
 
 @pytest.mark.parametrize("content, message", [

@@ -14,6 +14,7 @@ from physcene.ctrc import (
     build_prompt,
     coarse_location,
     completion_text,
+    decimals_of,
     decode,
     encode,
     parse,
@@ -443,3 +444,13 @@ def test_completion_text_of_a_box_thinner_than_the_last_decimal_still_parses():
     again = parse(completion_text(scene))
     assert not isinstance(again, ParseError), again
     assert 0 < again.objects[0].size[0] <= 2e-5
+
+
+@pytest.mark.parametrize("decimals", [0, 1, 2, 5])
+def test_decimals_of_reads_back_the_precision_completion_text_wrote(decimals):
+    from physcene.noisy_scenes import noisy_scenes
+
+    [scene] = noisy_scenes(1, 8, seed=3, push_cm=3.0)  # poses off the whole centimetre
+    assert decimals_of(completion_text(scene, decimals=decimals)) == decimals
+    # the plan's numbers (whole cm) and the prompt's never count: only the layout's
+    assert decimals_of("1. Place mug_0 about 31.5 cm from the center.\n\n**Scene Layout:**\n{}") == 0

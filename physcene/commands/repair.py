@@ -2,7 +2,8 @@
 
     physcene repair scene/layout.json -o fixed/layout.json     # report: fixed/layout.report.json
     physcene repair Layout_info/ -o Fixed/                     # mirrors the tree; Fixed/repair_report.json
-    physcene repair data.jsonl -o fixed.jsonl                  # field "layout"; fixed.report.json
+    physcene repair data.jsonl -o fixed.jsonl                  # field "layout" (and "completion",
+                                                               # re-written); fixed.report.json
     physcene repair IN -o OUT --device cuda steps=200 lambda_rel=10   # configs/tto.yaml overrides
 
 The output mirrors the input's structure and format. The report holds, per scene, the penetration
@@ -15,6 +16,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+from physcene.ctrc import MAX_DECIMALS, completion_text, decimals_of
 from physcene.layout import layout_to_dict, load_layout
 from physcene.scene import SceneError
 
@@ -32,6 +34,9 @@ def add_arguments(parser) -> None:
     parser.add_argument("-o", "--output", required=True, metavar="OUT",
                         help="where the repaired layouts go (same structure and format as the input)")
     parser.add_argument("--device", default=None, help="torch device: cpu (default), cuda, cuda:N")
+    parser.add_argument("--decimals", type=int, default=None,
+                        help="JSONL: digits after the point of the re-written 'completion' column "
+                             "(default: each record's own, read from its completion)")
 
 
 def _read_json(path: Path) -> dict:
@@ -45,6 +50,18 @@ def _merged(raw: dict, scene) -> dict:
     """The input layout dict with the repaired poses; keys the scene model does not know are kept."""
     kept = {k: v for k, v in raw.items() if k != "sink_zone"}  # folded into restricted_zone
     return {**kept, **layout_to_dict(scene)}
+
+
+def _repaired_columns(record: dict, raw: dict, scene, decimals: int | None) -> dict:
+    """A JSONL record's columns that follow its layout: ``layout``, and the CTRC ``completion``
+    (``physcene data`` records) written again from the repaired scene — at ``decimals``, or at the
+    precision it had — so that a training set whose layouts were repaired teaches the new poses."""
+    columns = {"layout": _merged(raw, scene)}
+    completion = record.get("completion")
+    if isinstance(completion, str):
+        columns["completion"] = completion_text(
+            scene, decimals=decimals_of(completion) if decimals is None else decimals)
+    return columns
 
 
 def _report_path(out: Path) -> Path:
@@ -97,6 +114,8 @@ def run(args) -> int:
     from physcene.tto import TTOConfig, repair
 
     src, out = Path(args.input), Path(args.output)
+    if args.decimals is not None and not 0 <= args.decimals <= MAX_DECIMALS:
+        raise RepairInputError(f"--decimals must be from 0 to {MAX_DECIMALS}, got {args.decimals}")
     if not src.exists():
         raise FileNotFoundError(f"repair input {str(src)!r} does not exist")
     overrides = list(args.overrides) + ([f"device={args.device}"] if args.device else [])
@@ -120,7 +139,8 @@ def run(args) -> int:
     elif mode == "jsonl":
         lines = []
         for k, ((record, raw, _), result) in enumerate(zip(items, results)):
-            lines.append(json.dumps({**record, "layout": _merged(raw, result.scene)}, ensure_ascii=False))
+            columns = _repaired_columns(record, raw, result.scene, args.decimals)
+            lines.append(json.dumps({**record, **columns}, ensure_ascii=False))
             reports.append({"record": k, "id": record.get("id"), **result.report})
         _write_text(out, "\n".join(lines) + ("\n" if lines else ""))
         report_path = _report_path(out)
