@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import numpy as np
 import warp as wp
+from physcene.ctrc import ON_CONTACT_GAP_CM
 
 wp.config.log_level = max(wp.config.log_level, wp.LOG_WARNING)
 # Small CUDA blocks, as in ctrc_scan: a text's entries share a warp (few divergent paths). One
@@ -32,6 +33,7 @@ CHUNK = wp.constant(256)
 _MAX_ABS = wp.constant(wp.float64(1.0e5))
 _MAX_ABS_POS = wp.constant(wp.float64(1.0e5 * (1.0 - 1.0e-9)))
 _DEG = wp.constant(wp.float64(np.pi / 180.0))  # math.radians multiplies by exactly this
+_ON_GAP = wp.constant(wp.float64(ON_CONTACT_GAP_CM))  # an on child's z base: its support's top + this
 _PI = wp.constant(wp.float64(np.pi))
 _TWO_PI = wp.constant(wp.float64(2.0 * np.pi))
 

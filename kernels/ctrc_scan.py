@@ -42,6 +42,7 @@ from physcene.kernels.ctrc_lex import (
     _DEG,
     _MAX_ABS,
     _MAX_ABS_POS,
+    _ON_GAP,
     _S_CATEGORY,
     _S_KEY,
     _S_MANY,
@@ -314,8 +315,8 @@ def walk(text: wp.array(dtype=wp.uint8), offsets: wp.array(dtype=wp.int32),
                         y0 = ent_f[sp, 9] - spn * hw - cp * hd
                         if ent_i[si, 1] == 0:
                             zb = ent_f[sp, 10] - wp.float64(0.5) * ent_f[sp, 13]
-                        else:
-                            zb = ent_f[sp, 10] + wp.float64(0.5) * ent_f[sp, 13]
+                        else:  # on (and near an object): from the top, ctrc.ON_CONTACT_GAP_CM above it
+                            zb = ent_f[sp, 10] + wp.float64(0.5) * ent_f[sp, 13] + _ON_GAP
                 if ready == 1:
                     rx = wp.float64(0.5) * (ent_f[si, 0] + ent_f[si, 1])
                     ry = wp.float64(0.5) * (ent_f[si, 2] + ent_f[si, 3])

@@ -19,7 +19,8 @@ followed by the layered layout JSON (paper appendix example)::
 Relative placement (DESIGN.md): a child's ``relative_bbox`` is its own box (own-frame extents
 w, d, h, centred at its centre) written in the parent's yawed frame, x/y measured from the
 parent's (xmin, ymin) corner; ``relative_rotation_deg`` = child yaw − parent yaw; z is measured
-from the parent's bottom for ``in`` and from its top for ``on``. Table-level objects use the
+from the parent's bottom for ``in`` and from its top for ``on`` (``ON_CONTACT_GAP_CM`` above it: zmin 0
+rests the child on its support without a float32 contact). Table-level objects use the
 zone's (xmin, ymin) corner, no rotation, and z from the table top. All lengths in cm.
 
 :func:`parse` is total: any string gives a :class:`~physcene.scene.Scene` or a
@@ -49,6 +50,7 @@ __all__ = [
     "MAX_OBJECTS",
     "OBJECTS_CLOSE",
     "OBJECTS_OPEN",
+    "ON_CONTACT_GAP_CM",
     "PLAN_HEADER",
     "ParseError",
     "build_prompt",
@@ -84,6 +86,11 @@ LAYOUT_HEADER = "**Scene Layout:**"
 OBJECTS_OPEN = '{\n  "objects": [\n    '
 ENTRY_SEPARATOR = ",\n    "
 OBJECTS_CLOSE = '\n  ],\n  "item_placement_zone":'
+# An ``on`` child's relative z is measured from this far above its support's top, so relative zmin 0
+# ("resting on it") decodes 1e-5 cm above the top: exact contact reads as float32 noise, ~1e-7-1e-6 cm
+# of penetration that counts at the paper's 0 cm threshold (and costs the reward its +50). TTO rests
+# on children the same distance up (configs/tto.yaml contact_gap_cm). 0.1 µm: no visible gap.
+ON_CONTACT_GAP_CM = 1e-5
 # (min, max) index pairs of a relative box [xmin, xmax, ymin, ymax, zmin, zmax], x then y then z (the
 # zone's [xmin, xmax, ymin, ymax] is the first two).
 BOX_EXTENTS = ((0, 1), (2, 3), (4, 5))
@@ -130,7 +137,8 @@ class _Frame:
     def of_object(cls, o: SceneObject) -> _Frame:
         c, s = math.cos(o.yaw), math.sin(o.yaw)
         hw, hd = 0.5 * o.size[0], 0.5 * o.size[1]
-        return cls(o.center[0] - c * hw + s * hd, o.center[1] - s * hw - c * hd, o.yaw, o.zmin, o.zmax)
+        return cls(o.center[0] - c * hw + s * hd, o.center[1] - s * hw - c * hd, o.yaw, o.zmin,
+                   o.zmax + ON_CONTACT_GAP_CM)
 
     def z_base(self, relation: str) -> float:
         return self.z_in if relation == "in" else self.z_on
@@ -144,6 +152,8 @@ def _relative(o: SceneObject, frame: _Frame, relation: str) -> tuple[list[float]
     zb = frame.z_base(relation)
     hw, hd = 0.5 * o.size[0], 0.5 * o.size[1]
     box = [rx - hw, rx + hw, ry - hd, ry + hd, o.zmin - zb, o.zmax - zb]
+    if relation == "on" and -2.0 * ON_CONTACT_GAP_CM <= box[4] < 0.0:  # touching (no gap): resting on it
+        box[4], box[5] = 0.0, box[5] - box[4]
     return box, math.degrees(wrap_angle(o.yaw - frame.yaw))
 
 
