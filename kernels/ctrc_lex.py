@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import numpy as np
 import warp as wp
+
 from physcene.ctrc import ON_CONTACT_GAP_CM
 
 wp.config.log_level = max(wp.config.log_level, wp.LOG_WARNING)
