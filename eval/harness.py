@@ -23,8 +23,8 @@ from tqdm.auto import tqdm
 from physcene.scene import Scene
 
 __all__ = ["BenchmarkItem", "EvalError", "evaluate_method", "generate", "load_benchmark", "make_judge",
-           "method_name", "method_report", "repair_outputs", "run_evaluation", "save_layouts", "score_scenes",
-           "write_json"]
+           "method_name", "method_names", "method_report", "repair_outputs", "run_evaluation", "save_layouts",
+           "score_scenes", "write_json"]
 
 GENERATOR_KINDS = ("reference", "tto", "heuristic", "file:", "model:", "endpoint:")
 
@@ -288,16 +288,30 @@ def write_json(path: Path, data) -> None:
     path.write_text(json.dumps(clean(data), indent=1))
 
 
-def method_name(generator: str, repair: bool = False) -> str:
-    """A table row label: ``Reference``, ``Reference + TTO``, ``Heuristic placer`` ..."""
+def method_name(generator: str, repair: bool = False, *, whole_argument: bool = False) -> str:
+    """A table row label: ``Reference``, ``Reference + TTO``, ``Heuristic placer``, ``Model (sft)``
+    (the last folder of a path; ``whole_argument``: ``Model (runs/a/sft)``) ..."""
     if generator == "tto":
         return "Reference + TTO"
     base = {"reference": "Reference", "heuristic": "Heuristic placer"}.get(generator)
     if base is None:
         kind, _, arg = generator.partition(":")
         base = {"file": "Layouts", "model": "Model", "endpoint": "Zero-shot LLM"}.get(kind, kind)
-        base = f"{base} ({Path(arg.rstrip('/')).name or arg})"
+        arg = arg.rstrip("/") if whole_argument else (Path(arg.rstrip("/")).name or arg)
+        base = f"{base} ({arg})"
     return base + (" + TTO" if repair else "")
+
+
+def method_names(generators: Sequence[str], repair: bool = False) -> list[str]:
+    """:func:`method_name` of each generator, made unique: two whose short labels meet (``model:a/sft``
+    and ``model:b/sft`` are both "Model (sft)") are labelled with their whole argument instead, so
+    neither row overwrites the other. The same generator listed twice is an error."""
+    if len(set(generators)) < len(generators):
+        twice = sorted({g for g in generators if generators.count(g) > 1})
+        raise EvalError(f"generator(s) listed twice: {', '.join(twice)}")
+    short = [method_name(g, repair) for g in generators]
+    return [method_name(g, repair, whole_argument=True) if short.count(name) > 1 else name
+            for g, name in zip(generators, short)]
 
 
 def run_evaluation(cfg, *, command: str = "", title: str = "physcene evaluation",
@@ -335,8 +349,7 @@ def run_evaluation(cfg, *, command: str = "", title: str = "physcene evaluation"
     methods: dict[str, dict] = {}
     renders: dict[str, dict[str, str]] = {}
     n_render = min(int(cfg.render), len(items))
-    for gen in generators:
-        name = method_name(gen, bool(cfg.repair))
+    for gen, name in zip(generators, method_names(generators, bool(cfg.repair))):
         report, outputs = evaluate_method(items, gen, judge, engine=engine, repair=bool(cfg.repair),
                                           tto_overrides=tto_overrides, settle=bool(cfg.settle),
                                           seed=cfg.seed, progress=progress, model=cfg.generator_model,

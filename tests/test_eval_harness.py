@@ -6,10 +6,12 @@ import json
 
 import pytest
 from physcene.eval.harness import (
+    EvalError,
     generate,
     load_benchmark,
     make_judge,
     method_name,
+    method_names,
     save_layouts,
     score_scenes,
 )
@@ -74,6 +76,11 @@ def test_eval_command_rejects_bad_input(tmp_path, capsys):
     assert "not a directory" in capsys.readouterr().err
     assert method_name("tto") == "Reference + TTO"
     assert method_name("model:runs/pada/", True) == "Model (pada) + TTO"
+    # two checkpoints named alike keep a row each (one overwrote the other), labelled by their paths
+    assert method_names(["model:runs/a/sft", "model:runs/b/sft/", "reference"]) == [
+        "Model (runs/a/sft)", "Model (runs/b/sft)", "Reference"]
+    with pytest.raises(EvalError, match="listed twice: heuristic"):
+        method_names(["heuristic", "reference", "heuristic"])
 
 
 def test_model_generator_feeds_ctrc_prompts_and_parses_completions(items, monkeypatch):
