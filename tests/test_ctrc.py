@@ -462,3 +462,10 @@ def test_decimals_of_reads_back_the_precision_completion_text_wrote(decimals):
     assert decimals_of(completion_text(scene, decimals=decimals)) == decimals
     # the plan's numbers (whole cm) and the prompt's never count: only the layout's
     assert decimals_of("1. Place mug_0 about 31.5 cm from the center.\n\n**Scene Layout:**\n{}") == 0
+
+
+def test_text_and_tto_rest_on_children_the_same_distance_up():
+    """TTO's output written as text and read back must not move its `on` children (tto.yaml)."""
+    from physcene.tto import TTOConfig
+
+    assert TTOConfig.from_config().contact_gap_cm == ON_CONTACT_GAP_CM
