@@ -14,7 +14,7 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 
-from physcene.ctrc import ON_CONTACT_GAP_CM
+from physcene.ctrc import MAX_ABS_CM, ON_CONTACT_GAP_CM
 
 wp.config.log_level = max(wp.config.log_level, wp.LOG_WARNING)
 # Small CUDA blocks, as in ctrc_scan: a text's entries share a warp (few divergent paths). One
@@ -31,8 +31,8 @@ MAX_ENTRIES = 64
 CHUNK = wp.constant(256)
 # |value| beyond this (cm) is refused by ctrc (MAX_ABS_CM); the absolute-position check uses a hair
 # less so that a float64 ulp of difference with Python's libm never accepts what Python refuses.
-_MAX_ABS = wp.constant(wp.float64(1.0e5))
-_MAX_ABS_POS = wp.constant(wp.float64(1.0e5 * (1.0 - 1.0e-9)))
+_MAX_ABS = wp.constant(wp.float64(MAX_ABS_CM))
+_MAX_ABS_POS = wp.constant(wp.float64(MAX_ABS_CM * (1.0 - 1.0e-9)))
 _DEG = wp.constant(wp.float64(np.pi / 180.0))  # math.radians multiplies by exactly this
 _ON_GAP = wp.constant(wp.float64(ON_CONTACT_GAP_CM))  # an on child's z base: its support's top + this
 _PI = wp.constant(wp.float64(np.pi))
