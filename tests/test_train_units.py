@@ -279,9 +279,12 @@ def test_sft_continues_an_earlier_scratch_checkpoint(tmp_path):
                                            f"model.init_from={tmp_path / 'missing'}"]))
 
 
-def test_a_step_with_a_nan_gradient_is_dropped_not_applied(tmp_path):
+def test_a_step_with_a_nan_gradient_is_dropped_not_applied(tmp_path, caplog):
     """SkipNonFiniteSteps: a NaN in one gradient at step 2 leaves the weights as step 1 wrote them
-    (instead of NaN everywhere after clipping), step 3 trains again, and the run info names step 2."""
+    (instead of NaN everywhere after clipping), step 3 trains again, the run info names step 2 and
+    the warning names the tensor that held the NaN."""
+    import logging
+
     from physcene.train.sft import run_sft
     from transformers import TrainerCallback
 
@@ -299,13 +302,17 @@ def test_a_step_with_a_nan_gradient_is_dropped_not_applied(tmp_path):
             self.after = {}
 
         def on_step_end(self, args, state, control, model=None, **kw):
+            self.model = model
             self.after[state.global_step] = [p.detach().clone() for p in model.parameters()]
 
     seen = Weights()
-    out = run_sft(load_config("train_tiny", [f"data.train={data}", f"output_dir={tmp_path / 'run'}",
-                                             "sft.global_batch_size=2", "sft.per_device_batch_size=2",
-                                             "sft.max_steps=3", "sft.max_length=256"]),
-                  callbacks=[PoisonStep2(), seen])
+    with caplog.at_level(logging.WARNING, logger="physcene.train.sft"):
+        out = run_sft(load_config("train_tiny", [f"data.train={data}", f"output_dir={tmp_path / 'run'}",
+                                                 "sft.global_batch_size=2", "sft.per_device_batch_size=2",
+                                                 "sft.max_steps=3", "sft.max_length=256"]),
+                      callbacks=[PoisonStep2(), seen])
+    poisoned = next(n for n, p in seen.model.named_parameters() if p.requires_grad)
+    assert "step 2: non-finite gradient in 1 of " in caplog.text and poisoned in caplog.text
     assert all(torch.isfinite(w).all() for w in seen.after[3])
     assert all(torch.equal(a, b) for a, b in zip(seen.after[1], seen.after[2]))
     assert not all(torch.equal(a, b) for a, b in zip(seen.after[2], seen.after[3]))

@@ -29,6 +29,7 @@ SFT output did not parse) contribute no CE.
 from __future__ import annotations
 
 import json
+import logging
 import re
 import time
 from dataclasses import dataclass, field
@@ -50,6 +51,8 @@ __all__ = [
     "run_pada",
     "tokenize_anchor",
 ]
+
+logger = logging.getLogger(__name__)
 
 # variant -> (anchor column, numeric tokens masked out of the CE); grpo has no anchor (α = 0)
 VARIANTS = {"pada": ("anchor", False), "pada_star": ("anchor_raw", True), "grpo": (None, False)}
@@ -286,8 +289,12 @@ class PADATrainer(GRPOTrainer):
         ce = self.anchor_cross_entropy(model, inputs) if has_anchor else loss.new_zeros(())
         # TRL divides its own loss by the accumulation steps (HF auto-scaling is off): do the same.
         normalizer = self.current_gradient_accumulation_steps if mode == "train" else 1.0
-        stats = torch.stack([ce.detach() * has_anchor, has_anchor.float()])
+        stats = torch.stack([ce.detach() * has_anchor, has_anchor.float(), loss.detach()])
         stats = self.accelerator.reduce(stats, reduction="sum")
+        if not bool(torch.isfinite(stats).all()):  # say which term broke (SkipNonFiniteSteps drops the step)
+            logger.warning("step %d: non-finite loss term (anchor CE sum %s over %d ranks with anchors, "
+                           "GRPO loss sum %s)", self.state.global_step + 1, stats[0].item(), int(stats[1]),
+                           stats[2].item())
         if stats[1] > 0:
             self._metrics[mode]["anchor_ce"].append((stats[0] / stats[1]).item())
         return loss + self.anchor_alpha * ce / normalizer

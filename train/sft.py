@@ -82,12 +82,19 @@ class SkipNonFiniteSteps(TrainerCallback):
         self.steps: list[int] = []
 
     def on_pre_optimizer_step(self, args, state, control, model=None, **kwargs):
-        grads = [p.grad for p in model.parameters() if p.grad is not None] if model is not None else []
-        if grads and not bool(torch.stack([torch.isfinite(g).all() for g in grads]).all()):
+        if model is None:
+            return control
+        named = [(n, p.grad) for n, p in model.named_parameters() if p.grad is not None]
+        if not named:
+            return control
+        finite = torch.stack([torch.isfinite(g).all() for _, g in named])
+        if not bool(finite.all()):
+            bad = [n for (n, _), ok in zip(named, finite.tolist()) if not ok]
             for p in model.parameters():
                 p.grad = None
             self.steps.append(state.global_step + 1)
-            logger.warning("step %d: non-finite gradient, optimizer step dropped", state.global_step + 1)
+            logger.warning("step %d: non-finite gradient in %d of %d tensors (first: %s), optimizer step "
+                           "dropped", state.global_step + 1, len(bad), len(named), ", ".join(bad[:3]))
         return control
 
 
