@@ -261,3 +261,38 @@ def test_one_generation_round_feeds_several_optimizer_steps(tmp_path, one_thread
     log = json.loads((out / "train_log.json").read_text())
     steps = [e for e in log if "anchor_ce" in e]
     assert [e["step"] for e in steps] == [1, 2, 3, 4]
+
+
+def test_nonfinite_probe_names_the_loss_term_and_rows_that_broke(tmp_path, one_thread, monkeypatch):
+    """``pada.nonfinite_probe``: an anchor CE whose value is finite but whose backward is NaN (the GPU
+    runs' symptom: a finite loss, every LoRA gradient NaN) is found by the probe: the GRPO term's
+    backward is finite, the anchor CE's is not, under either attention kernel and for each row alone;
+    the micro-batch is saved for a replay, and the step is still dropped."""
+    from physcene.train.pada import PADATrainer
+
+    train = [dict(r, anchor=r["completion"]) for r in _records(4, seed=3)]
+    write_records(train, tmp_path / "train.jsonl")
+    cfg = load_config("train_tiny", [
+        f"data.train={tmp_path / 'train.jsonl'}", f"output_dir={tmp_path / 'run'}", "sft.max_steps=1",
+        "sft.max_length=1024", f"pada.anchors={tmp_path / 'train.jsonl'}", "pada.max_completion_length=16",
+        "pada.logging_steps=1", "pada.save_steps=100", "pada.constrained=false", "pada.max_steps=1",
+        "pada.nonfinite_probe=1"])
+    run_sft(cfg)
+    clean = PADATrainer.anchor_cross_entropy
+
+    def poisoned(self, model, inputs):  # sqrt at 0 under a zero weight: value unchanged, gradient NaN
+        ce = clean(self, model, inputs)
+        weight = next(p for p in model.parameters() if p.requires_grad)
+        return ce + 0.0 * (weight.sum() * 0.0).sqrt()
+
+    monkeypatch.setattr(PADATrainer, "anchor_cross_entropy", poisoned)
+    out = run_pada(cfg, variant="pada", reward=PhysicsReward(RewardConfig(device="cpu")))
+    report = json.loads((out / "nonfinite_probe.jsonl").read_text().splitlines()[0])
+    assert report["step"] == 1
+    assert report["grpo_loss"][1] is True and report["anchor_ce"][1] is False
+    assert report["anchor_ce_eager"][1] is False
+    assert report["anchor_rows"] and not any(r["finite"] for r in report["anchor_rows"])
+    assert all(r["anchor_tokens"] <= r["anchor_width"] for r in report["anchor_rows"])
+    saved = torch.load(out / f"nonfinite_step{report['step']}.pt")
+    assert {"prompt_ids", "completion_ids", "anchor_ids", "anchor_loss_mask"} <= set(saved)
+    assert json.loads((out / "physcene_run.json").read_text())["nonfinite_steps_dropped"] == [1]

@@ -88,6 +88,10 @@ class PADAConfig(GRPOConfig):
     mask_overruled: bool = field(
         default=True, metadata={"help": "Leave the tokens the CTRC constraint chose instead of the "
                                         "policy's draw out of the GRPO loss and KL (like tool output)."})
+    nonfinite_probe: int = field(
+        default=0, metadata={"help": "Micro-batches whose backward leaves a non-finite gradient to take "
+                                     "apart (PADATrainer.probe_nonfinite): which loss term, which rows, "
+                                     "which attention kernel; 0 = off."})
 
 
 def numeric_spans(text: str, keys: tuple[str, ...] | list[str] = GEOMETRY_KEYS) -> list[tuple[int, int]]:
@@ -141,6 +145,9 @@ class PADATrainer(GRPOTrainer):
             args = PADAConfig("pada")
         super().__init__(model, reward_funcs, args=args, **kwargs)
         self.anchor_alpha = float(args.anchor_alpha)
+        self._probes_left = int(args.nonfinite_probe)
+        self._probed_step = -1
+        self._micro_batch_inputs = None
         if args.cache_implementation == "static" and getattr(self, "generation_config", None) is not None:
             # One static cache size for the whole run (longest prompt + completion): HF sizes it per
             # call otherwise, and each longer batch would recompile the compiled decoding forward.
@@ -280,7 +287,87 @@ class PADATrainer(GRPOTrainer):
         mask = inputs["anchor_loss_mask"].to(logps.dtype)
         return -(logps * mask).sum() / mask.sum().clamp(min=1.0)
 
+    def training_step(self, model, inputs, num_items_in_batch=None):
+        loss = super().training_step(model, inputs, num_items_in_batch)
+        if self._probes_left > 0 and self._probed_step != self.state.global_step:
+            named = [(n, q.grad) for n, q in model.named_parameters() if q.grad is not None]
+            if named and not bool(torch.stack([torch.isfinite(g).all() for _, g in named]).all()):
+                self._probes_left -= 1
+                self._probed_step = self.state.global_step  # later micro-batches carry the same NaN
+                self.probe_nonfinite(model, self._micro_batch_inputs)
+        return loss
+
+    def probe_nonfinite(self, model, inputs) -> dict:
+        """Take apart a micro-batch whose backward left a non-finite gradient (``pada.nonfinite_probe``).
+
+        Runs each loss term's backward alone (the GRPO loss; the anchor CE under the model's own
+        attention and under eager attention) and the anchor CE of each row alone, and notes which
+        leave every gradient finite, with each row's prompt padding and anchor length. The report
+        goes to the log and ``<output_dir>/nonfinite_probe.jsonl``, the micro-batch's tensors to
+        ``<output_dir>/nonfinite_step<N>.pt`` for a replay. The gradients are put back as they were,
+        so :class:`~physcene.train.sft.SkipNonFiniteSteps` still drops the step. (The probe's GRPO
+        forward logs its metrics, KL and entropy, a second time for that step.)
+        """
+        params = [q for q in model.parameters() if q.requires_grad]
+        saved = [q.grad for q in params]
+
+        def finite_backward(term) -> tuple[float, bool]:
+            for q in params:
+                q.grad = None
+            with self.compute_loss_context_manager():
+                value = term()
+            value.backward()
+            finite = all(q.grad is None or bool(torch.isfinite(q.grad).all()) for q in params)
+            return float(value.detach()), finite
+
+        step = self.state.global_step + 1
+        def anchor_ce(batch=inputs):
+            return self.anchor_cross_entropy(model, batch)
+
+        report: dict = {"step": step,
+                        "grpo_loss": finite_backward(lambda: GRPOTrainer._compute_loss(self, model, inputs))}
+        if "anchor_ids" in inputs and inputs["anchor_loss_mask"].sum() > 0:
+            report["anchor_ce"] = finite_backward(anchor_ce)
+            base = self.accelerator.unwrap_model(model)
+            attention = base.config._attn_implementation
+            if attention != "eager":
+                base.set_attn_implementation("eager")
+                try:
+                    report["anchor_ce_eager"] = finite_backward(anchor_ce)
+                finally:
+                    base.set_attn_implementation(attention)
+            rows = []
+            row_keys = ("prompt_ids", "prompt_mask", "anchor_ids", "anchor_attention_mask",
+                        "anchor_loss_mask")
+            for b in range(inputs["anchor_ids"].size(0)):
+                if inputs["anchor_loss_mask"][b].sum() == 0:
+                    continue
+                one = {k: inputs[k][b:b + 1] for k in row_keys}
+                value, finite = finite_backward(lambda one=one: anchor_ce(one))
+                rows.append({"row": b, "ce": value, "finite": finite,
+                             "prompt_tokens": int(one["prompt_mask"].sum()),
+                             "prompt_width": one["prompt_ids"].size(1),
+                             "anchor_tokens": int(one["anchor_attention_mask"].sum()),
+                             "anchor_width": one["anchor_ids"].size(1)})
+            report["anchor_rows"] = rows
+        for q, g in zip(params, saved):
+            q.grad = g
+        broken = [r["row"] for r in report.get("anchor_rows", ()) if not r["finite"]]
+        logger.warning("step %d: non-finite gradient probe (value, finite backward): %s", step,
+                       {k: v for k, v in report.items() if k != "anchor_rows"}
+                       | {"rows_with_nonfinite_ce": broken})
+        if self.is_world_process_zero():
+            out = Path(self.args.output_dir)
+            out.mkdir(parents=True, exist_ok=True)
+            with open(out / "nonfinite_probe.jsonl", "a") as f:
+                f.write(json.dumps(report) + "\n")
+            torch.save({k: v.detach().cpu() for k, v in inputs.items() if isinstance(v, torch.Tensor)},
+                       out / f"nonfinite_step{step}.pt")
+        return report
+
     def _compute_loss(self, model, inputs):
+        if self._probes_left > 0:
+            self._micro_batch_inputs = inputs
         loss = super()._compute_loss(model, inputs)
         if self.anchor_alpha == 0.0 or "anchor_ids" not in inputs:
             return loss
@@ -412,6 +499,7 @@ def pada_arguments(cfg, variant: str) -> PADAConfig:
         generation_compile=cache == "static_compile",
         constrained_decoding=bool(p.get("constrained", False)),
         mask_overruled=bool(p.get("mask_overruled", True)),
+        nonfinite_probe=int(p.get("nonfinite_probe", 0) or 0),
         learning_rate=float(p.learning_rate),
         lr_scheduler_type=str(p.lr_scheduler_type),
         num_train_epochs=float(p.epochs),
