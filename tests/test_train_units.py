@@ -483,3 +483,44 @@ def test_records_read_from_jsonl_and_gzipped_jsonl(tmp_path):
     assert load_records(str(tmp_path / "a.jsonl")) == rows
     assert load_records(str(tmp_path / "a.jsonl.gz")) == rows
     assert load_records(str(tmp_path / "a.jsonl.gz"), max_level=1) == [r for r in rows if r["level"] == 1]
+
+
+@pytest.fixture
+def cudnn_flag():
+    old = torch.backends.cuda.cudnn_sdp_enabled()
+    yield
+    torch.backends.cuda.enable_cudnn_sdp(old)
+
+
+def test_training_forbids_cudnn_attention_unless_the_config_allows_it(cudnn_flag):
+    """``model.cudnn_attention``: off by default in every training config (torch 2.11's cuDNN attention
+    backward NaNs on left-padded rows), on when asked."""
+    from physcene.train.models import set_attention_kernels
+
+    for name in ("train_tiny", "train_small", "train_qwen3_vl_8b"):
+        torch.backends.cuda.enable_cudnn_sdp(True)
+        assert set_attention_kernels(load_config(name).model) is False
+        assert not torch.backends.cuda.cudnn_sdp_enabled()
+    assert set_attention_kernels(load_config("train_tiny", ["model.cudnn_attention=true"]).model) is True
+    assert torch.backends.cuda.cudnn_sdp_enabled()
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+@pytest.mark.parametrize("length", [704, 2240])  # 64 past a multiple of 128: where cuDNN's backward broke
+def test_attention_gradient_over_left_padded_rows_is_finite_with_the_training_kernels(cudnn_flag, length):
+    """The PADA anchor forward's shape: a causal batch whose first row is left-padded (its pad queries
+    attend to nothing). Under the kernels training allows, the backward of SDPA stays finite."""
+    import torch.nn.functional as F
+    from physcene.train.models import set_attention_kernels
+
+    set_attention_kernels({})
+    gen = torch.Generator(device="cuda").manual_seed(0)
+    q, k, v = (torch.randn(2, 4, length, 64, device="cuda", generator=gen).to(torch.bfloat16).requires_grad_()
+               for _ in range(3))
+    keep = torch.ones(2, length, dtype=torch.bool, device="cuda")
+    keep[0, :31] = False  # row 0: 31 tokens of left padding
+    causal = torch.ones(length, length, dtype=torch.bool, device="cuda").tril()
+    mask = (causal[None] & keep[:, None, :])[:, None]  # (batch, 1, query, key)
+    out = F.scaled_dot_product_attention(q, k, v, attn_mask=mask)
+    (out.float() * keep[:, None, :, None]).sum().backward()  # the loss reads real tokens only
+    assert all(bool(torch.isfinite(t.grad).all()) for t in (q, k, v))

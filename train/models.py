@@ -35,6 +35,7 @@ __all__ = [
     "TrainingSetupError",
     "build_scratch_model",
     "count_parameters",
+    "set_attention_kernels",
     "freeze_vision_tower",
     "load_model",
     "load_tokenizer",
@@ -137,6 +138,24 @@ def load_tokenizer(path: str | Path) -> PreTrainedTokenizerBase:
         tokenizer.pad_token = tokenizer.eos_token
     tokenizer.padding_side = "left"
     return tokenizer
+
+
+def set_attention_kernels(model_cfg: DictConfig | dict) -> bool:
+    """Allow or forbid torch's cuDNN kernel for ``scaled_dot_product_attention`` in this process, as
+    ``model.cudnn_attention`` says (default: forbid); returns whether it is allowed.
+
+    A training process, not the model: the flag is torch's global one. Why off: on H100/H200 under
+    torch 2.11 the cuDNN backward writes NaN into the query gradient when a query row attends to
+    nothing (the left padding of a batch of prompts: its logsumexp is -inf) and the sequence length
+    is 64 past a multiple of 128 (pytorch/pytorch#196678). PADA's anchor forward, [left-padded prompt |
+    anchor], met it at 346 + 1894 = 2240 tokens: every LoRA gradient NaN for a whole generation round,
+    with finite losses (``pada.nonfinite_probe``; the replay ``docs/results/nonfinite_replay.py``:
+    cuDNN NaN, memory-efficient, math and eager attention finite on the same micro-batch). SDPA then
+    picks the memory-efficient kernel. Set ``model.cudnn_attention=true`` on a torch without the bug.
+    """
+    allowed = bool((model_cfg or {}).get("cudnn_attention", False))
+    torch.backends.cuda.enable_cudnn_sdp(allowed)
+    return allowed
 
 
 def prepare_model_and_tokenizer(cfg: DictConfig, texts: Iterable[str] | None = None,

@@ -535,7 +535,13 @@ def run_pada(cfg, variant: str | None = None, reward=None, callbacks=()) -> Path
     """
     from accelerate import PartialState
     from omegaconf import OmegaConf
-    from physcene.train.models import load_model, load_tokenizer, read_run_info, write_run_info
+    from physcene.train.models import (
+        load_model,
+        load_tokenizer,
+        read_run_info,
+        set_attention_kernels,
+        write_run_info,
+    )
     from physcene.train.records import load_records, training_dataset
     from physcene.train.sft import SkipNonFiniteSteps, lora_config, skipped_steps, time_budget_callbacks
     from transformers.trainer_utils import get_last_checkpoint
@@ -557,6 +563,7 @@ def run_pada(cfg, variant: str | None = None, reward=None, callbacks=()) -> Path
     dataset = training_dataset(records, chat_format=chat, columns=("anchor", "anchor_raw"))
     dtype = str(cfg.model.dtype) if __import__("torch").cuda.is_available() else "float32"
     # Absolute path: PEFT records it as the adapter's base model, read back by generate().
+    set_attention_kernels(cfg.model)  # cuDNN attention's backward NaNs on left-padded rows (torch 2.11)
     model = load_model(model_dir.resolve(), dtype=dtype, freeze_vision=bool(cfg.model.freeze_vision))
     tokenizer = load_tokenizer(model_dir)
     state = PartialState()

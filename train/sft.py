@@ -19,7 +19,13 @@ from pathlib import Path
 import torch
 from omegaconf import DictConfig, OmegaConf
 from peft import LoraConfig
-from physcene.train.models import TrainingSetupError, prepare_model_and_tokenizer, torch_dtype, write_run_info
+from physcene.train.models import (
+    TrainingSetupError,
+    prepare_model_and_tokenizer,
+    set_attention_kernels,
+    torch_dtype,
+    write_run_info,
+)
 from physcene.train.records import load_records, training_dataset
 from transformers import TrainerCallback
 from transformers.trainer_utils import get_last_checkpoint
@@ -207,6 +213,7 @@ def run_sft(cfg: DictConfig, callbacks=()) -> Path:
         raise TrainingSetupError(f"no training records in {cfg.data.train!r} "
                                  f"(max_level={cfg.data.get('max_level')})")
     texts = [t for r in records for t in (r["prompt"], r["completion"])]
+    set_attention_kernels(cfg.model)
     model, tokenizer = prepare_model_and_tokenizer(cfg, texts=texts, out_dir=out)
     chat = bool(cfg.model.chat_format)
     trainer = SFTTrainer(
