@@ -35,12 +35,12 @@ __all__ = [
     "TrainingSetupError",
     "build_scratch_model",
     "count_parameters",
-    "set_attention_kernels",
     "freeze_vision_tower",
     "load_model",
     "load_tokenizer",
     "prepare_model_and_tokenizer",
     "read_run_info",
+    "set_attention_kernels",
     "torch_dtype",
     "write_run_info",
 ]

@@ -146,6 +146,9 @@ class PADATrainer(GRPOTrainer):
         super().__init__(model, reward_funcs, args=args, **kwargs)
         self.anchor_alpha = float(args.anchor_alpha)
         self._probes_left = int(args.nonfinite_probe)
+        if self._probes_left and self.is_deepspeed_enabled:  # its gradients are not in p.grad
+            logger.warning("pada.nonfinite_probe needs gradients in p.grad: off under DeepSpeed")
+            self._probes_left = 0
         self._probed_step = -1
         self._micro_batch_inputs = None
         if args.cache_implementation == "static" and getattr(self, "generation_config", None) is not None:
@@ -316,11 +319,13 @@ class PADATrainer(GRPOTrainer):
                 q.grad = None
             with self.compute_loss_context_manager():
                 value = term()
-            value.backward()
+            with self.accelerator.no_sync(model):  # this rank's own diagnosis: no gradient all-reduce
+                value.backward()
             finite = all(q.grad is None or bool(torch.isfinite(q.grad).all()) for q in params)
             return float(value.detach()), finite
 
         step = self.state.global_step + 1
+
         def anchor_ce(batch=inputs):
             return self.anchor_cross_entropy(model, batch)
 
