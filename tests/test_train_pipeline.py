@@ -38,6 +38,19 @@ def _records(n: int, seed: int) -> list[dict]:
              "completion": completion_text(s), "layout": layout_to_dict(s)} for k, s in enumerate(scenes)]
 
 
+def _sft_for_pada(tmp_path, n: int, seed: int, *pada_overrides: str):
+    """The tiny config on ``n`` two-object scenes that are their own anchors, after one SFT step: PADA
+    (unconstrained, 16-token completions, a log entry per step) with ``pada_overrides``."""
+    train = [dict(r, anchor=r["completion"]) for r in _records(n, seed=seed)]
+    write_records(train, tmp_path / "train.jsonl")
+    cfg = load_config("train_tiny", [
+        f"data.train={tmp_path / 'train.jsonl'}", f"output_dir={tmp_path / 'run'}", "sft.max_steps=1",
+        "sft.max_length=1024", f"pada.anchors={tmp_path / 'train.jsonl'}", "pada.max_completion_length=16",
+        "pada.logging_steps=1", "pada.save_steps=100", "pada.constrained=false", *pada_overrides])
+    run_sft(cfg)
+    return cfg
+
+
 @pytest.fixture
 def one_thread():
     old = torch.get_num_threads()
@@ -236,14 +249,8 @@ def test_one_generation_round_feeds_several_optimizer_steps(tmp_path, one_thread
     anchor CE."""
     from physcene.train.pada import PADATrainer
 
-    train = [dict(r, anchor=r["completion"]) for r in _records(8, seed=2)]
-    write_records(train, tmp_path / "train.jsonl")
-    cfg = load_config("train_tiny", [
-        f"data.train={tmp_path / 'train.jsonl'}", f"output_dir={tmp_path / 'run'}", "sft.max_steps=1",
-        "sft.max_length=1024", f"pada.anchors={tmp_path / 'train.jsonl'}", "pada.max_completion_length=16",
-        "pada.logging_steps=1", "pada.save_steps=100", "pada.constrained=false", "pada.max_steps=4",
-        "pada.generation_batches=2", "pada.num_iterations=2"])
-    run_sft(cfg)
+    cfg = _sft_for_pada(tmp_path, 8, 2, "pada.max_steps=4", "pada.generation_batches=2",
+                        "pada.num_iterations=2")
     rounds = []
     original = PADATrainer._generate_and_score_completions
 
@@ -270,14 +277,7 @@ def test_nonfinite_probe_names_the_loss_term_and_rows_that_broke(tmp_path, one_t
     the micro-batch is saved for a replay, and the step is still dropped."""
     from physcene.train.pada import PADATrainer
 
-    train = [dict(r, anchor=r["completion"]) for r in _records(4, seed=3)]
-    write_records(train, tmp_path / "train.jsonl")
-    cfg = load_config("train_tiny", [
-        f"data.train={tmp_path / 'train.jsonl'}", f"output_dir={tmp_path / 'run'}", "sft.max_steps=1",
-        "sft.max_length=1024", f"pada.anchors={tmp_path / 'train.jsonl'}", "pada.max_completion_length=16",
-        "pada.logging_steps=1", "pada.save_steps=100", "pada.constrained=false", "pada.max_steps=1",
-        "pada.nonfinite_probe=1"])
-    run_sft(cfg)
+    cfg = _sft_for_pada(tmp_path, 4, 3, "pada.max_steps=1", "pada.nonfinite_probe=1")
     clean = PADATrainer.anchor_cross_entropy
 
     def poisoned(self, model, inputs):  # sqrt at 0 under a zero weight: value unchanged, gradient NaN
