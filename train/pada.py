@@ -36,6 +36,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import torch
+from physcene.train.sft import nonfinite_gradients
 from transformers import PreTrainedTokenizerBase, TrainerCallback
 from trl import GRPOConfig, GRPOTrainer
 
@@ -293,8 +294,7 @@ class PADATrainer(GRPOTrainer):
     def training_step(self, model, inputs, num_items_in_batch=None):
         loss = super().training_step(model, inputs, num_items_in_batch)
         if self._probes_left > 0 and self._probed_step != self.state.global_step:
-            named = [(n, q.grad) for n, q in model.named_parameters() if q.grad is not None]
-            if named and not bool(torch.stack([torch.isfinite(g).all() for _, g in named]).all()):
+            if nonfinite_gradients(model)[0]:
                 self._probes_left -= 1
                 self._probed_step = self.state.global_step  # later micro-batches carry the same NaN
                 self.probe_nonfinite(model, self._micro_batch_inputs)
@@ -321,8 +321,7 @@ class PADATrainer(GRPOTrainer):
                 value = term()
             with self.accelerator.no_sync(model):  # this rank's own diagnosis: no gradient all-reduce
                 value.backward()
-            finite = all(q.grad is None or bool(torch.isfinite(q.grad).all()) for q in params)
-            return float(value.detach()), finite
+            return float(value.detach()), not nonfinite_gradients(model)[0]
 
         step = self.state.global_step + 1
 

@@ -72,6 +72,16 @@ class TimeBudget(TrainerCallback):
         return bool(flag.item())
 
 
+def nonfinite_gradients(model) -> tuple[list[str], int]:
+    """(names of the parameters whose gradient holds a NaN or an inf, how many gradients there are);
+    one device sync for all of them."""
+    named = [(n, p.grad) for n, p in model.named_parameters() if p.grad is not None]
+    if not named:
+        return [], 0
+    finite = torch.stack([torch.isfinite(g).all() for _, g in named]).tolist()
+    return [n for (n, _), ok in zip(named, finite) if not ok], len(named)
+
+
 class SkipNonFiniteSteps(TrainerCallback):
     """Drop an optimizer step whose (all-reduced, clipped) gradients hold a NaN or an inf.
 
@@ -90,17 +100,13 @@ class SkipNonFiniteSteps(TrainerCallback):
     def on_pre_optimizer_step(self, args, state, control, model=None, **kwargs):
         if model is None:
             return control
-        named = [(n, p.grad) for n, p in model.named_parameters() if p.grad is not None]
-        if not named:
-            return control
-        finite = torch.stack([torch.isfinite(g).all() for _, g in named])
-        if not bool(finite.all()):
-            bad = [n for (n, _), ok in zip(named, finite.tolist()) if not ok]
+        bad, total = nonfinite_gradients(model)
+        if bad:
             for p in model.parameters():
                 p.grad = None
             self.steps.append(state.global_step + 1)
             logger.warning("step %d: non-finite gradient in %d of %d tensors (first: %s), optimizer step "
-                           "dropped", state.global_step + 1, len(bad), len(named), ", ".join(bad[:3]))
+                           "dropped", state.global_step + 1, len(bad), total, ", ".join(bad[:3]))
         return control
 
 
