@@ -31,6 +31,7 @@ from physcene.scene import Scene
 __all__ = [
     "DataConfig",
     "build_record",
+    "build_scenes",
     "measure_reference",
     "split_stats",
     "stats_markdown",
@@ -104,13 +105,21 @@ def _fit() -> ContainerFit:
     return _FIT
 
 
-def build_record(split: str, seed: int, item: PlanItem, config: DataConfig) -> dict:
-    """Record ``item.index`` of ``split`` (pure function of its arguments)."""
+def build_scenes(split: str, seed: int, item: PlanItem, config: DataConfig):
+    """``(clean, noisy, noise, rng)`` of record ``item.index`` of ``split``: the clean layout as
+    planned (captions included), the layout after annotation noise, the noise record, and the
+    record's RNG where the noise left it (the record's text draws from it next)."""
     rng = record_rng(seed, split, item.index)
     spec = spec_for(item.scene_type)
     clean = synthesize_layout(spec, item.n_objects, item.level, rng, config.synth, _fit())
     clean = clean.with_objects(o.moved(description=describe(o.category, o.size, rng)) for o in clean.objects)
     noisy, noise = apply_noise(clean, item.level, rng, config.noise)
+    return clean, noisy, noise, rng
+
+
+def build_record(split: str, seed: int, item: PlanItem, config: DataConfig) -> dict:
+    """Record ``item.index`` of ``split`` (pure function of its arguments)."""
+    clean, noisy, noise, rng = build_scenes(split, seed, item, config)
     record = ctrc_record(
         noisy, record_id=f"{split}-{item.index:05d}", rng=rng, prompt_objects=config.prompt_objects,
         decimals=config.decimals,
