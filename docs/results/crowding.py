@@ -21,6 +21,7 @@ import statistics
 from pathlib import Path
 
 import numpy as np
+
 from physcene.data.benchmark import DataConfig, build_scenes
 from physcene.data.splits import plan_split
 from physcene.layout import read_layout
@@ -80,18 +81,21 @@ def main() -> None:
         clean.append((item.level, c))
         noisy.append((item.level, nz))
         level_of[f"{args.split}-{item.index:05d}"] = item.level
-    result = {"split": args.split, "n": args.n, "rows": {"clean": level_rows(clean), "noisy": level_rows(noisy)}}
+    rows = {"clean": level_rows(clean), "noisy": level_rows(noisy)}
+    result = {"split": args.split, "n": args.n, "rows": rows}
     for spec in args.layouts:
         name, _, folder = spec.partition("=")
         scenes = [(level_of[p.stem], read_layout(p)) for p in sorted(Path(folder).glob("*.json"))
                   if p.stem in level_of]
         if not scenes:
-            raise SystemExit(f"{spec}: no layout named after a record of the first {args.n} of {args.split!r}")
+            raise SystemExit(f"{spec}: no layout file named after one of the first {args.n} "
+                             f"records of {args.split!r}")
         result["rows"][name] = level_rows(scenes)
     for name, rows in result["rows"].items():
         for level, r in rows.items():
             print(f"{name:10s} L{level} n={r['n']:3d} objects {r['table_level_objects_mean']:5.1f} "
-                  f"crowd {r['crowd_median']:.2f}  gap median {r['gap_median_cm']:6.2f} p10 {r['gap_p10_cm']:6.2f} cm"
+                  f"crowd {r['crowd_median']:.2f}  gap median {r['gap_median_cm']:6.2f} "
+                  f"p10 {r['gap_p10_cm']:6.2f} cm"
                   f"  overlapping {r['overlapping_share']:.2f}")
     if args.out:
         Path(args.out).write_text(json.dumps(result, indent=1))
