@@ -260,7 +260,8 @@ def test_sft_continues_an_earlier_scratch_checkpoint(tmp_path):
 
     class Start(TrainerCallback):
         def on_train_begin(self, args, state, control, model=None, **kw):
-            self.weights = {k: v.detach().clone() for k, v in model.state_dict().items()}
+            # on the CPU: on a GPU machine the trainer has moved the model to cuda
+            self.weights = {k: v.detach().cpu().clone() for k, v in model.state_dict().items()}
             self.dtype = next(model.parameters()).dtype
 
     seen = Start()
