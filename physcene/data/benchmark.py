@@ -16,12 +16,13 @@ from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import numpy as np
 from omegaconf import OmegaConf
 
 from physcene.ctrc import DECIMALS, MAX_DECIMALS
 from physcene.data.captions import describe
 from physcene.data.mesatask_ctrc import ctrc_record, dumps_record
-from physcene.data.noise import NoiseConfig, apply_noise
+from physcene.data.noise import NoiseConfig, NoiseRecord, apply_noise
 from physcene.data.scene_types import OOD_SCENE_TYPES, SCENE_TYPES, spec_for
 from physcene.data.splits import PlanItem, plan_split, record_rng
 from physcene.data.synth import ContainerFit, SynthConfig, synthesize_layout
@@ -105,7 +106,9 @@ def _fit() -> ContainerFit:
     return _FIT
 
 
-def build_scenes(split: str, seed: int, item: PlanItem, config: DataConfig):
+def build_scenes(
+    split: str, seed: int, item: PlanItem, config: DataConfig
+) -> tuple[Scene, Scene, NoiseRecord, np.random.Generator]:
     """``(clean, noisy, noise, rng)`` of record ``item.index`` of ``split``: the clean layout as
     planned (captions included), the layout after annotation noise, the noise record, and the
     record's RNG where the noise left it (the record's text draws from it next)."""
