@@ -89,11 +89,14 @@ class PhysicsReward:
 
     __name__ = "physics_reward"  # TRL names reward columns after the function
 
-    def __init__(self, config: RewardConfig | None = None, engine=None):
+    def __init__(self, config: RewardConfig | None = None, engine=None, *, object_depths: bool = False):
         self.config = config or RewardConfig()
         self._engine = engine
+        self.object_depths = object_depths
+        """Also keep ``last_object_depths`` after each call (PADA's ``object_credit``)."""
         self.last_metrics: dict[str, float] = {}
         self.last_parse_errors: list[str | None] = []
+        self.last_object_depths: list[np.ndarray | None] = []
 
     @property
     def engine(self):
@@ -144,6 +147,10 @@ class PhysicsReward:
             both = (torch.stack([e, out["max_depth"]]) * 10.0).cpu().numpy().astype(np.float64)  # one sync
             e_mm, depth_mm = both[0], both[1]
             rewards[ok] = reward_from_energy(e_mm, cfg)
+        self.last_object_depths = [None] * n_text
+        if self.object_depths and ok.size:
+            for r, depths in enumerate(self._object_depths(batch, out)):
+                self.last_object_depths[int(ok[r])] = depths
         n = max(n_text, 1)
         self.last_parse_errors = list(errors)
         self.last_metrics = {
@@ -154,6 +161,28 @@ class PhysicsReward:
             "mean_reward": float(rewards.mean()) if n_text else 0.0,
         }
         return rewards.tolist()
+
+    def _object_depths(self, batch, out: dict) -> list[np.ndarray]:
+        """Per batch row, (n_objects,) cm: the penetration each object is charged with.
+
+        A pair deeper than the tolerance charges its depth to the object written later (the larger
+        index: objects keep the completion's order), the one placed into a space already taken;
+        with ``table_term`` an object's own table depth is charged to it too.
+        """
+        tolerance_cm = self.config.tolerance_mm / 10.0
+        count = batch.count.cpu().numpy().astype(np.int64)
+        depths = [np.zeros(int(n)) for n in count]
+        pair_depth = out["pair_depth"].cpu().numpy()
+        hot = np.nonzero(pair_depth > tolerance_cm)[0]
+        if hot.size:
+            for (s, i, j), d in zip(batch.pair_slots()[hot].tolist(), pair_depth[hot].tolist()):
+                depths[s][max(i, j)] += d
+        if self.config.table_term:
+            table = out["table_depth"].cpu().numpy()
+            for s, n in enumerate(count):
+                row = table[s, :n]
+                depths[s] += np.where(row > tolerance_cm, row, 0.0)
+        return depths
 
     def describe(self) -> dict:
         return asdict(self.config)

@@ -296,3 +296,27 @@ def test_nonfinite_probe_names_the_loss_term_and_rows_that_broke(tmp_path, one_t
     saved = torch.load(out / f"nonfinite_step{report['step']}.pt")
     assert {"prompt_ids", "completion_ids", "anchor_ids", "anchor_loss_mask"} <= set(saved)
     assert json.loads((out / "physcene_run.json").read_text())["nonfinite_steps_dropped"] == [1]
+
+
+def test_pada_with_object_credit_trains_on_per_token_advantages(tmp_path, one_thread, monkeypatch):
+    """``pada.object_credit`` (not in the paper) through TRL: the advantages become (B, T), the steps run
+    and the credit's figures are logged; a negative weight is refused."""
+    from physcene.train.pada import PADATrainer
+
+    cfg = _sft_for_pada(tmp_path, 4, 4, "pada.max_steps=2", "pada.object_credit=1.0")
+    seen = []
+    original = PADATrainer._credit_objects
+
+    def spy(self, output):
+        original(self, output)
+        seen.append(tuple(output["advantages"].shape))
+
+    monkeypatch.setattr(PADATrainer, "_credit_objects", spy)
+    out = run_pada(cfg, variant="pada", reward=PhysicsReward(RewardConfig(device="cpu")))
+    assert seen and all(len(shape) == 2 and shape[1] > 1 for shape in seen)
+    log = json.loads((out / "train_log.json").read_text())
+    assert any("object_credit/charged_token_frac" in e for e in log)
+    assert json.loads((out / "physcene_run.json").read_text())["steps"] == 2
+    with pytest.raises(ValueError, match="object_credit must be >= 0"):
+        run_pada(load_config("train_tiny", [f"output_dir={tmp_path / 'neg'}", "pada.object_credit=-1"]),
+                 variant="pada")

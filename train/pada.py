@@ -35,6 +35,7 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import numpy as np
 import torch
 from physcene.train.sft import nonfinite_gradients
 from transformers import PreTrainedTokenizerBase, TrainerCallback
@@ -93,6 +94,10 @@ class PADAConfig(GRPOConfig):
         default=0, metadata={"help": "Micro-batches whose backward leaves a non-finite gradient to take "
                                      "apart (PADATrainer.probe_nonfinite): which loss term, which rows, "
                                      "which attention kernel; 0 = off."})
+    object_credit: float = field(
+        default=0.0, metadata={"help": "Not in the paper (0 = off): lower the advantage of the tokens of "
+                                       "each object's layout line by this much per cm of penetration "
+                                       "charged to it (object_token_depths); per-token advantages."})
 
 
 def numeric_spans(text: str, keys: tuple[str, ...] | list[str] = GEOMETRY_KEYS) -> list[tuple[int, int]]:
@@ -129,6 +134,50 @@ def tokenize_anchor(tokenizer: PreTrainedTokenizerBase, text: str, *, max_length
     return ids[:max_length], mask[:max_length]
 
 
+def object_line_spans(text: str) -> list[tuple[int, int]]:
+    """Character spans ``[start, end)`` of the object lines of a CTRC layout, in the order written
+    (the lines with a ``relative_bbox``; the zone's line has none): object k of the parsed scene."""
+    spans, start = [], 0
+    for line in text.splitlines(keepends=True):
+        if '"relative_bbox"' in line:
+            spans.append((start, start + len(line.rstrip("\n"))))
+        start += len(line)
+    return spans
+
+
+def object_token_depths(tokenizer: PreTrainedTokenizerBase, completion_ids: torch.Tensor,
+                        completion_mask: torch.Tensor, depths: list) -> tuple[torch.Tensor, int]:
+    """((B, T) cm charged to each completion token, rows left out).
+
+    ``depths[b]``: the (n_objects,) penetration charged to each object of completion b
+    (:attr:`physcene.reward.PhysicsReward.last_object_depths`), None when it did not parse. Every
+    token that overlaps object k's layout line carries ``depths[b][k]``. A row is left out (all 0)
+    when its tokens decoded one by one do not give the completion's text (a multi-byte character
+    split across tokens) or its object lines do not match its objects.
+    """
+    out = torch.zeros(completion_ids.shape, dtype=torch.float32)
+    skipped = 0
+    lengths = completion_mask.sum(dim=1).tolist()
+    for b, (row, charged) in enumerate(zip(completion_ids.tolist(), depths)):
+        if charged is None or not np.any(charged):
+            continue
+        ids = row[:int(lengths[b])]
+        pieces = [tokenizer.decode([t]) for t in ids]
+        text = "".join(pieces)
+        spans = object_line_spans(text)
+        if text != tokenizer.decode(ids) or len(spans) != len(charged):
+            skipped += 1
+            continue
+        ends = np.cumsum([len(p) for p in pieces])
+        starts = ends - np.array([len(p) for p in pieces])
+        for (a, e), d in zip(spans, charged):
+            if d > 0:
+                first = np.searchsorted(ends, a, side="right")  # the first token ending past a
+                last = np.searchsorted(starts, e, side="left")  # the first token starting at e or later
+                out[b, first:last] = float(d)
+    return out, skipped
+
+
 def longest_prompt_tokens(tokenizer: PreTrainedTokenizerBase, prompts) -> int:
     """Tokens of the longest prompt as TRL feeds it (a conversational prompt through the chat template)."""
     texts = [p if isinstance(p, str) else
@@ -152,6 +201,19 @@ class PADATrainer(GRPOTrainer):
             self._probes_left = 0
         self._probed_step = -1
         self._micro_batch_inputs = None
+        self.object_credit = float(args.object_credit)
+        self._credit_reward = None
+        if self.object_credit:
+            from physcene.reward import PhysicsReward
+
+            rewards = (getattr(f, "reward", f) for f in self.reward_funcs)
+            found = [r for r in rewards if isinstance(r, PhysicsReward)]
+            if not found:
+                raise ValueError("pada.object_credit needs the physics reward (physcene.reward."
+                                 "PhysicsReward) among the reward functions: it charges each object "
+                                 "its penetration")
+            self._credit_reward = found[0]
+            self._credit_reward.object_depths = True
         if args.cache_implementation == "static" and getattr(self, "generation_config", None) is not None:
             # One static cache size for the whole run (longest prompt + completion): HF sizes it per
             # call otherwise, and each longer batch would recompile the compiled decoding forward.
@@ -237,6 +299,8 @@ class PADATrainer(GRPOTrainer):
         output = super()._generate_and_score_completions(inputs)
         if self.args.mask_overruled and self._round_overruled is not None:
             self._mask_overruled(output, self._round_overruled)
+        if self.object_credit:
+            self._credit_objects(output)
         if self.anchor_alpha == 0.0:
             return output
         device = self.accelerator.device
@@ -254,6 +318,31 @@ class PADATrainer(GRPOTrainer):
         output["anchor_loss_mask"] = torch.tensor([m + [0] * (width - len(m)) for _, m in rows],
                                                   device=device)
         return output
+
+    def _credit_objects(self, output: dict) -> None:
+        """Per-token advantages (``pada.object_credit``, not in the paper): each token of an object's
+        layout line loses ``object_credit`` × the penetration (cm) charged to that object.
+
+        The sequence reward says a layout collides, not which placement did it; this points the
+        gradient at the objects written into occupied space. TRL's loss takes (B, T) advantages
+        from a subclass. The reward's last call scored this rank's completions in this order.
+        """
+        depths = self._credit_reward.last_object_depths
+        completion_ids = output["completion_ids"]
+        if len(depths) != completion_ids.size(0):
+            raise ValueError(f"object depths for {len(depths)} completions, "
+                             f"{completion_ids.size(0)} generated")
+        charged, skipped = object_token_depths(self._tokenizer, completion_ids.cpu(),
+                                               output["completion_mask"].cpu(), depths)
+        charged = charged.to(completion_ids.device)
+        advantages = output["advantages"]
+        if advantages.dim() == 1:
+            advantages = advantages.unsqueeze(1)
+        output["advantages"] = advantages - self.object_credit * charged.to(advantages.dtype)
+        mask = output["completion_mask"]
+        self._log_value("object_credit/charged_token_frac",
+                        ((charged > 0) & mask.bool()).sum().item() / max(mask.sum().item(), 1))
+        self._log_value("object_credit/rows_left_out", float(skipped))
 
     def _mask_overruled(self, output: dict, overruled: list[list[int]]) -> None:
         """Zero the loss mask where the constraint, not the policy, chose the token.
@@ -489,6 +578,10 @@ def pada_arguments(cfg, variant: str) -> PADAConfig:
     for key, value in (("generation_batches", generation_batches), ("num_iterations", num_iterations)):
         if value < 1:
             raise ValueError(f"pada.{key} must be a positive integer, got {value}")
+    object_credit = float(p.get("object_credit", 0.0) or 0.0)
+    if object_credit < 0:
+        raise ValueError(f"pada.object_credit must be >= 0 (advantage per cm of penetration), "
+                         f"got {object_credit}")
     return PADAConfig(
         output_dir=str(p.output_dir),
         anchor_alpha=0.0 if column is None else float(p.alpha),
@@ -504,6 +597,7 @@ def pada_arguments(cfg, variant: str) -> PADAConfig:
         constrained_decoding=bool(p.get("constrained", False)),
         mask_overruled=bool(p.get("mask_overruled", True)),
         nonfinite_probe=int(p.get("nonfinite_probe", 0) or 0),
+        object_credit=object_credit,
         learning_rate=float(p.learning_rate),
         lr_scheduler_type=str(p.lr_scheduler_type),
         num_train_epochs=float(p.epochs),

@@ -1,0 +1,108 @@
+"""``pada.object_credit`` (not in the paper): the physics reward charges each object the penetration of
+the pairs it was written into, and PADA lowers the advantage of that object's layout-line tokens."""
+
+from __future__ import annotations
+
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+import torch
+from physcene.train.pada import PADATrainer, object_line_spans, object_token_depths
+from physcene.train.tokenizer import build_tokenizer
+
+from physcene.ctrc import completion_text, parse
+from physcene.data.benchmark import DataConfig, build_scenes
+from physcene.data.splits import plan_split
+from physcene.reward import PhysicsReward, RewardConfig
+from physcene.scene import TABLE
+
+
+@pytest.fixture(scope="module")
+def texts():
+    """A clean level-2 test scene as CTRC, and the same with its last table-level object moved onto
+    its first one (a collision charged to the later-written object)."""
+    item = next(i for i in plan_split("test", 40, 0) if i.level == 2)
+    clean = build_scenes("test", 0, item, DataConfig())[0]
+    table = [o for o in clean.objects if o.parent == TABLE]
+    first, last = table[0], table[-1]
+    moved = clean.with_objects(
+        o.moved(center=(first.center[0], first.center[1], o.center[2])) if o is last else o
+        for o in clean.objects)
+    return completion_text(clean, decimals=2), completion_text(moved, decimals=2)
+
+
+@pytest.fixture(scope="module")
+def reward():
+    return PhysicsReward(RewardConfig(device="cpu"), object_depths=True)
+
+
+def test_object_lines_are_the_parsed_objects_in_order(texts):
+    for text in texts:
+        lines = object_line_spans(text)
+        scene = parse(text)
+        assert len(lines) == len(scene.objects)
+        for (a, b), obj in zip(lines, scene.objects):
+            assert f'"instance_id": "{obj.instance_id}"' in text[a:b] and "\n" not in text[a:b]
+
+
+def test_the_reward_charges_each_pair_to_the_object_written_later(texts, reward):
+    clean, moved = texts
+    rewards = reward.score_texts([clean, moved, "not a layout"])
+    depths = reward.last_object_depths
+    assert depths[2] is None and rewards[2] == -100.0
+    assert not np.any(depths[0]) and rewards[0] == 50.0
+    scene = parse(moved)
+    score = reward.engine.score([scene])
+    expected = np.zeros(len(scene.objects))
+    for i, j, d in score.pairs[0]:
+        expected[max(i, j)] += d
+    assert expected.sum() > 0 and np.allclose(depths[1], expected, atol=1e-5)
+    # the charges add up to the E_pen the reward was computed from (cm -> mm)
+    assert rewards[1] == pytest.approx(-min(0.01 * 10.0 * depths[1].sum(), 50.0), abs=1e-4)
+    ids = [o.instance_id for o in scene.objects]
+    last_table = [o.instance_id for o in scene.objects if o.parent == TABLE][-1]
+    assert depths[1][ids.index(last_table)] > 0
+
+
+def test_the_tokens_of_a_charged_object_line_carry_its_depth(texts, reward):
+    clean, moved = texts
+    tokenizer = build_tokenizer([clean, moved], vocab_size=320)
+    reward.score_texts([moved, clean])
+    depths = reward.last_object_depths
+    rows = [tokenizer(t, add_special_tokens=False)["input_ids"] for t in (moved, clean)]
+    width = max(map(len, rows)) + 3
+    ids = torch.tensor([r + [tokenizer.pad_token_id] * (width - len(r)) for r in rows])
+    mask = torch.tensor([[1] * len(r) + [0] * (width - len(r)) for r in rows])
+    charged, skipped = object_token_depths(tokenizer, ids, mask, depths)
+    assert skipped == 0 and not charged[1].any() and not charged[0, len(rows[0]):].any()
+    offsets = tokenizer(moved, add_special_tokens=False, return_offsets_mapping=True)["offset_mapping"]
+    for (a, b), d in zip(object_line_spans(moved), depths[0]):
+        inside = [t for t, (s, e) in enumerate(offsets) if s < b and e > a]
+        assert torch.allclose(charged[0, inside], torch.tensor(float(d)))
+    outside = [t for t, (s, e) in enumerate(offsets)
+               if not any(s < b and e > a for a, b in object_line_spans(moved))]
+    assert not charged[0, outside].any()
+    # a row whose objects do not match its lines is left out, not charged at the wrong tokens
+    charged, skipped = object_token_depths(tokenizer, ids, mask, [np.ones(len(depths[0]) + 1), None])
+    assert skipped == 1 and not charged.any()
+
+
+def test_pada_lowers_the_advantage_of_the_charged_tokens_only(texts, reward):
+    _, moved = texts
+    tokenizer = build_tokenizer([moved], vocab_size=320)
+    reward.score_texts([moved, moved])
+    row = tokenizer(moved, add_special_tokens=False)["input_ids"]
+    output = {"completion_ids": torch.tensor([row, row]), "completion_mask": torch.ones(2, len(row)),
+              "advantages": torch.tensor([0.5, -0.5])}
+    logged = {}
+    trainer = SimpleNamespace(_credit_reward=reward, _tokenizer=tokenizer, object_credit=2.0,
+                              _log_value=lambda k, v: logged.__setitem__(k, v))
+    PADATrainer._credit_objects(trainer, output)
+    charged, _ = object_token_depths(tokenizer, output["completion_ids"], output["completion_mask"],
+                                     reward.last_object_depths)
+    assert output["advantages"].shape == (2, len(row))
+    assert torch.allclose(output["advantages"], torch.tensor([[0.5], [-0.5]]) - 2.0 * charged)
+    assert 0 < logged["object_credit/charged_token_frac"] < 1 and logged["object_credit/rows_left_out"] == 0
+    with pytest.raises(ValueError, match="object depths for 2 completions, 1 generated"):
+        PADATrainer._credit_objects(trainer, {k: v[:1] for k, v in output.items()})
