@@ -112,6 +112,16 @@ class SceneBatch:
     def n_scene(self) -> int:
         return self.poses.shape[0]
 
+    def deep_pairs(self, pair_depth, tolerance: float = 0.0) -> list[list[tuple[int, int, float]]]:
+        """Per scene, the pairs ``(i, j, depth)`` whose ``pair_depth`` (T,) exceeds ``tolerance`` (cm)."""
+        depth = pair_depth.cpu().numpy() if isinstance(pair_depth, torch.Tensor) else np.asarray(pair_depth)
+        hot = np.nonzero(depth > tolerance)[0]
+        pairs: list[list[tuple[int, int, float]]] = [[] for _ in range(self.n_scene)]
+        if hot.size:
+            for (s, i, j), d in zip(self.pair_slots()[hot].tolist(), depth[hot].tolist()):
+                pairs[s].append((i, j, d))
+        return pairs
+
     def pair_slots(self) -> np.ndarray:
         """(T, 3) int64 (scene, i, j) of every pair in CSR order (host)."""
         count = self.count.cpu().numpy().astype(np.int64)
@@ -379,15 +389,8 @@ class PhysicsEngine:
         out = self.evaluate(batch, poses, tolerance=tolerance)
         gap = self.support_gap(batch, poses)
         floating_mask = ((gap > self.config.floating_tolerance_cm) & batch.mask).cpu().numpy()
-        depth = out["pair_depth"].cpu().numpy()
-        hot = np.nonzero(depth > 0)[0]
-        pairs: list[list[tuple[int, int, float]]] = [[] for _ in range(batch.n_scene)]
-        if hot.size:
-            slots = batch.pair_slots()[hot]
-            for (s, i, j), d in zip(slots.tolist(), depth[hot].tolist()):
-                pairs[s].append((i, j, d))
         return Score(
-            energy=out["energy"], max_depth=out["max_depth"], pairs=pairs,
+            energy=out["energy"], max_depth=out["max_depth"], pairs=batch.deep_pairs(out["pair_depth"]),
             floating=[np.nonzero(row)[0].tolist() for row in floating_mask],
             table_penetration=out["table_depth"].max(dim=1).values, depth_sum=out["depth_sum"],
             table_depth=out["table_depth"], ids=batch.ids)

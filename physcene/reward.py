@@ -172,10 +172,8 @@ class PhysicsReward:
         tolerance_cm = self.config.tolerance_mm / 10.0
         count = batch.count.cpu().numpy().astype(np.int64)
         depths = [np.zeros(int(n)) for n in count]
-        pair_depth = out["pair_depth"].cpu().numpy()
-        hot = np.nonzero(pair_depth > tolerance_cm)[0]
-        if hot.size:
-            for (s, i, j), d in zip(batch.pair_slots()[hot].tolist(), pair_depth[hot].tolist()):
+        for s, pairs in enumerate(batch.deep_pairs(out["pair_depth"], tolerance_cm)):
+            for i, j, d in pairs:
                 depths[s][max(i, j)] += d
         if self.config.table_term:
             table = out["table_depth"].cpu().numpy()
