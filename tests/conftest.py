@@ -1,6 +1,23 @@
 """Fixtures shared by the test modules."""
 
+import importlib.util
+from pathlib import Path
+
 import pytest
+
+
+@pytest.fixture(scope="session")
+def results_script():
+    """Load a ``docs/results/<name>.py`` analysis script (not a package module) by name."""
+
+    def load(name: str):
+        path = Path(__file__).resolve().parents[1] / "docs" / "results" / f"{name}.py"
+        spec = importlib.util.spec_from_file_location(name, path)
+        module = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(module)
+        return module
+
+    return load
 
 
 @pytest.fixture

@@ -3,10 +3,8 @@ they say (the zone's digits; a first box moved onto the second one)."""
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import sys
-from pathlib import Path
 
 import pytest
 import torch
@@ -21,12 +19,8 @@ ARCH = dict(hidden_size=48, intermediate_size=96, num_hidden_layers=2, num_atten
 
 
 @pytest.fixture(scope="module")
-def probe():
-    path = Path(__file__).resolve().parents[1] / "docs" / "results" / "context_probe.py"
-    spec = importlib.util.spec_from_file_location("context_probe", path)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+def probe(results_script):
+    return results_script("context_probe")
 
 
 @pytest.fixture(scope="module")

@@ -3,9 +3,7 @@ synthetic split's clean and noisy layouts and on layout files."""
 
 from __future__ import annotations
 
-import importlib.util
 import json
-from pathlib import Path
 
 import pytest
 
@@ -16,12 +14,8 @@ from physcene.scene import TABLE
 
 
 @pytest.fixture(scope="module")
-def crowding():
-    path = Path(__file__).resolve().parents[1] / "docs" / "results" / "crowding.py"
-    spec = importlib.util.spec_from_file_location("crowding", path)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+def crowding(results_script):
+    return results_script("crowding")
 
 
 @pytest.fixture(scope="module")
