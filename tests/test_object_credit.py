@@ -1,5 +1,6 @@
 """``pada.object_credit`` (not in the paper): the physics reward charges each object the penetration of
-the pairs it was written into, and PADA lowers the advantage of that object's layout-line tokens."""
+the pairs it was written into, and PADA lowers the advantage of the tokens that place that object (its
+plan step and its layout line)."""
 
 from __future__ import annotations
 
@@ -8,7 +9,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 import torch
-from physcene.train.pada import PADATrainer, object_line_spans, object_token_depths
+from physcene.train.pada import PADATrainer, object_line_spans, object_text_spans, object_token_depths
 from physcene.train.tokenizer import build_tokenizer
 
 from physcene.ctrc import completion_text, parse
@@ -46,6 +47,21 @@ def test_object_lines_are_the_parsed_objects_in_order(texts):
             assert f'"instance_id": "{obj.instance_id}"' in text[a:b] and "\n" not in text[a:b]
 
 
+def test_each_object_is_placed_by_its_plan_step_and_its_layout_line(texts):
+    for text in texts:
+        scene = parse(text)
+        spans = object_text_spans(text)
+        assert [s[-1] for s in spans] == object_line_spans(text)
+        for (step, line), obj in zip(spans, scene.objects):
+            assert text[step[0]:step[1]].split(". ", 1)[1].startswith(f"Place {obj.instance_id} ")
+            assert step[1] < text.index("**Scene Layout:**") < line[0]
+    # an object the plan does not name keeps its layout line only
+    clean = texts[0]
+    first = parse(clean).objects[0].instance_id
+    renamed = clean.replace(f"Place {first} ", "Place something_else ", 1)
+    assert object_text_spans(renamed)[0] == [object_line_spans(renamed)[0]]
+
+
 def test_the_reward_charges_each_pair_to_the_object_written_later(texts, reward):
     clean, moved = texts
     rewards = reward.score_texts([clean, moved, "not a layout"])
@@ -77,11 +93,13 @@ def test_the_tokens_of_a_charged_object_line_carry_its_depth(texts, reward):
     charged, skipped = object_token_depths(tokenizer, ids, mask, depths)
     assert skipped == 0 and not charged[1].any() and not charged[0, len(rows[0]):].any()
     offsets = tokenizer(moved, add_special_tokens=False, return_offsets_mapping=True)["offset_mapping"]
-    for (a, b), d in zip(object_line_spans(moved), depths[0]):
-        inside = [t for t, (s, e) in enumerate(offsets) if s < b and e > a]
+    placed = object_text_spans(moved)
+    assert depths[0].max() > 0 and all(len(spans) == 2 for spans in placed)
+    for spans, d in zip(placed, depths[0]):
+        inside = [t for t, (s, e) in enumerate(offsets) if any(s < b and e > a for a, b in spans)]
         assert torch.allclose(charged[0, inside], torch.tensor(float(d)))
     outside = [t for t, (s, e) in enumerate(offsets)
-               if not any(s < b and e > a for a, b in object_line_spans(moved))]
+               if not any(s < b and e > a for spans in placed for a, b in spans)]
     assert not charged[0, outside].any()
     # a row whose objects do not match its lines is left out, not charged at the wrong tokens
     charged, skipped = object_token_depths(tokenizer, ids, mask, [np.ones(len(depths[0]) + 1), None])

@@ -41,6 +41,8 @@ from physcene.train.sft import nonfinite_gradients
 from transformers import PreTrainedTokenizerBase, TrainerCallback
 from trl import GRPOConfig, GRPOTrainer
 
+from physcene.ctrc import LAYOUT_HEADER
+
 __all__ = [
     "VARIANTS",
     "NoAnchorsError",
@@ -96,8 +98,9 @@ class PADAConfig(GRPOConfig):
                                      "which attention kernel; 0 = off."})
     object_credit: float = field(
         default=0.0, metadata={"help": "Not in the paper (0 = off): lower the advantage of the tokens of "
-                                       "each object's layout line by this much per cm of penetration "
-                                       "charged to it (object_token_depths); per-token advantages."})
+                                       "each object's plan step and layout line by this much per cm of "
+                                       "penetration charged to it (object_token_depths); per-token "
+                                       "advantages."})
 
 
 def numeric_spans(text: str, keys: tuple[str, ...] | list[str] = GEOMETRY_KEYS) -> list[tuple[int, int]]:
@@ -145,15 +148,38 @@ def object_line_spans(text: str) -> list[tuple[int, int]]:
     return spans
 
 
+_INSTANCE_ID = re.compile(r'"instance_id": "([^"]*)"')
+_PLAN_STEP = re.compile(r"\s*\d+\.\s+Place (\S+)\s")
+
+
+def object_text_spans(text: str) -> list[list[tuple[int, int]]]:
+    """Per object of a CTRC layout, in the order written (object k of the parsed scene): the
+    character spans of the text that places it — its plan step ("k. Place <id> ...", the first one
+    naming it, when the plan has one) and its layout line (:func:`object_line_spans`)."""
+    plan_end = text.find(LAYOUT_HEADER)
+    steps, start = {}, 0
+    for line in text[:max(plan_end, 0)].splitlines(keepends=True):
+        if (m := _PLAN_STEP.match(line)) is not None:
+            steps.setdefault(m.group(1), (start, start + len(line.rstrip("\n"))))
+        start += len(line)
+    spans = []
+    for a, b in object_line_spans(text):
+        m = _INSTANCE_ID.search(text, a, b)
+        step = steps.get(m.group(1)) if m is not None else None
+        spans.append([s for s in (step, (a, b)) if s is not None])
+    return spans
+
+
 def object_token_depths(tokenizer: PreTrainedTokenizerBase, completion_ids: torch.Tensor,
                         completion_mask: torch.Tensor, depths: list) -> tuple[torch.Tensor, int]:
     """((B, T) cm charged to each completion token, rows left out).
 
     ``depths[b]``: the (n_objects,) penetration charged to each object of completion b
     (:attr:`physcene.reward.PhysicsReward.last_object_depths`), None when it did not parse. Every
-    token that overlaps object k's layout line carries ``depths[b][k]``. A row is left out (all 0)
-    when its tokens decoded one by one do not give the completion's text (a multi-byte character
-    split across tokens) or its object lines do not match its objects.
+    token that overlaps the text placing object k (its plan step and layout line,
+    :func:`object_text_spans`) carries ``depths[b][k]`` (an object named twice: the larger). A row
+    is left out (all 0) when its tokens decoded one by one do not give the completion's text (a
+    multi-byte character split across tokens) or its object lines do not match its objects.
     """
     out = torch.zeros(completion_ids.shape, dtype=torch.float32)
     skipped = 0
@@ -164,17 +190,19 @@ def object_token_depths(tokenizer: PreTrainedTokenizerBase, completion_ids: torc
         ids = row[:int(lengths[b])]
         pieces = [tokenizer.decode([t]) for t in ids]
         text = "".join(pieces)
-        spans = object_line_spans(text)
+        spans = object_text_spans(text)
         if text != tokenizer.decode(ids) or len(spans) != len(charged):
             skipped += 1
             continue
         ends = np.cumsum([len(p) for p in pieces])
         starts = ends - np.array([len(p) for p in pieces])
-        for (a, e), d in zip(spans, charged):
-            if d > 0:
+        for object_spans, d in zip(spans, charged):
+            if d <= 0:
+                continue
+            for a, e in object_spans:
                 first = np.searchsorted(ends, a, side="right")  # the first token ending past a
                 last = np.searchsorted(starts, e, side="left")  # the first token starting at e or later
-                out[b, first:last] = float(d)
+                out[b, first:last] = torch.clamp(out[b, first:last], min=float(d))
     return out, skipped
 
 
@@ -321,7 +349,7 @@ class PADATrainer(GRPOTrainer):
 
     def _credit_objects(self, output: dict) -> None:
         """Per-token advantages (``pada.object_credit``, not in the paper): each token of an object's
-        layout line loses ``object_credit`` × the penetration (cm) charged to that object.
+        plan step and layout line loses ``object_credit`` × the penetration (cm) charged to it.
 
         The sequence reward says a layout collides, not which placement did it; this points the
         gradient at the objects written into occupied space. TRL's loss takes (B, T) advantages
