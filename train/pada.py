@@ -177,9 +177,10 @@ def object_token_depths(tokenizer: PreTrainedTokenizerBase, completion_ids: torc
     ``depths[b]``: the (n_objects,) penetration charged to each object of completion b
     (:attr:`physcene.reward.PhysicsReward.last_object_depths`), None when it did not parse. Every
     token that overlaps the text placing object k (its plan step and layout line,
-    :func:`object_text_spans`) carries ``depths[b][k]`` (an object named twice: the larger). A row
-    is left out (all 0) when its tokens decoded one by one do not give the completion's text (a
-    multi-byte character split across tokens) or its object lines do not match its objects.
+    :func:`object_text_spans`) carries ``depths[b][k]`` (a token across two objects' text: the
+    larger). A row is left out (all 0) when its tokens decoded one by one do not give the
+    completion's text (a multi-byte character split across tokens) or its object lines do not match
+    its objects.
     """
     out = torch.zeros(completion_ids.shape, dtype=torch.float32)
     skipped = 0
