@@ -21,7 +21,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from physcene.data.splits import level_of  # one definition of the levels, shared with the data
-from physcene.scene import Scene
+from physcene.scene import ZONE_TOLERANCE_CM, Scene
 
 __all__ = ["CRITERIA", "DIFFICULTY_LEVELS", "THRESHOLDS_CM", "ScenePhysics", "SceneResult", "breakdown",
            "collision_rates", "diversity", "floating_rate", "level_of", "out_of_zone",
@@ -36,9 +36,6 @@ THRESHOLDS_CM = (0.0, 0.5, 1.0)
 QPR_TAUS = (7, 8, 9)
 # Difficulty levels by object count (paper Table "Benchmark statistics"): 1-4, 5-8, 9-12, 13-16, 17+.
 DIFFICULTY_LEVELS = (1, 2, 3, 4, 5)
-# A footprint may poke this far (cm) past the zone before the object counts as out of zone: the
-# MesaTask annotations place objects flush with the zone edge.
-ZONE_TOLERANCE_CM = 0.5
 
 
 @dataclass(frozen=True)

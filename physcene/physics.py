@@ -91,6 +91,9 @@ class SceneBatch:
     """(S+1,) int32 CSR offsets of each scene's count*(count-1)/2 pairs (i < j, row-major)."""
     n_pairs: int
     """Total pairs T (host int: sizes the launches without a device sync)."""
+    zones: torch.Tensor | None = None
+    """(S, 4) float32 xmin, xmax, ymin, ymax (cm) of each scene's placement zone (host or device);
+    None when the batch was built without them."""
     _resolved: list = field(default_factory=list, repr=False)
     _bounds: np.ndarray | None = field(default=None, repr=False)
 
@@ -121,6 +124,21 @@ class SceneBatch:
             for (s, i, j), d in zip(self.pair_slots()[hot].tolist(), depth[hot].tolist()):
                 pairs[s].append((i, j, d))
         return pairs
+
+    def zone_overshoot(self, poses: torch.Tensor | None = None) -> torch.Tensor:
+        """(S, N) cm: how far each object's yawed footprint reaches past its scene's zone (the
+        largest of the four sides; 0 inside), on the batch's device. Needs ``zones``."""
+        if self.zones is None:
+            raise ValueError("zone_overshoot: this SceneBatch was built without zones")
+        poses = self.poses if poses is None else poses
+        zones = self.zones.to(poses.device, torch.float32)[:, None, :]  # (S, 1, 4)
+        c, s = poses[..., 3].cos().abs(), poses[..., 3].sin().abs()
+        hx = 0.5 * (c * self.sizes[..., 0] + s * self.sizes[..., 1])
+        hy = 0.5 * (s * self.sizes[..., 0] + c * self.sizes[..., 1])
+        x, y = poses[..., 0], poses[..., 1]
+        past = torch.stack([zones[..., 0] - (x - hx), (x + hx) - zones[..., 1],
+                            zones[..., 2] - (y - hy), (y + hy) - zones[..., 3]], -1)
+        return past.amax(-1).clamp(min=0.0) * self.mask
 
     def pair_slots(self) -> np.ndarray:
         """(T, 3) int64 (scene, i, j) of every pair in CSR order (host)."""
@@ -341,6 +359,8 @@ class PhysicsEngine:
             count=count_t,
             pair_start=ints[n_scene * n_slot + n_scene:],
             n_pairs=int(pair_start[-1]),
+            zones=torch.tensor([[s.zone.xmin, s.zone.xmax, s.zone.ymin, s.zone.ymax] for s in scenes],
+                               dtype=torch.float32).reshape(n_scene, 4),
             _resolved=resolved,
             _bounds=np.concatenate([[0], np.cumsum(counts)]),
         )

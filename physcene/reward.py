@@ -9,8 +9,9 @@ with E_pen = Σ_{i<j} pen(i, j) in MILLIMETRES over pairs deeper than the tolera
 Each completion is parsed once, every parsed scene of the batch is scored in ONE engine call,
 and unparsable completions never touch the engine. Canonical CTRC is read by the compiled
 scanner (``PhysicsEngine.pack_texts``, config ``fast_parse``); :func:`physcene.ctrc.parse` reads
-the rest and decides which completions are unparsable. The zone of the
-task is not needed: penetration does not change when a whole layout is translated.
+the rest and decides which completions are unparsable. The reward does not need the task's
+zone (penetration does not change when a whole layout is translated); the per-object
+``out_of_zone`` charge of PADA's ``object_credit`` reads it from the completion.
 """
 
 from __future__ import annotations
@@ -24,9 +25,15 @@ import torch
 
 from physcene.config import load_dataclass
 from physcene.ctrc import ParseError, parse
-from physcene.scene import Scene
+from physcene.scene import ZONE_TOLERANCE_CM, Scene
 
-__all__ = ["PhysicsReward", "RewardConfig", "completion_text_of", "physics_reward", "reward_from_energy"]
+__all__ = ["OBJECT_TERMS", "PhysicsReward", "RewardConfig", "completion_text_of", "physics_reward",
+           "reward_from_energy"]
+
+# What an object can be charged with (cm) when PhysicsReward keeps per-object charges (PADA's
+# object_credit): the penetration of the pairs it was written into, its support gap when it floats,
+# how far its footprint leaves the zone. Only the first is in the paper's reward.
+OBJECT_TERMS = ("penetration", "floating", "out_of_zone")
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -89,11 +96,14 @@ class PhysicsReward:
 
     __name__ = "physics_reward"  # TRL names reward columns after the function
 
-    def __init__(self, config: RewardConfig | None = None, engine=None, *, object_depths: bool = False):
+    def __init__(self, config: RewardConfig | None = None, engine=None, *, object_depths: bool = False,
+                 object_terms: Sequence[str] = ("penetration",)):
         self.config = config or RewardConfig()
         self._engine = engine
         self.object_depths = object_depths
         """Also keep ``last_object_depths`` after each call (PADA's ``object_credit``)."""
+        self.object_terms = object_terms_checked(object_terms)
+        """What ``last_object_depths`` charges each object with (:data:`OBJECT_TERMS`)."""
         self.last_metrics: dict[str, float] = {}
         self.last_parse_errors: list[str | None] = []
         self.last_object_depths: list[np.ndarray | None] = []
@@ -163,27 +173,51 @@ class PhysicsReward:
         return rewards.tolist()
 
     def _object_depths(self, batch, out: dict) -> list[np.ndarray]:
-        """Per batch row, (n_objects,) cm: the penetration each object is charged with.
+        """Per batch row, (n_objects,) cm: what each object is charged with (``object_terms``).
 
-        A pair deeper than the tolerance charges its depth to the object written later (the larger
-        index: objects keep the completion's order), the one placed into a space already taken;
-        with ``table_term`` an object's own table depth is charged to it too.
+        ``penetration``: a pair deeper than the tolerance charges its depth to the object written
+        later (the larger index: objects keep the completion's order), the one placed into a space
+        already taken; with ``table_term`` an object's own table depth is charged to it too.
+        ``floating``: an object whose bottom is more than the engine's ``floating_tolerance_cm``
+        above its support (the floating metric) is charged that gap. ``out_of_zone``: an object whose
+        yawed footprint leaves the zone by more than ``ZONE_TOLERANCE_CM`` (the out-of-zone metric)
+        is charged how far it reaches past it.
         """
         tolerance_cm = self.config.tolerance_mm / 10.0
         count = batch.count.cpu().numpy().astype(np.int64)
         depths = [np.zeros(int(n)) for n in count]
-        for s, pairs in enumerate(batch.deep_pairs(out["pair_depth"], tolerance_cm)):
-            for i, j, d in pairs:
-                depths[s][max(i, j)] += d
-        if self.config.table_term:
-            table = out["table_depth"].cpu().numpy()
+        per_object = []  # (S, N) charges beyond a tolerance, summed
+        if "penetration" in self.object_terms:
+            for s, pairs in enumerate(batch.deep_pairs(out["pair_depth"], tolerance_cm)):
+                for i, j, d in pairs:
+                    depths[s][max(i, j)] += d
+            if self.config.table_term:
+                per_object.append((out["table_depth"], tolerance_cm))
+        if "floating" in self.object_terms:
+            per_object.append((self.engine.support_gap(batch), self.engine.config.floating_tolerance_cm))
+        if "out_of_zone" in self.object_terms:
+            per_object.append((batch.zone_overshoot(), ZONE_TOLERANCE_CM))
+        if per_object:
+            charged = sum(torch.where(v > tol, v, torch.zeros_like(v)) for v, tol in per_object)
+            charged = charged.cpu().numpy()
             for s, n in enumerate(count):
-                row = table[s, :n]
-                depths[s] += np.where(row > tolerance_cm, row, 0.0)
+                depths[s] += charged[s, :n]
         return depths
 
     def describe(self) -> dict:
         return asdict(self.config)
+
+
+def object_terms_checked(terms: Sequence[str]) -> tuple[str, ...]:
+    """``terms`` as a tuple, each one of :data:`OBJECT_TERMS`, at least one, no repeats."""
+    if isinstance(terms, str):
+        terms = (terms,)
+    terms = tuple(str(t) for t in terms)
+    unknown = [t for t in terms if t not in OBJECT_TERMS]
+    if unknown or not terms or len(set(terms)) != len(terms):
+        raise ValueError(f"object terms must be distinct names among {list(OBJECT_TERMS)} (at least one), "
+                         f"got {list(terms)}")
+    return terms
 
 
 _BY_DEVICE: dict[str, PhysicsReward] = {}

@@ -15,12 +15,16 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-__all__ = ["RELATIONS", "Scene", "SceneError", "SceneObject", "Zone", "TABLE", "wrap_angle"]
+__all__ = ["RELATIONS", "Scene", "SceneError", "SceneObject", "Zone", "TABLE", "ZONE_TOLERANCE_CM",
+           "wrap_angle"]
 
 # Parent id used for objects that rest on (or near) the table itself.
 TABLE = "root_zone"
 # Hierarchy relations in priority order (in ≻ on ≻ near).
 RELATIONS = ("in", "on", "near")
+# A footprint may poke this far (cm) past the zone before the object counts as out of zone: the
+# MesaTask annotations place objects flush with the zone edge.
+ZONE_TOLERANCE_CM = 0.5
 
 
 class SceneError(ValueError):

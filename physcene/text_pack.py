@@ -252,17 +252,23 @@ class TextPacker:
             raise ValueError(f"batch has {pair_start[-1]} object pairs; split it into smaller batches")
         src = np.where(fast[ok_idx], ok_idx, -1)
         fast_idx = np.nonzero(fast)[0]
-        # one upload: row sources, counts, CSR pair offsets, scanned texts (for the lazy ids)
-        ints = np.concatenate([src, counts, pair_start, fast_idx]).astype(np.int32)
+        # one upload: row sources, counts, CSR pair offsets, scanned texts (for the lazy ids and the
+        # zones) and their batch rows
+        ints = np.concatenate([src, counts, pair_start, fast_idx, row[fast_idx]]).astype(np.int32)
         ints = torch.from_numpy(ints).to(device)
         src_t, count_t = ints[:n_row], ints[n_row:2 * n_row]
-        pair_start_t, fast_src = ints[2 * n_row:3 * n_row + 1], ints[3 * n_row + 1:]
+        pair_start_t = ints[2 * n_row:3 * n_row + 1]
+        fast_src = ints[3 * n_row + 1:3 * n_row + 1 + fast_idx.size]
+        fast_rows_t = ints[3 * n_row + 1 + fast_idx.size:].long()
         poses_t = torch.empty(n_row, n_slot, 4, dtype=torch.float32, device=device)
         sizes_t = torch.empty(n_row, n_slot, 3, dtype=torch.float32, device=device)
         asset_t = torch.empty(n_row, n_slot, dtype=torch.int32, device=device)
+        zones_t = torch.zeros(n_row, 4, dtype=torch.float32, device=device)
         if fast_idx.size:  # every slot: scanned objects, padding elsewhere
             launch_gather(src=src_t, count=count_t, n_slot=n_slot, buffers=self._buffers, poses=poses_t,
                           sizes=sizes_t, asset=asset_t)
+            scanned_zones = self._buffers["zone"].index_select(0, fast_src.long())[:, :4]
+            zones_t.index_copy_(0, fast_rows_t, scanned_zones.float())
         else:  # nothing scanned (no scan buffers yet, maybe): padding, the fallback rows below
             poses_t.zero_()
             sizes_t.fill_(1.0)
@@ -276,6 +282,7 @@ class TextPacker:
             poses_t[:, :width].index_copy_(0, rows_t, slow_batch.poses)
             sizes_t[:, :width].index_copy_(0, rows_t, slow_batch.sizes)
             asset_t[:, :width].index_copy_(0, rows_t, slow_batch.asset_index)
+            zones_t.index_copy_(0, rows_t, slow_batch.zones.to(device))
             scene_ids = {int(r): s.ids() for r, s in zip(fb_rows.tolist(), scenes.values())}
         fast_rows = row[fast]
         spans = torch.zeros(0, n_slot, 2, dtype=torch.int32, device=device)
@@ -289,5 +296,5 @@ class TextPacker:
             poses=poses_t, sizes=sizes_t,
             mask=torch.arange(n_slot, device=device)[None, :] < count_t[:, None],
             ids=ids, asset_index=asset_t, count=count_t, pair_start=pair_start_t,
-            n_pairs=int(pair_start[-1]))
+            n_pairs=int(pair_start[-1]), zones=zones_t)
         return TextPack(batch, row, errors, status)

@@ -124,3 +124,62 @@ def test_pada_lowers_the_advantage_of_the_charged_tokens_only(texts, reward):
     assert 0 < logged["object_credit/charged_token_frac"] < 1 and logged["object_credit/rows_left_out"] == 0
     with pytest.raises(ValueError, match="object depths for 2 completions, 1 generated"):
         PADATrainer._credit_objects(trainer, {k: v[:1] for k, v in output.items()})
+
+
+
+def _moved_last_table_object(scene, center):
+    """``scene`` with its last table-level object moved to ``center(obj)``; (scene, its index)."""
+    last = [o for o in scene.objects if o.parent == TABLE][-1]
+    moved = scene.with_objects(o.moved(center=center(o)) if o is last else o for o in scene.objects)
+    return moved, [o.instance_id for o in moved.objects].index(last.instance_id)
+
+
+def test_floating_and_out_of_zone_objects_are_charged_when_asked(texts):
+    """``object_terms``: a lifted object is charged its gap, one pushed past the zone edge how far
+    its yawed footprint reaches past it: the objects the floating and out-of-zone metrics flag, read
+    by the compiled scanner and by the parser alike."""
+    from physcene.eval.metrics import out_of_zone
+
+    from physcene.scene import ZONE_TOLERANCE_CM
+
+    clean = parse(texts[0])
+    lifted, k_lifted = _moved_last_table_object(clean, lambda o: (*o.center[:2], o.center[2] + 4.0))
+    # wholly past the right edge (1 cm clear of it): out of the zone, touching nothing
+    outside, k_out = _moved_last_table_object(
+        clean, lambda o: (clean.zone.xmax + 1.0 + 0.5 * np.ptp(o.footprint()[:, 0]), *o.center[1:]))
+    both = PhysicsReward(RewardConfig(device="cpu"), object_depths=True,
+                         object_terms=("penetration", "floating", "out_of_zone"))
+    written = [completion_text(s, decimals=2) for s in (clean, lifted, outside)]
+    rewards = both.score_texts(written)
+    assert rewards == [50.0, 50.0, 50.0]  # the paper's reward sees neither
+    fast = [d.copy() for d in both.last_object_depths]
+    both.score_parsed([parse(t) for t in written])
+    for a, b in zip(fast, both.last_object_depths):
+        assert np.allclose(a, b, atol=1e-4)
+    none, on_lifted, on_outside = fast
+    assert not none.any()
+    assert np.flatnonzero(on_lifted).tolist() == [k_lifted]
+    assert on_lifted[k_lifted] == pytest.approx(4.0, abs=0.05)
+    assert np.flatnonzero(on_outside).tolist() == list(out_of_zone(outside)) == [k_out]
+    fp = outside.objects[k_out].footprint()
+    assert on_outside[k_out] == pytest.approx(fp[:, 0].max() - outside.zone.xmax, abs=1e-3)
+    assert on_outside[k_out] > ZONE_TOLERANCE_CM
+    # the default charges penetration only: neither moved object is charged
+    only = PhysicsReward(RewardConfig(device="cpu"), object_depths=True)
+    only.score_texts([completion_text(s, decimals=2) for s in (lifted, outside)])
+    assert not any(d.any() for d in only.last_object_depths)
+
+
+def test_unknown_object_terms_are_named():
+    from physcene.train.pada import pada_arguments
+
+    from physcene.config import load_config
+
+    with pytest.raises(ValueError, match=r"got \['penetration', 'flying'\]"):
+        PhysicsReward(object_terms=("penetration", "flying"))
+    repeated = load_config("train_tiny", ["pada.object_credit_terms=[out_of_zone,out_of_zone]"])
+    with pytest.raises(ValueError, match="pada.object_credit_terms: object terms must be distinct"):
+        pada_arguments(repeated, "pada")
+    two = load_config("train_tiny", ["pada.object_credit_terms=[penetration,floating]"])
+    args = pada_arguments(two, "pada")
+    assert args.object_credit_terms == ["penetration", "floating"]

@@ -101,6 +101,11 @@ class PADAConfig(GRPOConfig):
                                        "each object's plan step and layout line by this much per cm of "
                                        "penetration charged to it (object_token_depths); per-token "
                                        "advantages."})
+    object_credit_terms: list[str] = field(
+        default_factory=lambda: ["penetration"],
+        metadata={"help": "What object_credit charges each object with (cm), of "
+                          "physcene.reward.OBJECT_TERMS: penetration (the paper's reward term), "
+                          "floating (its support gap), out_of_zone (how far its footprint leaves the zone)."})
 
 
 def numeric_spans(text: str, keys: tuple[str, ...] | list[str] = GEOMETRY_KEYS) -> list[tuple[int, int]]:
@@ -233,7 +238,7 @@ class PADATrainer(GRPOTrainer):
         self.object_credit = float(args.object_credit)
         self._credit_reward = None
         if self.object_credit:
-            from physcene.reward import PhysicsReward
+            from physcene.reward import PhysicsReward, object_terms_checked
 
             rewards = (getattr(f, "reward", f) for f in self.reward_funcs)
             found = [r for r in rewards if isinstance(r, PhysicsReward)]
@@ -243,6 +248,7 @@ class PADATrainer(GRPOTrainer):
                                  "its penetration")
             self._credit_reward = found[0]
             self._credit_reward.object_depths = True
+            self._credit_reward.object_terms = object_terms_checked(args.object_credit_terms)
         if args.cache_implementation == "static" and getattr(self, "generation_config", None) is not None:
             # One static cache size for the whole run (longest prompt + completion): HF sizes it per
             # call otherwise, and each longer batch would recompile the compiled decoding forward.
@@ -350,7 +356,8 @@ class PADATrainer(GRPOTrainer):
 
     def _credit_objects(self, output: dict) -> None:
         """Per-token advantages (``pada.object_credit``, not in the paper): each token of an object's
-        plan step and layout line loses ``object_credit`` × the penetration (cm) charged to it.
+        plan step and layout line loses ``object_credit`` × the cm charged to it (its penetration,
+        and per ``pada.object_credit_terms`` its floating gap and how far it leaves the zone).
 
         The sequence reward says a layout collides, not which placement did it; this points the
         gradient at the objects written into occupied space. TRL's loss takes (B, T) advantages
@@ -593,6 +600,8 @@ def pada_arguments(cfg, variant: str) -> PADAConfig:
     from omegaconf import OmegaConf
     from physcene.train.sft import _precision, accumulation_steps, world_size
 
+    from physcene.reward import object_terms_checked
+
     if variant not in VARIANTS:
         raise ValueError(f"unknown PADA variant {variant!r}; use one of {sorted(VARIANTS)}")
     from physcene.train.generate import check_cache
@@ -611,6 +620,12 @@ def pada_arguments(cfg, variant: str) -> PADAConfig:
     if object_credit < 0:
         raise ValueError(f"pada.object_credit must be >= 0 (advantage per cm of penetration), "
                          f"got {object_credit}")
+    terms = p.get("object_credit_terms", ["penetration"])
+    try:
+        terms = OmegaConf.to_container(terms) if OmegaConf.is_config(terms) else terms
+        terms = list(object_terms_checked(terms))
+    except ValueError as exc:
+        raise ValueError(f"pada.object_credit_terms: {exc}") from None
     return PADAConfig(
         output_dir=str(p.output_dir),
         anchor_alpha=0.0 if column is None else float(p.alpha),
@@ -627,6 +642,7 @@ def pada_arguments(cfg, variant: str) -> PADAConfig:
         mask_overruled=bool(p.get("mask_overruled", True)),
         nonfinite_probe=int(p.get("nonfinite_probe", 0) or 0),
         object_credit=object_credit,
+        object_credit_terms=terms,
         learning_rate=float(p.learning_rate),
         lr_scheduler_type=str(p.lr_scheduler_type),
         num_train_epochs=float(p.epochs),
