@@ -21,7 +21,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from physcene.data.splits import level_of  # one definition of the levels, shared with the data
-from physcene.scene import ZONE_TOLERANCE_CM, Scene
+from physcene.scene import ZONE_TOLERANCE_CM, Scene, zone_overshoot
 
 __all__ = ["CRITERIA", "DIFFICULTY_LEVELS", "THRESHOLDS_CM", "ScenePhysics", "SceneResult", "breakdown",
            "collision_rates", "diversity", "floating_rate", "level_of", "out_of_zone",
@@ -73,14 +73,13 @@ class ScenePhysics:
 
 def out_of_zone(scene: Scene, tolerance_cm: float = ZONE_TOLERANCE_CM) -> tuple[int, ...]:
     """Indices of objects whose yawed footprint leaves the zone by more than ``tolerance_cm``."""
+    if not scene.objects:
+        return ()
+    boxes = np.array([(*o.center[:2], *o.size[:2], o.yaw) for o in scene.objects], dtype=np.float64)
     z = scene.zone
-    out = []
-    for k, o in enumerate(scene.objects):
-        fp = o.footprint()  # (4, 2)
-        if (fp[:, 0].min() < z.xmin - tolerance_cm or fp[:, 0].max() > z.xmax + tolerance_cm
-                or fp[:, 1].min() < z.ymin - tolerance_cm or fp[:, 1].max() > z.ymax + tolerance_cm):
-            out.append(k)
-    return tuple(out)
+    zone = np.array([z.xmin, z.xmax, z.ymin, z.ymax])
+    past = zone_overshoot(boxes[:, :2], boxes[:, 2:4], boxes[:, 4], zone)
+    return tuple(np.flatnonzero(past > tolerance_cm).tolist())
 
 
 def physics_from_score(scenes: Sequence[Scene], score) -> list[ScenePhysics]:

@@ -25,7 +25,7 @@ import torch
 
 from physcene.config import ConfigError, load_dataclass
 from physcene.kernels.penetration import BUCKETS, NARROWPHASES, launch_penetration, launch_support
-from physcene.scene import Scene
+from physcene.scene import Scene, zone_overshoot
 
 __all__ = ["PhysicsConfig", "PhysicsEngine", "SceneBatch", "Score", "axis_ray_distances", "bucket_points",
            "pack_assets"]
@@ -125,20 +125,16 @@ class SceneBatch:
                 pairs[s].append((i, j, d))
         return pairs
 
-    def zone_overshoot(self, poses: torch.Tensor | None = None) -> torch.Tensor:
-        """(S, N) cm: how far each object's yawed footprint reaches past its scene's zone (the
-        largest of the four sides; 0 inside), on the batch's device. Needs ``zones``."""
+    def zone_overshoot(self, poses: torch.Tensor | None = None) -> np.ndarray:
+        """(S, N) cm on the host: how far each object's yawed footprint reaches past its scene's
+        zone (:func:`physcene.scene.zone_overshoot`; 0 inside and on padded slots). Needs ``zones``."""
         if self.zones is None:
             raise ValueError("zone_overshoot: this SceneBatch was built without zones")
-        poses = self.poses if poses is None else poses
-        zones = self.zones.to(poses.device, torch.float32)[:, None, :]  # (S, 1, 4)
-        c, s = poses[..., 3].cos().abs(), poses[..., 3].sin().abs()
-        hx = 0.5 * (c * self.sizes[..., 0] + s * self.sizes[..., 1])
-        hy = 0.5 * (s * self.sizes[..., 0] + c * self.sizes[..., 1])
-        x, y = poses[..., 0], poses[..., 1]
-        past = torch.stack([zones[..., 0] - (x - hx), (x + hx) - zones[..., 1],
-                            zones[..., 2] - (y - hy), (y + hy) - zones[..., 3]], -1)
-        return past.amax(-1).clamp(min=0.0) * self.mask
+        poses = (self.poses if poses is None else poses).detach().cpu().numpy().astype(np.float64)
+        sizes = self.sizes.cpu().numpy().astype(np.float64)
+        zones = self.zones.cpu().numpy()[:, None, :]
+        past = zone_overshoot(poses[..., :2], sizes[..., :2], poses[..., 3], zones)
+        return past * self.mask.cpu().numpy()
 
     def pair_slots(self) -> np.ndarray:
         """(T, 3) int64 (scene, i, j) of every pair in CSR order (host)."""

@@ -186,20 +186,20 @@ class PhysicsReward:
         tolerance_cm = self.config.tolerance_mm / 10.0
         count = batch.count.cpu().numpy().astype(np.int64)
         depths = [np.zeros(int(n)) for n in count]
-        per_object = []  # (S, N) charges beyond a tolerance, summed
+        per_object = []  # (S, N) host charges, each counted beyond its tolerance
         if "penetration" in self.object_terms:
             for s, pairs in enumerate(batch.deep_pairs(out["pair_depth"], tolerance_cm)):
                 for i, j, d in pairs:
                     depths[s][max(i, j)] += d
             if self.config.table_term:
-                per_object.append((out["table_depth"], tolerance_cm))
+                per_object.append((out["table_depth"].cpu().numpy(), tolerance_cm))
         if "floating" in self.object_terms:
-            per_object.append((self.engine.support_gap(batch), self.engine.config.floating_tolerance_cm))
+            per_object.append((self.engine.support_gap(batch).cpu().numpy(),
+                               self.engine.config.floating_tolerance_cm))
         if "out_of_zone" in self.object_terms:
             per_object.append((batch.zone_overshoot(), ZONE_TOLERANCE_CM))
-        if per_object:
-            charged = sum(torch.where(v > tol, v, torch.zeros_like(v)) for v, tol in per_object)
-            charged = charged.cpu().numpy()
+        for value, tolerance in per_object:
+            charged = np.where(value > tolerance, value, 0.0)
             for s, n in enumerate(count):
                 depths[s] += charged[s, :n]
         return depths

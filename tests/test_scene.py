@@ -5,7 +5,7 @@ import math
 import numpy as np
 import pytest
 
-from physcene.scene import TABLE, Scene, SceneError, SceneObject, Zone, wrap_angle
+from physcene.scene import TABLE, Scene, SceneError, SceneObject, Zone, wrap_angle, zone_overshoot
 
 ZONE = Zone(0.0, 100.0, 0.0, 60.0)
 
@@ -75,3 +75,19 @@ def test_wrap_angle():
 def test_source_in_error():
     err = SceneError("bad", obj="x", field="size").with_source("a.json")
     assert str(err) == "a.json, object 'x', field 'size': bad"
+
+
+def test_zone_overshoot_is_how_far_the_yawed_footprint_corners_reach_past_the_zone():
+    rng = np.random.default_rng(0)
+    zone = Zone(0.0, 120.0, 0.0, 60.0)
+    boxes = [SceneObject(f"{k}_box_0", "box", (*rng.uniform(-10, 130, 1), *rng.uniform(-10, 70, 1), 5.0),
+                         tuple(rng.uniform(1, 40, 3)), yaw=float(rng.uniform(-math.pi, math.pi)))
+             for k in range(200)]
+    past = zone_overshoot(np.array([o.center[:2] for o in boxes]), np.array([o.size[:2] for o in boxes]),
+                          np.array([o.yaw for o in boxes]), np.array([0.0, 120.0, 0.0, 60.0]))
+    for o, p in zip(boxes, past):
+        fp = o.footprint()
+        expected = max(zone.xmin - fp[:, 0].min(), fp[:, 0].max() - zone.xmax,
+                       zone.ymin - fp[:, 1].min(), fp[:, 1].max() - zone.ymax, 0.0)
+        assert p == pytest.approx(expected, abs=1e-9)
+    assert (past > 0).sum() > 20 and (past == 0).sum() > 20  # both kinds among the boxes
