@@ -252,9 +252,10 @@ class TextPacker:
             raise ValueError(f"batch has {pair_start[-1]} object pairs; split it into smaller batches")
         src = np.where(fast[ok_idx], ok_idx, -1)
         fast_idx = np.nonzero(fast)[0]
+        fast_rows = row[fast_idx]
         # one upload: row sources, counts, CSR pair offsets, scanned texts (for the lazy ids and the
         # zones) and their batch rows
-        ints = np.concatenate([src, counts, pair_start, fast_idx, row[fast_idx]]).astype(np.int32)
+        ints = np.concatenate([src, counts, pair_start, fast_idx, fast_rows]).astype(np.int32)
         ints = torch.from_numpy(ints).to(device)
         src_t, count_t = ints[:n_row], ints[n_row:2 * n_row]
         pair_start_t = ints[2 * n_row:3 * n_row + 1]
@@ -284,7 +285,6 @@ class TextPacker:
             asset_t[:, :width].index_copy_(0, rows_t, slow_batch.asset_index)
             zones_t.index_copy_(0, rows_t, slow_batch.zones.to(device))
             scene_ids = {int(r): s.ids() for r, s in zip(fb_rows.tolist(), scenes.values())}
-        fast_rows = row[fast]
         spans = torch.zeros(0, n_slot, 2, dtype=torch.int32, device=device)
         if fast_idx.size:
             # a copy (the scan buffers are reused by the next call); index_select, not advanced
