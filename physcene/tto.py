@@ -622,12 +622,16 @@ def optimise(problem: TTOProblem, engine, config: TTOConfig) -> TTOSolution:
 # --------------------------------------------------------------------------------------------
 # Public entry point
 # --------------------------------------------------------------------------------------------
-def repair(scenes: Sequence[Scene], config: TTOConfig | None = None, engine=None) -> list[TTOResult]:
+def repair(scenes: Sequence[Scene], config: TTOConfig | None = None, engine=None,
+           freeze: Sequence[set[str]] | None = None) -> list[TTOResult]:
     """Project each scene onto the collision-free set without breaking its hierarchy.
 
     ``scenes`` may carry a hierarchy (parent/relation, e.g. from CTRC) or not (it is built with
-    :func:`physcene.graph.build_hierarchy`). Returns one :class:`TTOResult` per scene, in order;
-    the returned scene is the input with new poses (annotations as in the input).
+    :func:`physcene.graph.build_hierarchy`). ``freeze``: per scene, ids held exactly where the
+    input has them (their subtrees still follow them; a scene with held objects is not
+    re-attached), e.g. every object but the ones a reward blamed. Returns one :class:`TTOResult`
+    per scene, in order; the returned scene is the input with new poses (annotations as in the
+    input).
     """
     from physcene.graph import ensure_hierarchy
 
@@ -637,6 +641,8 @@ def repair(scenes: Sequence[Scene], config: TTOConfig | None = None, engine=None
 
         engine = PhysicsEngine(device=config.device)
     scenes = list(scenes)
+    if freeze is not None and len(freeze) != len(scenes):
+        raise ValueError(f"freeze: {len(freeze)} sets of held ids for {len(scenes)} scenes")
     results: list[TTOResult | None] = [None] * len(scenes)
     todo = [i for i, sc in enumerate(scenes) if len(sc) > 0]
     for i, sc in enumerate(scenes):
@@ -645,17 +651,18 @@ def repair(scenes: Sequence[Scene], config: TTOConfig | None = None, engine=None
     for start in range(0, len(todo), config.batch_size):
         chunk = todo[start:start + config.batch_size]
         hier = [ensure_hierarchy(scenes[i]) for i in chunk]
-        problem = build_problem(hier, engine, config)
+        held = [set(freeze[i]) for i in chunk] if freeze is not None else None
+        problem = build_problem(hier, engine, config, held)
         solution = optimise(problem, engine, config)
         for k, result in enumerate(_results(problem, solution, [scenes[i] for i in chunk], hier,
                                             engine, config)):
             results[chunk[k]] = result
-        _second_pass(chunk, hier, scenes, results, engine, config)
+        _second_pass(chunk, hier, scenes, results, engine, config, held)
     return results
 
 
 def _second_pass(chunk: list[int], hier: list[Scene], scenes: list[Scene], results: list, engine,
-                 config: TTOConfig) -> None:
+                 config: TTOConfig, held: list[set[str]] | None = None) -> None:
     """Re-run scenes whose rebuilt graph lost an in/on edge, with that child's chain held.
 
     Why: sliding an ``on`` child (or its support, or a container over it), or snapping it onto its
@@ -684,7 +691,7 @@ def _second_pass(chunk: list[int], hier: list[Scene], scenes: list[Scene], resul
                 while oid in by_id and oid not in ids:
                     ids.add(oid)
                     oid = by_id[oid].parent
-        freeze.append(ids)
+        freeze.append(ids | held[k] if held is not None else ids)
     sub = [hier[k] for k in redo]
     problem = build_problem(sub, engine, config, freeze)
     solution = optimise(problem, engine, config)

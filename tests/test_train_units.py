@@ -484,6 +484,12 @@ def test_records_read_from_jsonl_and_gzipped_jsonl(tmp_path):
     assert load_records(str(tmp_path / "a.jsonl")) == rows
     assert load_records(str(tmp_path / "a.jsonl.gz")) == rows
     assert load_records(str(tmp_path / "a.jsonl.gz"), max_level=1) == [r for r in rows if r["level"] == 1]
+    # a .gz name is written gzipped (an anchor file named anchors.jsonl.gz was once written as plain text
+    # and its reader stopped PADA with BadGzipFile)
+    write_records(rows, tmp_path / "b.jsonl.gz")
+    with gzip.open(tmp_path / "b.jsonl.gz", "rt") as fh:
+        assert fh.read() == (tmp_path / "a.jsonl").read_text()
+    assert load_records(str(tmp_path / "b.jsonl.gz")) == rows
 
 
 @pytest.fixture

@@ -52,8 +52,10 @@ __all__ = [
     "PhysicsRewardFunction",
     "numeric_spans",
     "pada_arguments",
+    "padded_targets",
     "run_pada",
     "tokenize_anchor",
+    "tokenize_target",
 ]
 
 logger = logging.getLogger(__name__)
@@ -106,6 +108,19 @@ class PADAConfig(GRPOConfig):
         metadata={"help": "What object_credit charges each object with (cm), of "
                           "physcene.reward.OBJECT_TERMS: penetration (the paper's reward term), "
                           "floating (its support gap), out_of_zone (how far its footprint leaves the zone)."})
+    denoise: float = field(
+        default=0.0, metadata={"help": "Not in the paper (0 = off): weight of the cross-entropy toward each "
+                                       "rollout's on-policy repair (physcene.train.denoise: TTO with only "
+                                       "the objects the reward blamed free, their numbers rewritten in the "
+                                       "rollout's text); a rewritten token weighs like a GRPO token of "
+                                       "advantage `denoise`."})
+    denoise_margin_cm: float = field(
+        default=1.0, metadata={"help": "Clearance (cm) the denoising repair keeps around a blamed "
+                                       "table-level object."})
+    denoise_tto: list[str] = field(
+        default_factory=lambda: ["lambda_zone=100.0"],
+        metadata={"help": "configs/tto.yaml overrides for the denoising repair (key=value; the zone "
+                          "weighed 10x, train/denoise.py); its device is the reward engine's."})
 
 
 def numeric_spans(text: str, keys: tuple[str, ...] | list[str] = GEOMETRY_KEYS) -> list[tuple[int, int]]:
@@ -135,11 +150,51 @@ def tokenize_anchor(tokenizer: PreTrainedTokenizerBase, text: str, *, max_length
     ids = list(enc["input_ids"]) + [tokenizer.eos_token_id]
     mask = [1] * len(ids)
     if numeric_mask:
-        spans = numeric_spans(text, keys)
-        for t, (a, b) in enumerate(enc["offset_mapping"]):
-            if any(a < e and s < b for s, e in spans):
-                mask[t] = 0
+        for t in _tokens_over(enc["offset_mapping"], numeric_spans(text, keys)):
+            mask[t] = 0
     return ids[:max_length], mask[:max_length]
+
+
+def tokenize_target(tokenizer: PreTrainedTokenizerBase, text: str, spans: list[tuple[int, int]], *,
+                    max_length: int) -> tuple[list[int], list[int]]:
+    """(token ids, loss mask) of a completion, EOS appended, supervised only where a token overlaps one
+    of the character ``spans`` (:mod:`physcene.train.denoise`'s rewritten numbers); at most
+    ``max_length`` tokens. Empty text -> ``([], [])``."""
+    if not text:
+        return [], []
+    enc = tokenizer(text, add_special_tokens=False, return_offsets_mapping=True)
+    ids = list(enc["input_ids"]) + [tokenizer.eos_token_id]
+    mask = [0] * len(ids)
+    for t in _tokens_over(enc["offset_mapping"], spans):
+        mask[t] = 1
+    return ids[:max_length], mask[:max_length]
+
+
+def padded_targets(name: str, rows: list[tuple[list[int], list[int]]], pad: int, device) -> dict:
+    """``<name>_ids`` / ``<name>_attention_mask`` / ``<name>_loss_mask`` (B, T) of per-row (ids, loss
+    mask), right padded like TRL's completion_ids so that [prompt | target] reads as prompt +
+    completion; an empty row is all padding."""
+    width = max(1, max((len(ids) for ids, _ in rows), default=0))
+    return {
+        f"{name}_ids": torch.tensor([ids + [pad] * (width - len(ids)) for ids, _ in rows], device=device),
+        f"{name}_attention_mask": torch.tensor([[1] * len(ids) + [0] * (width - len(ids)) for ids, _ in rows],
+                                               device=device),
+        f"{name}_loss_mask": torch.tensor([m + [0] * (width - len(m)) for _, m in rows], device=device),
+    }
+
+
+def _tokens_over(offsets, spans: list[tuple[int, int]]) -> list[int]:
+    """Indices of the tokens (character ``offsets``) that overlap any of the sorted ``spans``."""
+    if not spans:
+        return []
+    starts = np.array([s for s, _ in spans])
+    ends = np.maximum.accumulate(np.array([e for _, e in spans]))
+    out = []
+    for t, (a, b) in enumerate(offsets):
+        k = int(np.searchsorted(starts, b, side="left")) - 1  # the last span starting before b
+        if k >= 0 and ends[k] > a:
+            out.append(t)
+    return out
 
 
 def object_line_spans(text: str) -> list[tuple[int, int]]:
@@ -236,19 +291,28 @@ class PADATrainer(GRPOTrainer):
         self._probed_step = -1
         self._micro_batch_inputs = None
         self.object_credit = float(args.object_credit)
+        self.denoise = float(args.denoise)
         self._credit_reward = None
-        if self.object_credit:
+        if self.object_credit or self.denoise:
             from physcene.reward import PhysicsReward, object_terms_checked
 
             rewards = (getattr(f, "reward", f) for f in self.reward_funcs)
             found = [r for r in rewards if isinstance(r, PhysicsReward)]
             if not found:
-                raise ValueError("pada.object_credit needs the physics reward (physcene.reward."
-                                 "PhysicsReward) among the reward functions: it charges each object "
-                                 "its penetration")
+                raise ValueError("pada.object_credit and pada.denoise need the physics reward (physcene."
+                                 "reward.PhysicsReward) among the reward functions: it charges each "
+                                 "object its penetration")
             self._credit_reward = found[0]
             self._credit_reward.object_depths = True
             self._credit_reward.object_terms = object_terms_checked(args.object_credit_terms)
+        self._denoise_tto = None
+        if self.denoise:
+            from dataclasses import replace
+
+            from physcene.tto import TTOConfig
+
+            self._denoise_tto = replace(TTOConfig.from_config(list(args.denoise_tto)),
+                                        device=str(self._credit_reward.engine.device))
         if args.cache_implementation == "static" and getattr(self, "generation_config", None) is not None:
             # One static cache size for the whole run (longest prompt + completion): HF sizes it per
             # call otherwise, and each longer batch would recompile the compiled decoding forward.
@@ -336,6 +400,8 @@ class PADATrainer(GRPOTrainer):
             self._mask_overruled(output, self._round_overruled)
         if self.object_credit:
             self._credit_objects(output)
+        if self.denoise:
+            self._denoise_rollouts(output)
         if self.anchor_alpha == 0.0:
             return output
         device = self.accelerator.device
@@ -343,15 +409,7 @@ class PADATrainer(GRPOTrainer):
                                 max_length=self.max_completion_length,
                                 numeric_mask=self.args.anchor_numeric_mask,
                                 keys=tuple(self.args.anchor_geometry_keys)) for x in inputs]
-        width = max(1, max(len(ids) for ids, _ in rows))
-        pad = self._tokenizer.pad_token_id
-        # Right padding, like TRL's completion_ids, so [prompt | anchor] reads as prompt + completion.
-        output["anchor_ids"] = torch.tensor([ids + [pad] * (width - len(ids)) for ids, _ in rows],
-                                            device=device)
-        output["anchor_attention_mask"] = torch.tensor(
-            [[1] * len(ids) + [0] * (width - len(ids)) for ids, _ in rows], device=device)
-        output["anchor_loss_mask"] = torch.tensor([m + [0] * (width - len(m)) for _, m in rows],
-                                                  device=device)
+        output.update(padded_targets("anchor", rows, self._tokenizer.pad_token_id, device))
         return output
 
     def _credit_objects(self, output: dict) -> None:
@@ -379,6 +437,37 @@ class PADATrainer(GRPOTrainer):
         self._log_value("object_credit/charged_token_frac",
                         ((charged > 0) & mask.bool()).sum().item() / max(mask.sum().item(), 1))
         self._log_value("object_credit/rows_left_out", float(skipped))
+
+    def _denoise_rollouts(self, output: dict) -> None:
+        """On-policy denoising targets (``pada.denoise``, not in the paper; :mod:`physcene.train.denoise`):
+        each rollout the reward blamed objects in, repaired by TTO with only those objects free, as
+        ``denoise_ids`` / ``denoise_attention_mask`` / ``denoise_loss_mask`` (right padded, like the
+        anchor's), supervised on the numbers the repair rewrote. Rows without a target are all 0.
+        """
+        from physcene.train.denoise import denoise_targets
+
+        start = time.perf_counter()
+        completion_ids, completion_mask = output["completion_ids"], output["completion_mask"]
+        lengths = completion_mask.sum(dim=1).tolist()
+        texts = [self._tokenizer.decode(row[:int(n)], skip_special_tokens=True)
+                 for row, n in zip(completion_ids.tolist(), lengths)]
+        charges = self._credit_reward.last_object_depths
+        if len(charges) != len(texts):
+            raise ValueError(f"object charges for {len(charges)} completions, {len(texts)} generated")
+        targets = denoise_targets(texts, charges, config=self._denoise_tto, engine=self._credit_reward.engine,
+                                  margin_cm=self.args.denoise_margin_cm)
+        rows = [tokenize_target(self._tokenizer, t.text, t.spans, max_length=self.max_completion_length)
+                if t is not None else ([], []) for t in targets]
+        output.update(padded_targets("denoise", rows, self._tokenizer.pad_token_id, completion_ids.device))
+        found = [t for t in targets if t is not None]
+        self._log_value("denoise/rows_frac", len(found) / max(len(targets), 1))
+        self._log_value("denoise/token_frac", sum(sum(m) for _, m in rows) / max(sum(lengths), 1))
+        if found:
+            self._log_value("denoise/depth_before_cm", float(np.mean([t.depth_before for t in found])))
+            self._log_value("denoise/depth_after_cm", float(np.mean([t.depth_after for t in found])))
+            free = float(np.mean([t.depth_after == 0 for t in found]))
+            self._log_value("denoise/collision_free_frac", free)
+        self._log_value("time/denoise_s", time.perf_counter() - start)
 
     def _mask_overruled(self, output: dict, overruled: list[list[int]]) -> None:
         """Zero the loss mask where the constraint, not the policy, chose the token.
@@ -408,13 +497,30 @@ class PADATrainer(GRPOTrainer):
 
     def anchor_cross_entropy(self, model, inputs) -> torch.Tensor:
         """Mean token NLL of the anchors given their prompts, over the supervised anchor tokens (scalar)."""
-        anchor_ids = inputs["anchor_ids"]
-        input_ids = torch.cat([inputs["prompt_ids"], anchor_ids], dim=1)
-        attention_mask = torch.cat([inputs["prompt_mask"], inputs["anchor_attention_mask"]], dim=1)
+        nll, count = self._target_nll(model, inputs, "anchor")
+        return nll / count.clamp(min=1.0)
+
+    def _target_nll(self, model, inputs, name: str) -> tuple[torch.Tensor, torch.Tensor]:
+        """(summed NLL, supervised token count) of the completions ``<name>_ids`` given their prompts,
+        over ``<name>_loss_mask``."""
+        target_ids = inputs[f"{name}_ids"]
+        input_ids = torch.cat([inputs["prompt_ids"], target_ids], dim=1)
+        attention_mask = torch.cat([inputs["prompt_mask"], inputs[f"{name}_attention_mask"]], dim=1)
         logps, _, _ = self._get_per_token_logps_and_entropies(model, input_ids, attention_mask,
-                                                              anchor_ids.size(1))
-        mask = inputs["anchor_loss_mask"].to(logps.dtype)
-        return -(logps * mask).sum() / mask.sum().clamp(min=1.0)
+                                                              target_ids.size(1))
+        mask = inputs[f"{name}_loss_mask"].to(logps.dtype)
+        return -(logps * mask).sum(), mask.sum()
+
+    def denoise_loss(self, model, inputs) -> torch.Tensor:
+        """The denoising targets' summed NLL over TRL's dapo normaliser (the completion tokens of one
+        accumulation window on this rank): a rewritten token pulls like a sampled token of advantage 1."""
+        nll, count = self._target_nll(model, inputs, "denoise")
+        normalizer = inputs["num_items_in_batch"].clamp(min=1.0) / self.accelerator.num_processes
+        if self.model.training:
+            normalizer = normalizer * self.current_gradient_accumulation_steps
+            normalizer = normalizer / self.args.steps_per_generation
+        self._log_value("denoise/nll", (nll.detach() / count.clamp(min=1.0)).item())
+        return nll / normalizer
 
     def training_step(self, model, inputs, num_items_in_batch=None):
         loss = super().training_step(model, inputs, num_items_in_batch)
@@ -498,6 +604,8 @@ class PADATrainer(GRPOTrainer):
         if self._probes_left > 0:
             self._micro_batch_inputs = inputs
         loss = super()._compute_loss(model, inputs)
+        if self.denoise and "denoise_ids" in inputs and inputs["denoise_loss_mask"].sum() > 0:
+            loss = loss + self.denoise * self.denoise_loss(model, inputs)
         if self.anchor_alpha == 0.0 or "anchor_ids" not in inputs:
             return loss
         mode = "train" if self.model.training else "eval"
@@ -620,6 +728,13 @@ def pada_arguments(cfg, variant: str) -> PADAConfig:
     if object_credit < 0:
         raise ValueError(f"pada.object_credit must be >= 0 (advantage per cm of penetration), "
                          f"got {object_credit}")
+    denoise = float(p.get("denoise", 0.0) or 0.0)
+    if denoise < 0 or float(p.get("denoise_margin_cm", 1.0)) < 0:
+        raise ValueError(f"pada.denoise and pada.denoise_margin_cm must be >= 0, got {denoise}, "
+                         f"{p.get('denoise_margin_cm')}")
+    denoise_tto = p.get("denoise_tto", ["lambda_zone=100.0"])
+    denoise_tto = [str(x) for x in (OmegaConf.to_container(denoise_tto) if OmegaConf.is_config(denoise_tto)
+                                    else denoise_tto or [])]
     terms = p.get("object_credit_terms", ["penetration"])
     try:
         terms = OmegaConf.to_container(terms) if OmegaConf.is_config(terms) else terms
@@ -643,6 +758,9 @@ def pada_arguments(cfg, variant: str) -> PADAConfig:
         nonfinite_probe=int(p.get("nonfinite_probe", 0) or 0),
         object_credit=object_credit,
         object_credit_terms=terms,
+        denoise=denoise,
+        denoise_margin_cm=float(p.get("denoise_margin_cm", 1.0)),
+        denoise_tto=denoise_tto,
         learning_rate=float(p.learning_rate),
         lr_scheduler_type=str(p.lr_scheduler_type),
         num_train_epochs=float(p.epochs),

@@ -52,11 +52,12 @@ def load_records(spec: str, *, seed: int = 0, max_level: int | None = None) -> l
 
 
 def write_records(records: list[dict], path: str | Path) -> None:
-    """One JSON object per line, written to a temp file then renamed (a crash leaves no half file)."""
+    """One JSON object per line (gzipped when the name ends in ``.gz``, as :func:`load_records` reads
+    it), written to a temp file then renamed (a crash leaves no half file)."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_suffix(path.suffix + ".tmp")
-    with tmp.open("w") as f:
+    with (gzip.open(tmp, "wt") if path.suffix == ".gz" else tmp.open("w")) as f:
         for r in records:
             f.write(json.dumps(r) + "\n")
     tmp.replace(path)
