@@ -110,10 +110,10 @@ class PADAConfig(GRPOConfig):
                           "floating (its support gap), out_of_zone (how far its footprint leaves the zone)."})
     denoise: float = field(
         default=0.0, metadata={"help": "Not in the paper (0 = off): weight of the cross-entropy toward each "
-                                       "rollout's on-policy repair (physcene.train.denoise: TTO with only "
-                                       "the objects the reward blamed free, their numbers rewritten in the "
-                                       "rollout's text); a rewritten token weighs like a GRPO token of "
-                                       "advantage `denoise`."})
+                                       "rollout's on-policy repair (physcene.train.denoise: the objects the "
+                                       "reward blamed moved to a free spot or by TTO, the rest held, their "
+                                       "numbers rewritten in the rollout's text); a rewritten token weighs "
+                                       "like a GRPO token of advantage `denoise`."})
     denoise_margin_cm: float = field(
         default=1.0, metadata={"help": "Clearance (cm) the denoising repair keeps around a blamed "
                                        "table-level object."})

@@ -64,6 +64,11 @@ fi
 common="$common ablation.n_test=$N_TEST $EXTRA"
 want() { [[ " $STAGES " == *" $1 "* ]]; }
 
+if [ "$NPROC" -ge 1 ] && python3 -c "import torch, sys; sys.exit(not torch.cuda.is_available())"; then
+  # bake every asset's SDF on the GPU first: the cache key does not depend on the device, and a Warp
+  # without its CPU compiler (a lent machine's) cannot bake on the CPU (docs/training.md, "GPU runs")
+  physcene assets bake --device cuda:0 > /dev/null
+fi
 if want synth && [ ! -s "$DATA" ] && [[ "$DATA" != synth:* ]]; then
   stamp "synth -> $DATA"
   physcene data synth --split train --out "$(dirname "$DATA")" --workers "$WORKERS" ${N_TRAIN:+--n $N_TRAIN} \
@@ -72,7 +77,7 @@ fi
 if want sft; then
   stamp "sft ($NPROC processes, $SFT_MIN min)"
   $LAUNCH -m physcene.cli train sft --config "$CONFIG" $common sft.max_minutes="$SFT_MIN" sft.max_steps="$SFT_STEPS" \
-    $SFT_EXTRA
+    sft.dataset_num_proc="$WORKERS" $SFT_EXTRA  # one process tokenizes 40,000 records in ~5 minutes
 fi
 if want anchors; then
   stamp "anchors ($ANCHORS records)"
