@@ -246,3 +246,25 @@ def test_pada_with_denoise_trains_and_logs_it(tmp_path, monkeypatch):
     with pytest.raises(ValueError, match="pada.denoise"):
         run_pada(load_config("train_tiny", [f"output_dir={tmp_path / 'neg'}", "pada.denoise=-1"]),
                  variant="pada")
+
+
+def test_offline_check_supervises_the_rewritten_numbers_and_finds_the_originals(texts, targets, results_script):
+    """docs/results/denoise_offline.py: the rows it trains on supervise the rewritten numbers, and the
+    held-out comparison reads the numbers they replaced in the original text."""
+    offline = results_script("denoise_offline")
+    _, moved = texts
+    target = targets[1][1]
+    old_spans = offline._original_spans(moved, target)
+    assert len(old_spans) == len(target.spans)
+    rebuilt, pos = [], 0  # putting the target's numbers back into the original gives the target
+    for (a, b), (c, d) in zip(old_spans, target.spans):
+        float(moved[a:b])
+        rebuilt += [moved[pos:a], target.text[c:d]]
+        pos = b
+    assert "".join(rebuilt + [moved[pos:]]) == target.text
+    tokenizer = build_tokenizer([target.text, moved], vocab_size=320)
+    record = {"prompt": "Arrange the table.", "sft_completion": moved}
+    (row,) = offline.supervised_rows(tokenizer, [record, dict(record)], [target, None])
+    assert row["mask"][-1] == 1 and row["old_mask"][-1] == 1  # cut after the last supervised token
+    assert sum(row["mask"]) > 0 and sum(row["old_mask"]) > 0
+    assert tokenizer.decode(row["ids"]) == target.text[:len(tokenizer.decode(row["ids"]))]

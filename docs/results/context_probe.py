@@ -31,9 +31,13 @@ _NEAR_BOX = re.compile(r'"relation_type": "near", [^\n]*?"relative_bbox": \[([^\
 
 
 class _Scorer:
-    def __init__(self, model_path: str, device: str = "cpu"):
+    def __init__(self, model_path: str | None, device: str = "cpu", *, model=None, tokenizer=None):
+        """A checkpoint directory, or (``model_path`` None) a ``model`` and ``tokenizer`` in memory."""
         self.device = device
-        self.model, self.tokenizer, _ = load_for_generation(model_path, device=device, dtype="float32")
+        if model_path is None:
+            self.model, self.tokenizer = model, tokenizer
+        else:
+            self.model, self.tokenizer, _ = load_for_generation(model_path, device=device, dtype="float32")
 
     def token_nll(self, prompt: str, completion: str) -> tuple[torch.Tensor, int]:
         """Per-token NLL of the completion's tokens (after the prompt's) and the prompt's length."""
@@ -108,6 +112,23 @@ def neighbour_probe(scorer: _Scorer, record: dict) -> dict | None:
             "nll_moved_onto_next": scorer.nll_after(record["prompt"], edited, edited_after)}
 
 
+def probe(scorer: _Scorer, rows: list[dict]) -> dict:
+    """Both probes over ``rows``: ``{"zone": {...}, "neighbour": {...}}`` (relative NLL changes)."""
+    zone = [z for r in rows if (z := zone_probe(scorer, r))]
+    near = [m for r in rows if (m := neighbour_probe(scorer, r))]
+
+    def rel(items, a, b):
+        return statistics.mean((x[b] - x[a]) / x[a] for x in items)
+
+    digits = [p for z in zone for p in z["digit_probabilities"]]
+    return {
+        "zone": {"n": len(zone), "digit_probability_median": statistics.median(digits),
+                 "nll_change_bigger_zone": rel(zone, "nll", "nll_bigger_zone")},
+        "neighbour": {"n": len(near), "nll_change_moved_onto_next": rel(near, "nll", "nll_moved_onto_next"),
+                      "raised": sum(m["nll_moved_onto_next"] > m["nll"] for m in near)},
+    }
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("model", help="checkpoint directory (physcene train sft/pada output)")
@@ -119,20 +140,7 @@ def main() -> None:
     torch.set_num_threads(max(1, min(4, torch.get_num_threads())))
     scorer = _Scorer(args.model, args.device)
     rows = load_records(args.records)[:args.n]
-    zone = [z for r in rows if (z := zone_probe(scorer, r))]
-    near = [m for r in rows if (m := neighbour_probe(scorer, r))]
-
-    def rel(items, a, b):
-        return statistics.mean((x[b] - x[a]) / x[a] for x in items)
-
-    digits = [p for z in zone for p in z["digit_probabilities"]]
-    result = {
-        "model": args.model, "records": args.records,
-        "zone": {"n": len(zone), "digit_probability_median": statistics.median(digits),
-                 "nll_change_bigger_zone": rel(zone, "nll", "nll_bigger_zone")},
-        "neighbour": {"n": len(near), "nll_change_moved_onto_next": rel(near, "nll", "nll_moved_onto_next"),
-                      "raised": sum(m["nll_moved_onto_next"] > m["nll"] for m in near)},
-    }
+    result = {"model": args.model, "records": args.records, **probe(scorer, rows)}
     print(json.dumps(result, indent=1))
     if args.out:
         Path(args.out).write_text(json.dumps(result, indent=1))
