@@ -248,7 +248,8 @@ def test_pada_with_denoise_trains_and_logs_it(tmp_path, monkeypatch):
                  variant="pada")
 
 
-def test_offline_check_supervises_the_rewritten_numbers_and_finds_the_originals(texts, targets, results_script):
+def test_offline_check_supervises_the_rewritten_numbers_and_reads_the_originals(texts, targets,
+                                                                               results_script):
     """docs/results/denoise_offline.py: the rows it trains on supervise the rewritten numbers, and the
     held-out comparison reads the numbers they replaced in the original text."""
     offline = results_script("denoise_offline")
