@@ -156,7 +156,7 @@ def main() -> None:
         loss.backward()
         torch.nn.utils.clip_grad_norm_(model.parameters(), 1.0)
         optimizer.step()
-        losses.append(float(loss))
+        losses.append(float(loss.detach()))
         print(f"step {step + 1}/{args.steps}: {losses[-1]:.3f}", flush=True)
     after = measure()
     result = {"model": args.model, "anchors": args.anchors, "rows_with_target": len(rows),
