@@ -39,7 +39,7 @@ __all__ = ["DenoiseTarget", "denoise_targets", "rewrite_boxes"]
 _NUMBER = re.compile(r"-?\d+(?:\.\d+)?(?:[eE][-+]?\d+)?")
 _VALUE = {key: re.compile(rf'"{key}"\s*:\s*(\[[^\]]*\]|[-+0-9.eE]+)')
           for key in ("relative_bbox", "relative_rotation_deg")}
-_MOVED_CM = 1e-3    # a blamed object TTO moved less than this (and turned less than _MOVED_RAD) kept its text
+_MOVED_CM = 1e-3    # a blamed object moved less than this (and turned less than _MOVED_RAD) keeps its text
 _MOVED_RAD = 1e-5
 _CHUNK = 2048       # free_spot's candidates tested at once
 

@@ -440,7 +440,7 @@ class PADATrainer(GRPOTrainer):
 
     def _denoise_rollouts(self, output: dict) -> None:
         """On-policy denoising targets (``pada.denoise``, not in the paper; :mod:`physcene.train.denoise`):
-        each rollout the reward blamed objects in, repaired by TTO with only those objects free, as
+        each rollout the reward blamed objects in, with those objects moved (free spot or TTO), as
         ``denoise_ids`` / ``denoise_attention_mask`` / ``denoise_loss_mask`` (right padded, like the
         anchor's), supervised on the numbers the repair rewrote. Rows without a target are all 0.
         """
@@ -729,9 +729,10 @@ def pada_arguments(cfg, variant: str) -> PADAConfig:
         raise ValueError(f"pada.object_credit must be >= 0 (advantage per cm of penetration), "
                          f"got {object_credit}")
     denoise = float(p.get("denoise", 0.0) or 0.0)
-    if denoise < 0 or float(p.get("denoise_margin_cm", 1.0)) < 0:
+    denoise_margin_cm = float(p.get("denoise_margin_cm", 1.0))
+    if denoise < 0 or denoise_margin_cm < 0:
         raise ValueError(f"pada.denoise and pada.denoise_margin_cm must be >= 0, got {denoise}, "
-                         f"{p.get('denoise_margin_cm')}")
+                         f"{denoise_margin_cm}")
     denoise_tto = p.get("denoise_tto", ["lambda_zone=100.0"])
     denoise_tto = [str(x) for x in (OmegaConf.to_container(denoise_tto) if OmegaConf.is_config(denoise_tto)
                                     else denoise_tto or [])]
@@ -759,7 +760,7 @@ def pada_arguments(cfg, variant: str) -> PADAConfig:
         object_credit=object_credit,
         object_credit_terms=terms,
         denoise=denoise,
-        denoise_margin_cm=float(p.get("denoise_margin_cm", 1.0)),
+        denoise_margin_cm=denoise_margin_cm,
         denoise_tto=denoise_tto,
         learning_rate=float(p.learning_rate),
         lr_scheduler_type=str(p.lr_scheduler_type),
