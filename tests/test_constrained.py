@@ -1,6 +1,8 @@
 """CTRC-constrained decoding (train/constrained.py): never blocks a valid completion, repairs the
 failures a small model makes (repeated ids, broken numbers, a missing close), and plugs into HF generate."""
 
+import random
+
 import pytest
 import torch
 from physcene.train.constrained import (
@@ -127,6 +129,30 @@ def test_boxes_keep_each_max_above_its_min():
     assert allowed(zone, None, " [0.0, 150.0, 0.0, 92.7]\n}\n")
     assert not allowed(zone, None, " [0.0, 150.0, 92.7, 0.0]")
     assert not allowed(box, None, "123456.0")  # over MAX_ABS_CM
+    # a max written to MAX_DECIMALS can grow no further: it must exceed its min already
+    eight = box.replace("[5.0, ", "[1.06386999, ")
+    assert not allowed(eight, None, "1.0638699") and not allowed(eight, None, "1.06386999")
+    assert allowed(eight, None, "1.06387") and allowed(eight, None, "1.0638700,")
+
+
+def test_a_box_never_reaches_a_dead_end():
+    """Every prefix the rule admits has a character that continues it. At a dead end the mask gives
+    up and the model's own token follows: session 15's PADA model wrote a max of ``1.06386999`` over
+    a min of ``1.06386999`` (eight decimals, no digit may follow) and 15 of 200 test layouts failed
+    to parse. A random walk over the box's characters, copying the min's digits into the max most
+    of the time, where that dead end lay."""
+    rng = random.Random(0)
+    box = '"relation_type": "near", "description": "A mirror.", "relative_bbox":'
+    chars = "0123456789.-, []"
+    for _ in range(120):
+        written = ""
+        while not written.endswith("]"):
+            ok = [c for c in chars if allowed(box, None, written + c)]
+            assert ok, f"dead end after {written!r}"
+            parts = written[written.find("[") + 1:].split(",")
+            low, high = (parts[-2].strip(), parts[-1].lstrip()) if len(parts) % 2 == 0 else ("", "")
+            copy = low[len(high)] if len(high) < len(low) else None
+            written += copy if copy in ok and rng.random() < 0.8 else rng.choice(ok)
 
 
 def test_entry_keys_and_the_end_of_the_completion_are_fixed():

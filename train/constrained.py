@@ -168,25 +168,24 @@ def _extents_possible(text: str, pairs) -> bool:
         if hi < n_done:
             if not float(values[hi]) > low:
                 return False
-        elif not _supremum(values[hi]) > low:
+        elif not _largest(values[hi]) > low:
             return False
     return True
 
 
-def _supremum(prefix: str) -> float:
-    """The least upper bound of the numbers ``-?d+(.d+)?`` that start with ``prefix``."""
+def _largest(prefix: str) -> float:
+    """The largest number of the grammar (``_NUMBER``: at most ``_INTEGER_DIGITS`` integer digits and
+    ``MAX_DECIMALS`` decimals) that starts with ``prefix``. A max must be able to exceed its min by a
+    number that can still be written: a least upper bound would let ``1.06386999`` (eight decimals)
+    through after a min of ``1.06386999`` and leave no token that continues the box."""
     negative = prefix.startswith("-")
     digits = prefix[1:] if negative else prefix
     whole, dot, fraction = digits.partition(".")
-    if not negative:
-        if not dot:  # more digits can follow (none after a leading 0), up to _INTEGER_DIGITS
-            if whole == "0":
-                return 1.0
-            return (int(whole or 0) + 1) * 10.0 ** (_INTEGER_DIGITS - len(whole))  # "" -> 1e4
-        return float(f"{whole}.{fraction or 0}") + 10.0 ** -len(fraction)
-    if not dot:
-        return -float(whole or 0)  # "-12" at most -12 ("-" at most -0)
-    return -float(f"{whole}.{fraction or 0}")
+    if negative:  # the fewest digits: "-" -> -0, "-1." -> -1.0, "-12" -> -12
+        return -float(f"{whole or 0}.{fraction or 0}")
+    if not dot and whole != "0":  # more integer digits may follow (none after a leading 0)
+        whole += "9" * (_INTEGER_DIGITS - len(whole))
+    return float(f"{whole}.{fraction}{'9' * (MAX_DECIMALS - len(fraction))}")
 
 
 def listed_instance_ids(prompt: str) -> list[str] | None:
