@@ -108,6 +108,10 @@ class PADAConfig(GRPOConfig):
         metadata={"help": "What object_credit charges each object with (cm), of "
                           "physcene.reward.OBJECT_TERMS: penetration (the paper's reward term), "
                           "floating (its support gap), out_of_zone (how far its footprint leaves the zone)."})
+    object_credit_scope: str = field(
+        default="line", metadata={"help": "Which tokens of a charged object object_credit lowers: line (its "
+                                          "plan step and layout line) or numbers (only the numbers of its "
+                                          "relative_bbox and relative_rotation_deg)."})
     denoise: float = field(
         default=0.0, metadata={"help": "Not in the paper (0 = off): weight of the cross-entropy toward each "
                                        "rollout's on-policy repair (physcene.train.denoise: the objects the "
@@ -212,10 +216,19 @@ _INSTANCE_ID = re.compile(r'"instance_id": "([^"]*)"')
 _PLAN_STEP = re.compile(r"\s*\d+\.\s+Place (\S+)\s")
 
 
-def object_text_spans(text: str) -> list[list[tuple[int, int]]]:
+OBJECT_CREDIT_SCOPES = ("line", "numbers")
+
+
+def object_text_spans(text: str, scope: str = "line") -> list[list[tuple[int, int]]]:
     """Per object of a CTRC layout, in the order written (object k of the parsed scene): the
-    character spans of the text that places it — its plan step ("k. Place <id> ...", the first one
-    naming it, when the plan has one) and its layout line (:func:`object_line_spans`)."""
+    character spans of the text that places it. ``scope`` ``line``: its plan step ("k. Place <id>
+    ...", the first one naming it, when the plan has one) and its layout line
+    (:func:`object_line_spans`); ``numbers``: only the numbers of its geometry (:data:`GEOMETRY_KEYS`)
+    on that line, so its id, category, relation and description are never charged."""
+    if scope not in OBJECT_CREDIT_SCOPES:
+        raise ValueError(f"object credit scope must be one of {OBJECT_CREDIT_SCOPES}, got {scope!r}")
+    if scope == "numbers":
+        return [[(a + x, a + y) for x, y in numeric_spans(text[a:b])] for a, b in object_line_spans(text)]
     plan_end = text.find(LAYOUT_HEADER)
     steps, start = {}, 0
     for line in text[:max(plan_end, 0)].splitlines(keepends=True):
@@ -231,16 +244,17 @@ def object_text_spans(text: str) -> list[list[tuple[int, int]]]:
 
 
 def object_token_depths(tokenizer: PreTrainedTokenizerBase, completion_ids: torch.Tensor,
-                        completion_mask: torch.Tensor, depths: list) -> tuple[torch.Tensor, int]:
+                        completion_mask: torch.Tensor, depths: list,
+                        scope: str = "line") -> tuple[torch.Tensor, int]:
     """((B, T) cm charged to each completion token, rows left out).
 
     ``depths[b]``: the (n_objects,) penetration charged to each object of completion b
     (:attr:`physcene.reward.PhysicsReward.last_object_depths`), None when it did not parse. Every
-    token that overlaps the text placing object k (its plan step and layout line,
-    :func:`object_text_spans`) carries ``depths[b][k]`` (a token across two objects' text: the
-    larger). A row is left out (all 0) when its tokens decoded one by one do not give the
-    completion's text (a multi-byte character split across tokens) or its object lines do not match
-    its objects.
+    token that overlaps the text placing object k (per ``scope``: its plan step and layout line, or
+    its geometry numbers; :func:`object_text_spans`) carries ``depths[b][k]`` (a token across two
+    objects' text: the larger). A row is left out (all 0) when its tokens decoded one by one do not
+    give the completion's text (a multi-byte character split across tokens) or its object lines do
+    not match its objects.
     """
     out = torch.zeros(completion_ids.shape, dtype=torch.float32)
     skipped = 0
@@ -251,7 +265,7 @@ def object_token_depths(tokenizer: PreTrainedTokenizerBase, completion_ids: torc
         ids = row[:int(lengths[b])]
         pieces = [tokenizer.decode([t]) for t in ids]
         text = "".join(pieces)
-        spans = object_text_spans(text)
+        spans = object_text_spans(text, scope)
         if text != tokenizer.decode(ids) or len(spans) != len(charged):
             skipped += 1
             continue
@@ -291,6 +305,7 @@ class PADATrainer(GRPOTrainer):
         self._probed_step = -1
         self._micro_batch_inputs = None
         self.object_credit = float(args.object_credit)
+        self.object_credit_scope = str(args.object_credit_scope)
         self.denoise = float(args.denoise)
         self._credit_reward = None
         if self.object_credit or self.denoise:
@@ -414,7 +429,8 @@ class PADATrainer(GRPOTrainer):
 
     def _credit_objects(self, output: dict) -> None:
         """Per-token advantages (``pada.object_credit``, not in the paper): each token of an object's
-        plan step and layout line loses ``object_credit`` × the cm charged to it (its penetration,
+        plan step and layout line (``pada.object_credit_scope: line``; ``numbers``: only its geometry
+        numbers) loses ``object_credit`` × the cm charged to it (its penetration,
         and per ``pada.object_credit_terms`` its floating gap and how far it leaves the zone).
 
         The sequence reward says a layout collides, not which placement did it; this points the
@@ -427,7 +443,8 @@ class PADATrainer(GRPOTrainer):
             raise ValueError(f"object depths for {len(depths)} completions, "
                              f"{completion_ids.size(0)} generated")
         charged, skipped = object_token_depths(self._tokenizer, completion_ids.cpu(),
-                                               output["completion_mask"].cpu(), depths)
+                                               output["completion_mask"].cpu(), depths,
+                                               self.object_credit_scope)
         charged = charged.to(completion_ids.device)
         advantages = output["advantages"]
         if advantages.dim() == 1:
@@ -736,6 +753,10 @@ def pada_arguments(cfg, variant: str) -> PADAConfig:
     denoise_tto = p.get("denoise_tto", ["lambda_zone=100.0"])
     denoise_tto = [str(x) for x in (OmegaConf.to_container(denoise_tto) if OmegaConf.is_config(denoise_tto)
                                     else denoise_tto or [])]
+    scope = str(p.get("object_credit_scope", "line"))
+    if scope not in OBJECT_CREDIT_SCOPES:
+        raise ValueError(f"pada.object_credit_scope must be one of {list(OBJECT_CREDIT_SCOPES)}, "
+                         f"got {scope!r}")
     terms = p.get("object_credit_terms", ["penetration"])
     try:
         terms = OmegaConf.to_container(terms) if OmegaConf.is_config(terms) else terms
@@ -759,6 +780,7 @@ def pada_arguments(cfg, variant: str) -> PADAConfig:
         nonfinite_probe=int(p.get("nonfinite_probe", 0) or 0),
         object_credit=object_credit,
         object_credit_terms=terms,
+        object_credit_scope=scope,
         denoise=denoise,
         denoise_margin_cm=denoise_margin_cm,
         denoise_tto=denoise_tto,
