@@ -33,6 +33,7 @@ from __future__ import annotations
 import json
 import math
 import re
+from collections import Counter
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 
@@ -61,6 +62,7 @@ __all__ = [
     "encode",
     "parse",
     "sub_instructions",
+    "usual_decimals",
     "zero_shot_prompt",
 ]
 
@@ -398,9 +400,24 @@ def decimals_of(completion: str) -> int:
     ``completion_text(scene, decimals=...)`` for text that function wrote, which is how a dataset's
     completions are re-written at their own precision after their layouts change.
     """
+    return min(max(_fraction_digits(completion), default=0), MAX_DECIMALS)
+
+
+def usual_decimals(completion: str) -> int:
+    """The digits after the point most of a completion's layout numbers have (those with any; ties:
+    the more digits; 0 when all are whole), at most ``MAX_DECIMALS``. Unlike :func:`decimals_of`, one
+    stray long number a model wrote (``1.06386999``) does not set the precision of the rest: text
+    re-written from a model's output at its usual precision stays at its training data's."""
+    digits = Counter(d for d in _fraction_digits(completion) if d > 0)
+    if not digits:
+        return 0
+    return min(max(digits, key=lambda d: (digits[d], d)), MAX_DECIMALS)
+
+
+def _fraction_digits(completion: str) -> list[int]:
+    """Per number of the layout, its digits after the point (trailing zeros dropped)."""
     start = completion.find(LAYOUT_HEADER)
-    digits = [len(m.group(1).rstrip("0")) for m in _FRACTION.finditer(completion, max(start, 0))]
-    return min(max(digits, default=0), MAX_DECIMALS)
+    return [len(m.group(1).rstrip("0")) for m in _FRACTION.finditer(completion, max(start, 0))]
 
 
 def _object_list(objects) -> str:

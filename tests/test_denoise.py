@@ -5,6 +5,7 @@ cross-entropy of the rewritten numbers given the rollout's prefix."""
 from __future__ import annotations
 
 import json
+import re
 from types import SimpleNamespace
 
 import numpy as np
@@ -15,7 +16,7 @@ from physcene.train.pada import PADATrainer, object_line_spans, tokenize_target
 from physcene.train.tokenizer import build_tokenizer
 from shapely.geometry import Polygon
 
-from physcene.ctrc import completion_text, parse
+from physcene.ctrc import completion_text, decimals_of, parse, usual_decimals
 from physcene.data.benchmark import DataConfig, build_scenes
 from physcene.data.splits import plan_split
 from physcene.reward import PhysicsReward, RewardConfig
@@ -177,6 +178,24 @@ def test_rewrite_boxes_keeps_numbers_within_their_last_decimal(texts):
         rewrite_boxes(moved, scene.with_objects(scene.objects[:-1]), set(), 2)
 
 
+def test_targets_keep_the_rollouts_usual_precision_not_its_longest_number(texts, reward):
+    """One stray long number in a rollout (here in an object the reward does not blame) must not set
+    the precision of the rewritten ones: session 15's targets did, and taught eight-decimal numbers."""
+    _, moved = texts
+    first = re.search(r'"relative_bbox": \[(-?\d+\.\d+)', moved)
+    stray = moved[:first.end(1)] + "3141" + moved[first.end(1):]
+    assert decimals_of(stray) >= 5 and usual_decimals(stray) == 2 == usual_decimals(moved)
+    reward.score_texts([stray])
+    charges = reward.last_object_depths
+    for decimals, most in ((None, 2), (1, 1)):
+        target = denoise_targets([stray], charges, config=TTO, engine=reward.engine, decimals=decimals)[0]
+        assert target is not None and target.spans
+        for a, b in target.spans:
+            number = target.text[a:b]
+            assert len(number.partition(".")[2].rstrip("0")) <= most, number
+    assert usual_decimals("no layout") == 0
+
+
 def test_denoise_targets_checks_its_inputs(texts):
     with pytest.raises(ValueError, match="2 completions but 1 charges"):
         denoise_targets(list(texts), [None])
@@ -194,7 +213,8 @@ def test_pada_builds_denoise_rows_aligned_with_the_rollouts(texts, reward):
     reward.score_texts([moved, clean])
     logged = {}
     trainer = SimpleNamespace(_credit_reward=reward, _tokenizer=tokenizer, _denoise_tto=TTO,
-                              args=SimpleNamespace(denoise_margin_cm=1.0), max_completion_length=10_000,
+                              args=SimpleNamespace(denoise_margin_cm=1.0, denoise_decimals=2),
+                              max_completion_length=10_000,
                               _log_value=lambda k, v: logged.__setitem__(k, v))
     PADATrainer._denoise_rollouts(trainer, output)
     assert output["denoise_ids"].shape[0] == 2
@@ -269,3 +289,18 @@ def test_offline_check_supervises_the_rewritten_numbers_and_reads_the_originals(
     assert row["mask"][-1] == 1 and row["old_mask"][-1] == 1  # cut after the last supervised token
     assert sum(row["mask"]) > 0 and sum(row["old_mask"]) > 0
     assert tokenizer.decode(row["ids"]) == target.text[:len(tokenizer.decode(row["ids"]))]
+
+
+def test_denoise_settings_are_checked():
+    from physcene.train.pada import pada_arguments
+
+    from physcene.config import load_config
+
+    args = pada_arguments(load_config("train_tiny", ["pada.denoise=1.0", "pada.denoise_decimals=2"]), "pada")
+    assert args.denoise == 1.0 and args.denoise_decimals == 2
+    assert pada_arguments(load_config("train_tiny", []), "pada").denoise_decimals is None
+    for bad in ("9", "-1", "1.5", "true"):
+        with pytest.raises(ValueError, match="pada.denoise_decimals must be null or an integer from 0 to 8"):
+            pada_arguments(load_config("train_tiny", [f"pada.denoise_decimals={bad}"]), "pada")
+    with pytest.raises(ValueError, match="pada.denoise and pada.denoise_margin_cm must be >= 0"):
+        pada_arguments(load_config("train_tiny", ["pada.denoise_margin_cm=-1"]), "pada")

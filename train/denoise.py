@@ -31,7 +31,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from physcene.ctrc import decimals_of, encode, parse
+from physcene.ctrc import encode, parse, usual_decimals
 from physcene.scene import TABLE, ZONE_TOLERANCE_CM, Scene, SceneError, zone_overshoot
 
 __all__ = ["DenoiseTarget", "denoise_targets", "rewrite_boxes"]
@@ -187,7 +187,7 @@ def _grown(scene: Scene, ids: set[str], margin_cm: float) -> Scene:
 
 
 def denoise_targets(texts: Sequence[str], charges: Sequence, *, config=None, engine=None,
-                    margin_cm: float = 1.0) -> list[DenoiseTarget | None]:
+                    margin_cm: float = 1.0, decimals: int | None = None) -> list[DenoiseTarget | None]:
     """Per completion text, its :class:`DenoiseTarget` or None (nothing blamed, not parsed, nothing moved).
 
     ``charges[k]``: the (n_objects,) cm the reward charged each object of ``texts[k]``
@@ -195,7 +195,10 @@ def denoise_targets(texts: Sequence[str], charges: Sequence, *, config=None, eng
     table-level objects go to their :func:`free_spot` (in the order written); the blamed objects left
     (``on`` / ``in`` children, table-level ones with no free spot) are repaired in one batched
     :func:`physcene.tto.repair` (``config``: a :class:`~physcene.tto.TTOConfig` on ``engine``'s device),
-    every other object held.
+    every other object held. The rewritten numbers are written at ``decimals`` digits (the training
+    data's ``record.decimals``); None: at each text's :func:`~physcene.ctrc.usual_decimals`. Never at
+    the most any of its numbers has: session 15's targets took a rollout's one stray eight-decimal
+    number for its precision, taught eight-decimal numbers, and the rollouts wrote more of them.
     """
     from physcene.tto import repair
 
@@ -239,7 +242,8 @@ def denoise_targets(texts: Sequence[str], charges: Sequence, *, config=None, eng
         if not moved:
             continue
         try:
-            text, spans = rewrite_boxes(texts[row], final, moved, decimals_of(texts[row]))
+            text, spans = rewrite_boxes(texts[row], final, moved,
+                                        usual_decimals(texts[row]) if decimals is None else decimals)
         except (ValueError, KeyError, SceneError):  # model output the writer cannot re-encode: no target
             continue
         if spans:

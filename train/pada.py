@@ -41,7 +41,7 @@ from physcene.train.sft import nonfinite_gradients
 from transformers import PreTrainedTokenizerBase, TrainerCallback
 from trl import GRPOConfig, GRPOTrainer
 
-from physcene.ctrc import LAYOUT_HEADER
+from physcene.ctrc import LAYOUT_HEADER, MAX_DECIMALS
 
 __all__ = [
     "VARIANTS",
@@ -121,6 +121,10 @@ class PADAConfig(GRPOConfig):
     denoise_margin_cm: float = field(
         default=1.0, metadata={"help": "Clearance (cm) the denoising repair keeps around a blamed "
                                        "table-level object."})
+    denoise_decimals: int | None = field(
+        default=None, metadata={"help": "Digits after the point of the denoising targets' rewritten numbers "
+                                        "(the training data's record.decimals); None: each rollout's usual "
+                                        "precision (physcene.ctrc.usual_decimals)."})
     denoise_tto: list[str] = field(
         default_factory=lambda: ["lambda_zone=100.0"],
         metadata={"help": "configs/tto.yaml overrides for the denoising repair (key=value; the zone "
@@ -472,7 +476,7 @@ class PADATrainer(GRPOTrainer):
         if len(charges) != len(texts):
             raise ValueError(f"object charges for {len(charges)} completions, {len(texts)} generated")
         targets = denoise_targets(texts, charges, config=self._denoise_tto, engine=self._credit_reward.engine,
-                                  margin_cm=self.args.denoise_margin_cm)
+                                  margin_cm=self.args.denoise_margin_cm, decimals=self.args.denoise_decimals)
         rows = [tokenize_target(self._tokenizer, t.text, t.spans, max_length=self.max_completion_length)
                 if t is not None else ([], []) for t in targets]
         output.update(padded_targets("denoise", rows, self._tokenizer.pad_token_id, completion_ids.device))
@@ -750,6 +754,11 @@ def pada_arguments(cfg, variant: str) -> PADAConfig:
     if denoise < 0 or denoise_margin_cm < 0:
         raise ValueError(f"pada.denoise and pada.denoise_margin_cm must be >= 0, got {denoise}, "
                          f"{denoise_margin_cm}")
+    denoise_decimals = p.get("denoise_decimals")
+    whole = isinstance(denoise_decimals, int) and not isinstance(denoise_decimals, bool)
+    if denoise_decimals is not None and not (whole and 0 <= denoise_decimals <= MAX_DECIMALS):
+        raise ValueError(f"pada.denoise_decimals must be null or an integer from 0 to {MAX_DECIMALS}, "
+                         f"got {denoise_decimals!r}")
     denoise_tto = p.get("denoise_tto", ["lambda_zone=100.0"])
     denoise_tto = [str(x) for x in (OmegaConf.to_container(denoise_tto) if OmegaConf.is_config(denoise_tto)
                                     else denoise_tto or [])]
@@ -784,6 +793,7 @@ def pada_arguments(cfg, variant: str) -> PADAConfig:
         denoise=denoise,
         denoise_margin_cm=denoise_margin_cm,
         denoise_tto=denoise_tto,
+        denoise_decimals=denoise_decimals,
         learning_rate=float(p.learning_rate),
         lr_scheduler_type=str(p.lr_scheduler_type),
         num_train_epochs=float(p.epochs),

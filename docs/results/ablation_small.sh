@@ -59,7 +59,7 @@ elif [ "$CONSTRAINED" = 0 ]; then
   common="$common anchors.constrained=false eval.constrained=false pada.constrained=false"
 fi
 if [ -n "$DECIMALS" ]; then
-  common="$common anchors.decimals=$DECIMALS"
+  common="$common anchors.decimals=$DECIMALS pada.denoise_decimals=$DECIMALS"
 fi
 common="$common ablation.n_test=$N_TEST $EXTRA"
 want() { [[ " $STAGES " == *" $1 "* ]]; }
