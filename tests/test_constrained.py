@@ -133,6 +133,8 @@ def test_boxes_keep_each_max_above_its_min():
     eight = box.replace("[5.0, ", "[1.06386999, ")
     assert not allowed(eight, None, "1.0638699") and not allowed(eight, None, "1.06386999")
     assert allowed(eight, None, "1.06387") and allowed(eight, None, "1.0638700,")
+    start = box[:box.index(" [5.0")]  # a min no max can exceed is refused too
+    assert allowed(start, None, " [9999.9999999") and not allowed(start, None, " [9999.99999999")
 
 
 def test_a_box_never_reaches_a_dead_end():

@@ -162,6 +162,10 @@ def _extents_possible(text: str, pairs) -> bool:
     values = [v.strip() for v in m.group(1).split(",")]
     n_done = len(values) if m.group(2) else len(values) - 1  # the last one is still being written
     for lo, hi in pairs:
+        if lo == n_done == len(values) - 1 and values[lo] and not values[lo].startswith("-"):
+            if float(values[lo].rstrip(".")) >= _largest(""):  # a min no max can exceed (9999.99999999)
+                return False
+            continue
         if lo >= n_done or hi > n_done or hi >= len(values):
             continue
         low = float(values[lo])
