@@ -17,7 +17,6 @@ import hashlib
 import json
 import math
 import os
-import re
 import time
 import urllib.error
 import urllib.request
@@ -29,7 +28,7 @@ from pathlib import Path
 import numpy as np
 from physcene.eval.metrics import CRITERIA, ScenePhysics
 
-from physcene.assets import CATEGORY_ALIASES, CATEGORY_PRIORS
+from physcene.assets import CATEGORY_PRIORS, canonical_category
 from physcene.scene import TABLE, Scene
 
 __all__ = ["EndpointJudge", "EvalCase", "JudgeError", "LayoutStats", "RuleJudge", "SYSTEM_PROMPT",
@@ -38,12 +37,6 @@ __all__ = ["EndpointJudge", "EvalCase", "JudgeError", "LayoutStats", "RuleJudge"
 
 class JudgeError(ValueError):
     """A judge was configured wrongly (bad URL, bad cache directory ...)."""
-
-
-def canonical_category(category: str) -> str:
-    """Lower-snake, alias-resolved category name (``Coffee Mug`` -> ``mug``)."""
-    key = re.sub(r"[^a-z0-9]+", "_", category.strip().lower()).strip("_")
-    return CATEGORY_ALIASES.get(key, key)
 
 
 def _role(category: str) -> str:
@@ -244,19 +237,14 @@ class RuleJudge:
 
     def object_size_reasonableness(self, scene: Scene) -> float:
         """OSR: per object with a size prior, the log-ratio of each dimension to the prior mean in
-        units of the prior's relative std (floor 0.15); beyond ``size_tolerance`` it costs
+        units of the prior's relative std (floor ``SIZE_SIGMA_FLOOR``); beyond ``size_tolerance`` it costs
         exp(−½·excess²). Dimensions are compared sorted (objects may lie or stand either way)."""
         per_object = []
         for o in scene.objects:
             prior = CATEGORY_PRIORS.get(canonical_category(o.category))
             if prior is None:
                 continue
-            # Sorted dimensions: a pen may stand upright in its holder, a book lie on its side.
-            size = np.sort(np.asarray(o.size))
-            order = np.argsort(prior.mean_cm)
-            mean = np.asarray(prior.mean_cm)[order]
-            std = np.asarray(prior.std_cm)[order]
-            sigma = np.maximum(std / mean, 0.15)
+            size, mean, sigma = prior.aligned(o.size)
             excess = np.maximum(np.abs(np.log(size / mean)) / sigma - self.size_tolerance, 0.0)
             per_object.append(float(np.exp(-0.5 * np.mean(excess**2))))
         return _to_score(_mean_min(per_object))

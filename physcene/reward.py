@@ -3,6 +3,11 @@
 R = −100 if the completion does not parse; −min(0.01·E_pen, 50) if E_pen > 0; +50 if E_pen = 0,
 with E_pen = Σ_{i<j} pen(i, j) in MILLIMETRES over pairs deeper than the tolerance (default 0).
 
+``size_per_cm`` > 0 (NOT in the paper; 0 by default) also charges every object its size's distance
+(cm) outside its category prior's band (:meth:`physcene.assets.SizePrior.outside_band_cm`), the total
+still ≥ −max_penalty. A reward of penetration alone pays for flattening objects — a thin box cannot be
+penetrated deeply — and a small policy finds that (docs/results.md, "Session 16 run").
+
 >>> reward = PhysicsReward(RewardConfig(device="cuda"))
 >>> trainer = GRPOTrainer(..., reward_funcs=[reward])        # reward.last_metrics after each call
 
@@ -23,17 +28,20 @@ from dataclasses import asdict, dataclass, replace
 import numpy as np
 import torch
 
+from physcene.assets import CATEGORY_PRIORS, canonical_category
 from physcene.config import load_dataclass
 from physcene.ctrc import ParseError, parse
+from physcene.layout import category_from_instance
 from physcene.scene import ZONE_TOLERANCE_CM, Scene
 
 __all__ = ["OBJECT_TERMS", "PhysicsReward", "RewardConfig", "completion_text_of", "physics_reward",
-           "reward_from_energy"]
+           "reward_from_energy", "size_outside_band_cm"]
 
 # What an object can be charged with (cm) when PhysicsReward keeps per-object charges (PADA's
 # object_credit): the penetration of the pairs it was written into, its support gap when it floats,
-# how far its footprint leaves the zone. Only the first is in the paper's reward.
-OBJECT_TERMS = ("penetration", "floating", "out_of_zone")
+# how far its footprint leaves the zone, how far its size lies outside its category's band. Only the
+# first is in the paper's reward.
+OBJECT_TERMS = ("penetration", "floating", "out_of_zone", "size")
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -52,6 +60,13 @@ class RewardConfig:
     """Only pairs deeper than this count in E_pen."""
     table_term: bool = False
     """Also add each object's depth below the table top (mm, deeper than the tolerance) to E_pen."""
+    size_per_cm: float = 0.0
+    """Penalty per cm that an object's size lies outside its category prior's band, summed over the
+    layout's objects (0: the paper's reward). Not in the paper: it takes away what flattening objects
+    wins from a penetration-only reward."""
+    size_tolerance: float = 2.0
+    """Half-width of that band, in prior spreads (log space): 2 leaves 8 % of the test references'
+    objects outside it, by 0.12 cm on average."""
     device: str = "cpu"
     """Engine device, ``cpu`` or ``cuda[:N]``."""
     fast_parse: bool = True
@@ -91,7 +106,9 @@ class PhysicsReward:
 
     After every call ``last_metrics`` holds the batch's ``parse_failure_rate``,
     ``mean_energy_mm`` (over parsed layouts), ``collision_free_rate`` (over parsed layouts),
-    ``mean_reward`` and ``mean_max_depth_mm``, for the trainer's log.
+    ``mean_reward``, ``mean_max_depth_mm`` and ``mean_size_outside_cm`` (a parsed layout's summed
+    :func:`size_outside_band_cm`, measured whether or not ``size_per_cm`` charges it), for the
+    trainer's log.
     """
 
     __name__ = "physics_reward"  # TRL names reward columns after the function
@@ -107,6 +124,9 @@ class PhysicsReward:
         self.last_metrics: dict[str, float] = {}
         self.last_parse_errors: list[str | None] = []
         self.last_object_depths: list[np.ndarray | None] = []
+        self.last_placement_depths: list[np.ndarray | None] = []
+        """``last_object_depths`` less the ``size`` term: what moving the object can answer (PADA's
+        ``denoise`` targets move objects; they do not resize them)."""
 
     @property
     def engine(self):
@@ -148,6 +168,7 @@ class PhysicsReward:
         rewards = np.full(n_text, cfg.unparsable, dtype=np.float64)
         e_mm = np.zeros(0)
         depth_mm = np.zeros(0)
+        size_cm = None
         if ok.size:
             out = self.engine.evaluate(batch, tolerance=cfg.tolerance_mm / 10.0)
             e = out["depth_sum"]
@@ -157,10 +178,16 @@ class PhysicsReward:
             both = (torch.stack([e, out["max_depth"]]) * 10.0).cpu().numpy().astype(np.float64)  # one sync
             e_mm, depth_mm = both[0], both[1]
             rewards[ok] = reward_from_energy(e_mm, cfg)
+            size_cm = size_outside_band_cm(batch, cfg.size_tolerance)
+            if cfg.size_per_cm:
+                rewards[ok] = np.maximum(rewards[ok] - cfg.size_per_cm * size_cm.sum(1), -cfg.max_penalty)
         self.last_object_depths = [None] * n_text
+        self.last_placement_depths = [None] * n_text
         if self.object_depths and ok.size:
+            sized = "size" in self.object_terms
             for r, depths in enumerate(self._object_depths(batch, out)):
-                self.last_object_depths[int(ok[r])] = depths
+                self.last_placement_depths[int(ok[r])] = depths
+                self.last_object_depths[int(ok[r])] = depths + size_cm[r, :depths.size] if sized else depths
         n = max(n_text, 1)
         self.last_parse_errors = list(errors)
         self.last_metrics = {
@@ -169,11 +196,13 @@ class PhysicsReward:
             "collision_free_rate": float((e_mm == 0).mean()) if ok.size else 0.0,
             "mean_max_depth_mm": float(depth_mm.mean()) if ok.size else 0.0,
             "mean_reward": float(rewards.mean()) if n_text else 0.0,
+            "mean_size_outside_cm": float(size_cm.sum(1).mean()) if ok.size else 0.0,
         }
         return rewards.tolist()
 
     def _object_depths(self, batch, out: dict) -> list[np.ndarray]:
-        """Per batch row, (n_objects,) cm: what each object is charged with (``object_terms``).
+        """Per batch row, (n_objects,) cm: what each object is charged with (``object_terms``; the
+        ``size`` term, :func:`size_outside_band_cm` at ``size_tolerance``, is added by the caller).
 
         ``penetration``: a pair deeper than the tolerance charges its depth to the object written
         later (the larger index: objects keep the completion's order), the one placed into a space
@@ -218,6 +247,26 @@ def object_terms_checked(terms: Sequence[str]) -> tuple[str, ...]:
         raise ValueError(f"object terms must be distinct names among {list(OBJECT_TERMS)} (at least one), "
                          f"got {list(terms)}")
     return terms
+
+
+@functools.lru_cache(maxsize=4096)
+def _prior_of(instance: str):
+    return CATEGORY_PRIORS.get(canonical_category(category_from_instance(instance)))
+
+
+def size_outside_band_cm(batch, tolerance: float) -> np.ndarray:
+    """(S, N) cm on the host: how far each object's size lies outside its category prior's band at
+    ``tolerance`` spreads (:meth:`physcene.assets.SizePrior.outside_band_cm`; the category read from
+    the instance id). 0 inside the band, for a category without a prior and on padded slots."""
+    sizes = batch.sizes.detach().cpu().numpy().astype(np.float64)
+    out = np.zeros(sizes.shape[:2])
+    for s, n in enumerate(batch.count.cpu().tolist()):
+        ids = batch.ids[s]
+        for k in range(int(n)):
+            prior = _prior_of(ids[k])
+            if prior is not None:
+                out[s, k] = prior.outside_band_cm(sizes[s, k], tolerance)
+    return out
 
 
 _BY_DEVICE: dict[str, PhysicsReward] = {}

@@ -107,7 +107,8 @@ class PADAConfig(GRPOConfig):
         default_factory=lambda: ["penetration"],
         metadata={"help": "What object_credit charges each object with (cm), of "
                           "physcene.reward.OBJECT_TERMS: penetration (the paper's reward term), "
-                          "floating (its support gap), out_of_zone (how far its footprint leaves the zone)."})
+                          "floating (its support gap), out_of_zone (how far its footprint leaves the zone), "
+                          "size (how far its size lies outside its category's band; reward.size_tolerance)."})
     object_credit_scope: str = field(
         default="line", metadata={"help": "Which tokens of a charged object object_credit lowers: line (its "
                                           "plan step and layout line) or numbers (only the numbers of its "
@@ -472,7 +473,7 @@ class PADATrainer(GRPOTrainer):
         lengths = completion_mask.sum(dim=1).tolist()
         texts = [self._tokenizer.decode(row[:int(n)], skip_special_tokens=True)
                  for row, n in zip(completion_ids.tolist(), lengths)]
-        charges = self._credit_reward.last_object_depths
+        charges = self._credit_reward.last_placement_depths  # a target moves objects, it does not resize
         if len(charges) != len(texts):
             raise ValueError(f"object charges for {len(charges)} completions, {len(texts)} generated")
         targets = denoise_targets(texts, charges, config=self._denoise_tto, engine=self._credit_reward.engine,
@@ -721,6 +722,7 @@ class PhysicsRewardFunction:
                 log_metric("penetration_mm", m["mean_energy_mm"])
                 log_metric("max_depth_mm", m["mean_max_depth_mm"])
                 log_metric("collision_free_rate", m["collision_free_rate"])
+                log_metric("size_outside_cm", m["mean_size_outside_cm"])
         return rewards
 
 

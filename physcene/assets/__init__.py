@@ -13,7 +13,9 @@ from physcene.assets.categories import (
     CATEGORY_PRIORS,
     IID_SCENE_TYPES,
     OOD_SCENE_TYPES,
+    SIZE_SIGMA_FLOOR,
     SizePrior,
+    canonical_category,
     categories_for_scene_type,
 )
 from physcene.assets.library import AssetEntry, AssetLibrary, Retrieval, default_library
@@ -24,9 +26,9 @@ from physcene.assets.surface import sample_sdf, surface_points
 
 __all__ = [
     "CATEGORY_ALIASES", "CATEGORY_PRIORS", "IID_SCENE_TYPES", "OOD_SCENE_TYPES", "PRIMITIVES",
-    "PROCEDURAL_BUILDERS", "Asset", "AssetEntry", "AssetFileError", "AssetLibrary", "BakeCache",
-    "Retrieval", "SizePrior", "bake_mesh_asset", "categories_for_scene_type", "default_cache_dir",
-    "default_library", "grid_coordinates", "load_mesh_file", "normalise_category", "normalise_mesh",
-    "primitive_asset", "procedural_mesh", "sample_sdf", "scan_mesh_folder", "sign_method_for",
-    "surface_points",
+    "PROCEDURAL_BUILDERS", "SIZE_SIGMA_FLOOR", "Asset", "AssetEntry", "AssetFileError", "AssetLibrary",
+    "BakeCache", "Retrieval", "SizePrior", "bake_mesh_asset", "canonical_category",
+    "categories_for_scene_type", "default_cache_dir", "default_library", "grid_coordinates",
+    "load_mesh_file", "normalise_category", "normalise_mesh", "primitive_asset", "procedural_mesh",
+    "sample_sdf", "scan_mesh_folder", "sign_method_for", "surface_points",
 ]
