@@ -76,8 +76,8 @@ def test_size_is_an_object_credit_term_and_denoising_sees_placement_only(scenes)
     pen.score_texts(texts)
     batch = reward.engine.pack([parse(t) for t in texts])
     size_cm = size_outside_band_cm(batch, RewardConfig().size_tolerance)
-    for k, (both, placement, only_pen) in enumerate(zip(reward.last_object_depths, reward.last_placement_depths,
-                                                        pen.last_object_depths)):
+    charges = zip(reward.last_object_depths, reward.last_placement_depths, pen.last_object_depths)
+    for k, (both, placement, only_pen) in enumerate(charges):
         n = len(scenes[k].objects)
         assert np.allclose(placement, only_pen, atol=1e-4)
         assert np.allclose(both, only_pen + size_cm[k, :n], atol=1e-4)
@@ -96,3 +96,31 @@ def test_reward_overrides_reach_the_pada_reward_and_bad_keys_are_named():
     assert fn.reward.config.size_per_cm == 2.0 and fn.reward.config.size_tolerance == 1.5
     with pytest.raises(Exception, match="size_per_centimetre"):
         PhysicsRewardFunction("cpu", overrides=["size_per_centimetre=2.0"])
+
+
+def test_pada_denoising_targets_are_built_from_the_placement_charges(scenes, monkeypatch):
+    """With ``size`` among the credit terms, a denoising target must not move an object for its size."""
+    from types import SimpleNamespace
+
+    import physcene.train.denoise as denoise
+    import torch
+    from physcene.train.pada import PADATrainer
+    from physcene.train.tokenizer import build_tokenizer
+
+    texts = [completion_text(s, decimals=2) for s in scenes[1:3]]  # colliding; colliding and flattened
+    reward = PhysicsReward(RewardConfig(), object_depths=True, object_terms=("penetration", "size"))
+    reward.score_texts(texts)
+    assert not np.allclose(reward.last_object_depths[1], reward.last_placement_depths[1])
+    seen = []
+    monkeypatch.setattr(denoise, "denoise_targets",
+                        lambda t, charges, **kw: seen.append(charges) or [None] * len(t))
+    tokenizer = build_tokenizer(texts, vocab_size=320)
+    rows = [tokenizer(t, add_special_tokens=False)["input_ids"] + [tokenizer.eos_token_id] for t in texts]
+    width = max(map(len, rows))
+    output = {"completion_ids": torch.tensor([r + [tokenizer.pad_token_id] * (width - len(r)) for r in rows]),
+              "completion_mask": torch.tensor([[1] * len(r) + [0] * (width - len(r)) for r in rows])}
+    trainer = SimpleNamespace(_credit_reward=reward, _tokenizer=tokenizer, _denoise_tto=None,
+                              args=SimpleNamespace(denoise_margin_cm=1.0, denoise_decimals=2),
+                              max_completion_length=10_000, _log_value=lambda k, v: None)
+    PADATrainer._denoise_rollouts(trainer, output)
+    assert seen and seen[0] is reward.last_placement_depths
