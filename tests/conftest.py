@@ -37,3 +37,25 @@ def step_counter():
             self.steps += 1
 
     return StepCounter
+
+
+@pytest.fixture(scope="session")
+def written_into():
+    """``written_into(dx_cm)`` -> (clean, colliding): the first level-2 scene of the test split's plan,
+    and the same with its last table-level object written ``dx_cm`` beside its first one along x (a
+    collision the reward charges to the later-written object)."""
+    from physcene.data.benchmark import DataConfig, build_scenes
+    from physcene.data.splits import plan_split
+    from physcene.scene import TABLE
+
+    item = next(i for i in plan_split("test", 40, 0) if i.level == 2)
+    clean = build_scenes("test", 0, item, DataConfig())[0]
+    table = [o for o in clean.objects if o.parent == TABLE]
+    first, last = table[0], table[-1]
+
+    def collide(dx_cm: float):
+        return clean, clean.with_objects(
+            o.moved(center=(first.center[0] + dx_cm, first.center[1], o.center[2])) if o is last else o
+            for o in clean.objects)
+
+    return collide

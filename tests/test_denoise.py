@@ -17,8 +17,6 @@ from physcene.train.tokenizer import build_tokenizer
 from shapely.geometry import Polygon
 
 from physcene.ctrc import completion_text, decimals_of, parse, usual_decimals
-from physcene.data.benchmark import DataConfig, build_scenes
-from physcene.data.splits import plan_split
 from physcene.reward import PhysicsReward, RewardConfig
 from physcene.scene import TABLE, ZONE_TOLERANCE_CM, zone_overshoot
 from physcene.tto import TTOConfig
@@ -27,16 +25,10 @@ TTO = TTOConfig.from_config(["lambda_zone=100.0", "report_relations=false"])
 
 
 @pytest.fixture(scope="module")
-def texts():
+def texts(written_into):
     """A clean level-2 test scene as CTRC, and the same with its last table-level object written 1 cm
     beside its first one (a collision the reward charges to the later-written object)."""
-    item = next(i for i in plan_split("test", 40, 0) if i.level == 2)
-    clean = build_scenes("test", 0, item, DataConfig())[0]
-    table = [o for o in clean.objects if o.parent == TABLE]
-    first, last = table[0], table[-1]
-    moved = clean.with_objects(
-        o.moved(center=(first.center[0] + 1.0, first.center[1], o.center[2])) if o is last else o
-        for o in clean.objects)
+    clean, moved = written_into(1.0)
     return completion_text(clean, decimals=2), completion_text(moved, decimals=2)
 
 

@@ -19,23 +19,15 @@ from physcene.train.pada import (
 from physcene.train.tokenizer import build_tokenizer
 
 from physcene.ctrc import completion_text, parse
-from physcene.data.benchmark import DataConfig, build_scenes
-from physcene.data.splits import plan_split
 from physcene.reward import PhysicsReward, RewardConfig
 from physcene.scene import TABLE
 
 
 @pytest.fixture(scope="module")
-def texts():
+def texts(written_into):
     """A clean level-2 test scene as CTRC, and the same with its last table-level object moved onto
     its first one (a collision charged to the later-written object)."""
-    item = next(i for i in plan_split("test", 40, 0) if i.level == 2)
-    clean = build_scenes("test", 0, item, DataConfig())[0]
-    table = [o for o in clean.objects if o.parent == TABLE]
-    first, last = table[0], table[-1]
-    moved = clean.with_objects(
-        o.moved(center=(first.center[0], first.center[1], o.center[2])) if o is last else o
-        for o in clean.objects)
+    clean, moved = written_into(0.0)
     return completion_text(clean, decimals=2), completion_text(moved, decimals=2)
 
 

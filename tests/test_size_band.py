@@ -7,8 +7,6 @@ import pytest
 
 from physcene.assets import CATEGORY_PRIORS, SIZE_SIGMA_FLOOR, canonical_category
 from physcene.ctrc import completion_text, parse
-from physcene.data.benchmark import DataConfig, build_scenes
-from physcene.data.splits import plan_split
 from physcene.reward import PhysicsReward, RewardConfig, object_terms_checked, size_outside_band_cm
 from physcene.scene import TABLE
 
@@ -29,16 +27,10 @@ def test_band_is_the_judges_tolerance_around_the_prior_mean_in_any_orientation()
 
 
 @pytest.fixture(scope="module")
-def scenes():
+def scenes(written_into):
     """A clean level-2 test scene; the same with its last table-level object written into its first;
     and that colliding scene with every table-level object flattened to 1/2 and 1/4 of its height."""
-    item = next(i for i in plan_split("test", 40, 0) if i.level == 2)
-    clean = build_scenes("test", 0, item, DataConfig())[0]
-    table = [o for o in clean.objects if o.parent == TABLE]
-    first, last = table[0], table[-1]
-    colliding = clean.with_objects(
-        o.moved(center=(first.center[0] + 3.0, first.center[1], o.center[2])) if o is last else o
-        for o in clean.objects)
+    clean, colliding = written_into(3.0)
 
     def flattened(f):
         return colliding.with_objects(
