@@ -34,14 +34,17 @@ from physcene.ctrc import ParseError, parse
 from physcene.layout import category_from_instance
 from physcene.scene import ZONE_TOLERANCE_CM, Scene
 
-__all__ = ["OBJECT_TERMS", "PhysicsReward", "RewardConfig", "completion_text_of", "physics_reward",
-           "reward_from_energy", "size_outside_band_cm"]
+__all__ = ["OBJECT_TERMS", "PENETRATION_CHARGES", "PhysicsReward", "RewardConfig", "completion_text_of",
+           "penetration_charge_checked", "physics_reward", "reward_from_energy", "size_outside_band_cm"]
 
 # What an object can be charged with (cm) when PhysicsReward keeps per-object charges (PADA's
 # object_credit): the penetration of the pairs it was written into, its support gap when it floats,
 # how far its footprint leaves the zone, how far its size lies outside its category's band. Only the
 # first is in the paper's reward.
 OBJECT_TERMS = ("penetration", "floating", "out_of_zone", "size")
+# How a penetrating pair charges its later-written object: its depth (cm), or 1 per pair. A depth charge
+# falls with the objects' thickness (a flat box cannot be penetrated deeply), a pair count does not.
+PENETRATION_CHARGES = ("depth", "pairs")
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -114,13 +117,15 @@ class PhysicsReward:
     __name__ = "physics_reward"  # TRL names reward columns after the function
 
     def __init__(self, config: RewardConfig | None = None, engine=None, *, object_depths: bool = False,
-                 object_terms: Sequence[str] = ("penetration",)):
+                 object_terms: Sequence[str] = ("penetration",), penetration_charge: str = "depth"):
         self.config = config or RewardConfig()
         self._engine = engine
         self.object_depths = object_depths
         """Also keep ``last_object_depths`` after each call (PADA's ``object_credit``)."""
         self.object_terms = object_terms_checked(object_terms)
         """What ``last_object_depths`` charges each object with (:data:`OBJECT_TERMS`)."""
+        self.penetration_charge = penetration_charge_checked(penetration_charge)
+        """``depth``: a penetrating pair charges its depth (cm); ``pairs``: 1 (PENETRATION_CHARGES)."""
         self.last_metrics: dict[str, float] = {}
         self.last_parse_errors: list[str | None] = []
         self.last_object_depths: list[np.ndarray | None] = []
@@ -204,9 +209,10 @@ class PhysicsReward:
         """Per batch row, (n_objects,) cm: what each object is charged with (``object_terms``; the
         ``size`` term, :func:`size_outside_band_cm` at ``size_tolerance``, is added by the caller).
 
-        ``penetration``: a pair deeper than the tolerance charges its depth to the object written
-        later (the larger index: objects keep the completion's order), the one placed into a space
-        already taken; with ``table_term`` an object's own table depth is charged to it too.
+        ``penetration``: a pair deeper than the tolerance charges its depth (``penetration_charge``
+        ``depth``) or 1 (``pairs``) to the object written later (the larger index: objects keep the
+        completion's order), the one placed into a space already taken; with ``table_term`` an object's
+        own table depth is charged to it too (a depth either way).
         ``floating``: an object whose bottom is more than the engine's ``floating_tolerance_cm``
         above its support (the floating metric) is charged that gap. ``out_of_zone``: an object whose
         yawed footprint leaves the zone by more than ``ZONE_TOLERANCE_CM`` (the out-of-zone metric)
@@ -219,7 +225,7 @@ class PhysicsReward:
         if "penetration" in self.object_terms:
             for s, pairs in enumerate(batch.deep_pairs(out["pair_depth"], tolerance_cm)):
                 for i, j, d in pairs:
-                    depths[s][max(i, j)] += d
+                    depths[s][max(i, j)] += d if self.penetration_charge == "depth" else 1.0
             if self.config.table_term:
                 per_object.append((out["table_depth"].cpu().numpy(), tolerance_cm))
         if "floating" in self.object_terms:
@@ -267,6 +273,13 @@ def size_outside_band_cm(batch, tolerance: float) -> np.ndarray:
             if prior is not None:
                 out[s, k] = prior.outside_band_cm(sizes[s, k], tolerance)
     return out
+
+
+def penetration_charge_checked(charge: str) -> str:
+    """``charge`` if it is one of :data:`PENETRATION_CHARGES`, else a ValueError naming them."""
+    if charge not in PENETRATION_CHARGES:
+        raise ValueError(f"penetration charge must be one of {list(PENETRATION_CHARGES)}, got {charge!r}")
+    return charge
 
 
 _BY_DEVICE: dict[str, PhysicsReward] = {}

@@ -116,3 +116,33 @@ def test_pada_denoising_targets_are_built_from_the_placement_charges(scenes, mon
                               max_completion_length=10_000, _log_value=lambda k, v: None)
     PADATrainer._denoise_rollouts(trainer, output)
     assert seen and seen[0] is reward.last_placement_depths
+
+
+def test_a_pair_count_charge_does_not_fall_when_the_objects_are_written_thinner(scenes):
+    texts = [completion_text(s, decimals=2) for s in scenes[1:]]
+    moved = len(scenes[1].objects) - 1 - [o.parent for o in reversed(scenes[1].objects)].index(TABLE)
+    by_depth = PhysicsReward(RewardConfig(), object_depths=True)
+    by_pairs = PhysicsReward(RewardConfig(), object_depths=True, penetration_charge="pairs")
+    by_depth.score_texts(texts)
+    rewards = by_pairs.score_texts(texts)
+    assert rewards == by_depth.score_texts(texts)  # the charge is PADA's credit; the reward is the paper's
+    depth = [float(d[moved]) for d in by_depth.last_object_depths]
+    pairs = [d[moved] for d in by_pairs.last_object_depths]
+    assert depth[0] > depth[1] > depth[2] > 0
+    assert pairs == [1.0, 1.0, 1.0]
+    assert all(set(np.flatnonzero(a)) == set(np.flatnonzero(b))  # the same objects blamed
+               for a, b in zip(by_depth.last_object_depths, by_pairs.last_object_depths))
+    with pytest.raises(ValueError, match=r"must be one of \['depth', 'pairs'\], got 'area'"):
+        PhysicsReward(penetration_charge="area")
+
+
+def test_pada_takes_the_penetration_charge_from_its_config():
+    from physcene.train.pada import pada_arguments
+
+    from physcene.config import load_config
+
+    assert pada_arguments(load_config("train_tiny"), "pada").object_credit_penetration == "depth"
+    pairs = pada_arguments(load_config("train_tiny", ["pada.object_credit_penetration=pairs"]), "pada")
+    assert pairs.object_credit_penetration == "pairs"
+    with pytest.raises(ValueError, match="pada.object_credit_penetration: penetration charge must be one of"):
+        pada_arguments(load_config("train_tiny", ["pada.object_credit_penetration=volume"]), "pada")

@@ -303,7 +303,8 @@ def test_pada_with_object_credit_trains_on_per_token_advantages(tmp_path, one_th
     and the credit's figures are logged; a negative weight is refused."""
     from physcene.train.pada import PADATrainer
 
-    cfg = _sft_for_pada(tmp_path, 4, 4, "pada.max_steps=2", "pada.object_credit=1.0")
+    cfg = _sft_for_pada(tmp_path, 4, 4, "pada.max_steps=2", "pada.object_credit=1.0",
+                        "pada.object_credit_penetration=pairs", "pada.object_credit_terms=[penetration,size]")
     seen = []
     original = PADATrainer._credit_objects
 
@@ -312,7 +313,9 @@ def test_pada_with_object_credit_trains_on_per_token_advantages(tmp_path, one_th
         seen.append(tuple(output["advantages"].shape))
 
     monkeypatch.setattr(PADATrainer, "_credit_objects", spy)
-    out = run_pada(cfg, variant="pada", reward=PhysicsReward(RewardConfig(device="cpu")))
+    reward = PhysicsReward(RewardConfig(device="cpu"))
+    out = run_pada(cfg, variant="pada", reward=reward)
+    assert reward.penetration_charge == "pairs" and reward.object_terms == ("penetration", "size")
     assert seen and all(len(shape) == 2 and shape[1] > 1 for shape in seen)
     log = json.loads((out / "train_log.json").read_text())
     assert any("object_credit/charged_token_frac" in e for e in log)

@@ -109,6 +109,10 @@ class PADAConfig(GRPOConfig):
                           "physcene.reward.OBJECT_TERMS: penetration (the paper's reward term), "
                           "floating (its support gap), out_of_zone (how far its footprint leaves the zone), "
                           "size (how far its size lies outside its category's band; reward.size_tolerance)."})
+    object_credit_penetration: str = field(
+        default="depth", metadata={"help": "How a penetrating pair charges its later-written object: depth "
+                                           "(its depth, cm) or pairs (1 per pair: does not fall when the "
+                                           "objects are written thinner)."})
     object_credit_scope: str = field(
         default="line", metadata={"help": "Which tokens of a charged object object_credit lowers: line (its "
                                           "plan step and layout line) or numbers (only the numbers of its "
@@ -314,7 +318,7 @@ class PADATrainer(GRPOTrainer):
         self.denoise = float(args.denoise)
         self._credit_reward = None
         if self.object_credit or self.denoise:
-            from physcene.reward import PhysicsReward, object_terms_checked
+            from physcene.reward import PhysicsReward, object_terms_checked, penetration_charge_checked
 
             rewards = (getattr(f, "reward", f) for f in self.reward_funcs)
             found = [r for r in rewards if isinstance(r, PhysicsReward)]
@@ -325,6 +329,8 @@ class PADATrainer(GRPOTrainer):
             self._credit_reward = found[0]
             self._credit_reward.object_depths = True
             self._credit_reward.object_terms = object_terms_checked(args.object_credit_terms)
+            charge = penetration_charge_checked(args.object_credit_penetration)
+            self._credit_reward.penetration_charge = charge
         self._denoise_tto = None
         if self.denoise:
             from dataclasses import replace
@@ -731,7 +737,7 @@ def pada_arguments(cfg, variant: str) -> PADAConfig:
     from omegaconf import OmegaConf
     from physcene.train.sft import _precision, accumulation_steps, world_size
 
-    from physcene.reward import object_terms_checked
+    from physcene.reward import object_terms_checked, penetration_charge_checked
 
     if variant not in VARIANTS:
         raise ValueError(f"unknown PADA variant {variant!r}; use one of {sorted(VARIANTS)}")
@@ -768,6 +774,11 @@ def pada_arguments(cfg, variant: str) -> PADAConfig:
     if scope not in OBJECT_CREDIT_SCOPES:
         raise ValueError(f"pada.object_credit_scope must be one of {list(OBJECT_CREDIT_SCOPES)}, "
                          f"got {scope!r}")
+    penetration = str(p.get("object_credit_penetration", "depth"))
+    try:
+        penetration_charge_checked(penetration)
+    except ValueError as exc:
+        raise ValueError(f"pada.object_credit_penetration: {exc}") from None
     terms = p.get("object_credit_terms", ["penetration"])
     try:
         terms = OmegaConf.to_container(terms) if OmegaConf.is_config(terms) else terms
@@ -792,6 +803,7 @@ def pada_arguments(cfg, variant: str) -> PADAConfig:
         object_credit=object_credit,
         object_credit_terms=terms,
         object_credit_scope=scope,
+        object_credit_penetration=penetration,
         denoise=denoise,
         denoise_margin_cm=denoise_margin_cm,
         denoise_tto=denoise_tto,
