@@ -109,9 +109,9 @@ class PhysicsReward:
 
     After every call ``last_metrics`` holds the batch's ``parse_failure_rate``,
     ``mean_energy_mm`` (over parsed layouts), ``collision_free_rate`` (over parsed layouts),
-    ``mean_reward``, ``mean_max_depth_mm`` and ``mean_size_outside_cm`` (a parsed layout's summed
-    :func:`size_outside_band_cm`, measured whether or not ``size_per_cm`` charges it), for the
-    trainer's log.
+    ``mean_reward`` and ``mean_max_depth_mm``, for the trainer's log; with ``size_per_cm`` > 0 or the
+    ``size`` object term, also ``mean_size_outside_cm`` (a parsed layout's summed
+    :func:`size_outside_band_cm`: host work per object, so not measured otherwise).
     """
 
     __name__ = "physics_reward"  # TRL names reward columns after the function
@@ -183,7 +183,8 @@ class PhysicsReward:
             both = (torch.stack([e, out["max_depth"]]) * 10.0).cpu().numpy().astype(np.float64)  # one sync
             e_mm, depth_mm = both[0], both[1]
             rewards[ok] = reward_from_energy(e_mm, cfg)
-            size_cm = size_outside_band_cm(batch, cfg.size_tolerance)
+            if cfg.size_per_cm or (self.object_depths and "size" in self.object_terms):
+                size_cm = size_outside_band_cm(batch, cfg.size_tolerance)  # host work: only when asked
             if cfg.size_per_cm:
                 rewards[ok] = np.maximum(rewards[ok] - cfg.size_per_cm * size_cm.sum(1), -cfg.max_penalty)
         self.last_object_depths = [None] * n_text
@@ -201,8 +202,9 @@ class PhysicsReward:
             "collision_free_rate": float((e_mm == 0).mean()) if ok.size else 0.0,
             "mean_max_depth_mm": float(depth_mm.mean()) if ok.size else 0.0,
             "mean_reward": float(rewards.mean()) if n_text else 0.0,
-            "mean_size_outside_cm": float(size_cm.sum(1).mean()) if ok.size else 0.0,
         }
+        if size_cm is not None:
+            self.last_metrics["mean_size_outside_cm"] = float(size_cm.sum(1).mean())
         return rewards.tolist()
 
     def _object_depths(self, batch, out: dict) -> list[np.ndarray]:

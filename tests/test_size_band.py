@@ -42,7 +42,9 @@ def scenes(written_into):
 
 def test_penetration_only_reward_pays_for_flattening_and_the_size_term_takes_it_back(scenes):
     texts = [completion_text(s, decimals=2) for s in scenes]
-    paper = np.array(PhysicsReward(RewardConfig()).score_texts(texts))
+    plain = PhysicsReward(RewardConfig())
+    paper = np.array(plain.score_texts(texts))
+    assert "mean_size_outside_cm" not in plain.last_metrics  # per-object host work, only when asked
     assert paper[0] == 50.0
     assert paper[1] < paper[2] < paper[3] < 0  # the hack: the flatter, the shallower, the better
     sized = PhysicsReward(RewardConfig(size_per_cm=2.0))

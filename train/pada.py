@@ -728,7 +728,8 @@ class PhysicsRewardFunction:
                 log_metric("penetration_mm", m["mean_energy_mm"])
                 log_metric("max_depth_mm", m["mean_max_depth_mm"])
                 log_metric("collision_free_rate", m["collision_free_rate"])
-                log_metric("size_outside_cm", m["mean_size_outside_cm"])
+                if "mean_size_outside_cm" in m:
+                    log_metric("size_outside_cm", m["mean_size_outside_cm"])
         return rewards
 
 
