@@ -6,8 +6,10 @@ the ``rl`` block of ``docs/results/ablation*.json``.
 Per run: optimizer steps (and those applied: not dropped as non-finite), generation rounds, wall
 seconds (sum of ``step_time``), seconds per step, median seconds of a round's generation, the
 rollouts' collision-free share in the first and last two rounds, KL (median, max), the share of
-tokens the constraint chose, the last adaptive-KL β, the steps the non-finite guard dropped, and the
-anchor CE (first step, mean of the last 8).
+tokens the constraint chose, the last adaptive-KL β, the steps the non-finite guard dropped, the
+anchor CE (first step, mean of the last 8), and where the run logged them the rollouts' E_pen (mm) and
+summed size outside the category bands (cm, ``reward.size_per_cm`` / the ``size`` term), means of the
+first and last two rounds, and the denoising NLL, means of the first and last 8 steps.
 """
 
 from __future__ import annotations
@@ -48,6 +50,13 @@ def summary(run: Path) -> dict:
     if ce:
         out["anchor_ce_first"] = round(ce[0], 3)
         out["anchor_ce_last_8_mean"] = round(statistics.fmean(ce[-8:]), 3)
+    for key, name, n, unit in (("penetration_mm", "penetration_mm", 2, "rounds"),  # logged once a round
+                               ("size_outside_cm", "size_outside_cm", 2, "rounds"),
+                               ("denoise/nll", "denoise_nll", 8, "steps")):         # once a step
+        values = [e[key] for e in log if key in e]
+        if values:
+            out[f"{name}_first_{n}_{unit}"] = round(statistics.fmean(values[:n]), 3)
+            out[f"{name}_last_{n}_{unit}"] = round(statistics.fmean(values[-n:]), 3)
     return out
 
 
