@@ -59,3 +59,18 @@ def written_into():
             for o in clean.objects)
 
     return collide
+
+
+@pytest.fixture(scope="session")
+def generated():
+    """``generated(tokenizer, texts)`` -> ``{"completion_ids", "completion_mask"}``: the texts as TRL hands
+    PADA its rollouts, each tokenized, ended with EOS and right-padded to the longest."""
+    import torch
+
+    def rollouts(tokenizer, texts):
+        rows = [tokenizer(t, add_special_tokens=False)["input_ids"] + [tokenizer.eos_token_id] for t in texts]
+        width, pad = max(map(len, rows)), tokenizer.pad_token_id
+        return {"completion_ids": torch.tensor([r + [pad] * (width - len(r)) for r in rows]),
+                "completion_mask": torch.tensor([[1] * len(r) + [0] * (width - len(r)) for r in rows])}
+
+    return rollouts

@@ -193,15 +193,10 @@ def test_denoise_targets_checks_its_inputs(texts):
         denoise_targets(list(texts), [None])
 
 
-def test_pada_builds_denoise_rows_aligned_with_the_rollouts(texts, reward):
+def test_pada_builds_denoise_rows_aligned_with_the_rollouts(texts, reward, generated):
     clean, moved = texts
     tokenizer = build_tokenizer([clean, moved], vocab_size=320)
-    eos = tokenizer.eos_token_id
-    rows = [tokenizer(t, add_special_tokens=False)["input_ids"] + [eos] for t in (moved, clean)]
-    width = max(map(len, rows))
-    pad = tokenizer.pad_token_id
-    output = {"completion_ids": torch.tensor([r + [pad] * (width - len(r)) for r in rows]),
-              "completion_mask": torch.tensor([[1] * len(r) + [0] * (width - len(r)) for r in rows])}
+    output = generated(tokenizer, [moved, clean])
     reward.score_texts([moved, clean])
     logged = {}
     trainer = SimpleNamespace(_credit_reward=reward, _tokenizer=tokenizer, _denoise_tto=TTO,

@@ -92,12 +92,11 @@ def test_reward_overrides_reach_the_pada_reward_and_bad_keys_are_named():
         PhysicsRewardFunction("cpu", overrides=["size_per_centimetre=2.0"])
 
 
-def test_pada_denoising_targets_are_built_from_the_placement_charges(scenes, monkeypatch):
+def test_pada_denoising_targets_are_built_from_the_placement_charges(scenes, monkeypatch, generated):
     """With ``size`` among the credit terms, a denoising target must not move an object for its size."""
     from types import SimpleNamespace
 
     import physcene.train.denoise as denoise
-    import torch
     from physcene.train.pada import PADATrainer
     from physcene.train.tokenizer import build_tokenizer
 
@@ -109,10 +108,7 @@ def test_pada_denoising_targets_are_built_from_the_placement_charges(scenes, mon
     monkeypatch.setattr(denoise, "denoise_targets",
                         lambda t, charges, **kw: seen.append(charges) or [None] * len(t))
     tokenizer = build_tokenizer(texts, vocab_size=320)
-    rows = [tokenizer(t, add_special_tokens=False)["input_ids"] + [tokenizer.eos_token_id] for t in texts]
-    width = max(map(len, rows))
-    output = {"completion_ids": torch.tensor([r + [tokenizer.pad_token_id] * (width - len(r)) for r in rows]),
-              "completion_mask": torch.tensor([[1] * len(r) + [0] * (width - len(r)) for r in rows])}
+    output = generated(tokenizer, texts)
     trainer = SimpleNamespace(_credit_reward=reward, _tokenizer=tokenizer, _denoise_tto=None,
                               args=SimpleNamespace(denoise_margin_cm=1.0, denoise_decimals=2),
                               max_completion_length=10_000, _log_value=lambda k, v: None)

@@ -77,7 +77,7 @@ class SizePrior:
     def outside_band_cm(self, size, tolerance: float) -> float:
         """How far (cm, summed over the dimensions) ``size`` lies outside :meth:`band_cm`; 0 inside."""
         low, high = self.band_cm(tolerance)
-        size = self.aligned(size)[0]
+        size = np.sort(np.asarray(size, dtype=np.float64))  # ascending, as the band's dimensions
         return float((np.maximum(low - size, 0.0) + np.maximum(size - high, 0.0)).sum())
 
 
