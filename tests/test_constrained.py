@@ -7,6 +7,9 @@ import pytest
 import torch
 from physcene.train.constrained import (
     CTRCConstraint,
+    Rule,
+    _token_texts,
+    _TokenIndex,
     constraint_rule,
     listed_instance_ids,
     prompt_zone,
@@ -282,31 +285,76 @@ def test_the_zone_is_copied_from_the_prompt(records):
     assert rule is not None and rule.pattern is None  # EOS only
 
 
+def _random_logits_run(record, tokenizer, mode: str):
+    """The token ids (and the processor) of a completion of ``record``'s prompt under ``mode`` by a
+    model whose logits are noise (3 x N(0, 1)), forced through the reference plan: every layout token
+    is a wrong guess the constraint must overrule. The same noise for the same record and mode."""
+    vocab = len(tokenizer)
+    greedy = mode == "greedy"
+    gen = torch.Generator().manual_seed(7 + greedy)
+    torch.manual_seed(7)  # the draws of the rejection mode
+    plan = record["completion"].split("**Scene Layout:**")[0].rstrip("\n")
+    forced = tokenizer(plan, add_special_tokens=False)["input_ids"]
+    proc = CTRCConstraint(tokenizer, [record["prompt"]], **MODES[mode])
+    ids: list[int] = []
+    for step in range(4000):
+        scores = 3.0 * torch.randn(1, vocab, generator=gen)
+        if step < len(forced):
+            scores[0, forced[step]] = 100.0
+            scores[0, tokenizer.eos_token_id] = -1e9
+        scores = proc(torch.tensor([[tokenizer.pad_token_id] + ids], dtype=torch.long), scores)
+        probs = scores.softmax(-1)
+        t = int(scores.argmax()) if greedy else int(torch.multinomial(probs, 1, generator=gen))
+        if t == tokenizer.eos_token_id:
+            break
+        ids.append(t)
+    return ids, proc
+
+
+@pytest.mark.parametrize("mode", list(MODES))
+def test_literal_rules_scan_only_the_tokens_that_fit_and_allow_the_same(records, tokenizer, mode,
+                                                                        monkeypatch):
+    """A vocabulary scan under a literal rule (the copied zone, ids, the layout's start) checks only
+    the tokens whose text fits one of its strings: a model of noise, which needs a scan at nearly
+    every such token, writes the very same completion as with every token of the vocabulary checked."""
+    record = min(records, key=lambda r: len(r["completion"]))
+    indexed, proc = _random_logits_run(record, tokenizer, mode)
+    assert proc.indexed_scans > 10 and proc.indexed_scans <= proc.vocabulary_scans
+    monkeypatch.setattr(_TokenIndex, "literal_candidates", lambda self, rule: None)
+    scanned, plain = _random_logits_run(record, tokenizer, mode)
+    assert plain.indexed_scans == 0 and plain.vocabulary_scans == proc.vocabulary_scans
+    assert indexed == scanned
+
+
+def test_a_literal_rules_candidates_hold_every_token_it_admits(tokenizer):
+    """``_TokenIndex.literal_candidates`` is a superset of what the rule admits, on open and closed
+    literal rules part-way through their strings, and gives up (None) where any token may fit."""
+    index = _TokenIndex(_token_texts(tokenizer))
+    texts = _token_texts(tokenizer)
+    zone = " [0.0, 113.7, 0.0, 48.25, 0.0, 0.0], \"z_rotation\":"
+    copies = [Rule(zone[:k], "", choices=(zone,)) for k in (0, 1, 5, 12, len(zone) - 3)]
+    steps = (" 2_cup_0 ", " 2_cup_0.", " 2_cup_1 ", " 2_cup_1.")
+    rules = [*copies, Rule(" 2_", "", choices=steps),
+             Rule(" 2_cup_0", "", choices=steps),  # tokens that run past the id (" the", ". ") fit too
+             Rule(" [1.5, 2", "", choices=(" [1.5, 2.5, 0.0, 1.0]\n}\n",), closed=True)]
+    for rule in rules:
+        candidates = set(index.literal_candidates(rule))
+        admitted = {t for t, text in enumerate(texts) if text and rule.admits(text)}
+        assert admitted and admitted <= candidates, rule.partial
+        if rule in copies:
+            assert len(candidates) < len(texts) // 20  # a handful, not the vocabulary
+    assert len({t for t in index.literal_candidates(rules[-2]) if len(texts[t]) > 1}) > 10
+    assert index.literal_candidates(Rule("", r"\d+")) is None  # a regex rule: scan the vocabulary
+    assert index.literal_candidates(None) is None
+
+
 @pytest.mark.parametrize("mode", list(MODES))
 def test_a_model_of_random_logits_still_writes_layouts_that_parse(records, tokenizer, mode):
     """Everything in the layout constrained: given the reference plan, a model whose logits are noise
     (every token a wrong guess: keys broken across tokens, leading zeros, bad escapes, a max below its
     min, numbers that never end) still writes a layout the parser accepts."""
-    vocab = len(tokenizer)
-    greedy = mode == "greedy"
-    gen = torch.Generator().manual_seed(7 + greedy)
-    torch.manual_seed(7)  # the draws of the rejection mode
     for r in sorted(records, key=lambda r: len(r["completion"]))[:2]:
-        plan = r["completion"].split("**Scene Layout:**")[0].rstrip("\n")
-        forced = tokenizer(plan, add_special_tokens=False)["input_ids"]
-        proc = CTRCConstraint(tokenizer, [r["prompt"]], **MODES[mode])
-        ids: list[int] = []
-        for step in range(4000):
-            scores = 3.0 * torch.randn(1, vocab, generator=gen)
-            if step < len(forced):
-                scores[0, forced[step]] = 100.0
-                scores[0, tokenizer.eos_token_id] = -1e9
-            scores = proc(torch.tensor([[tokenizer.pad_token_id] + ids], dtype=torch.long), scores)
-            probs = scores.softmax(-1)
-            t = int(scores.argmax()) if greedy else int(torch.multinomial(probs, 1, generator=gen))
-            if t == tokenizer.eos_token_id:
-                break
-            ids.append(t)
+        ids, _ = _random_logits_run(r, tokenizer, mode)
         text = tokenizer.decode(ids)
         scene = parse(text)
         assert not isinstance(scene, ParseError), (scene.reason, text[-400:])

@@ -129,6 +129,7 @@ def test_tiny_pipeline_end_to_end(tmp_path, one_thread, monkeypatch):
         if variant == "pada":
             assert 0 < step["time/constraint_s"] < step["time/generate_s"]
             assert 0 <= step["time/constraint_scan_s"] <= step["time/constraint_s"]
+            assert step["time/constraint_wait_s"] == 0.0  # no device to wait for on the CPU
             assert step["constraint/refused_draws"] >= 0 and step["constraint/vocabulary_scans"] >= 0
             assert 0 <= step["constraint/overruled_frac"] <= 1
         assert ("anchor_ce" in step) == (variant != "grpo")

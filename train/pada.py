@@ -400,6 +400,7 @@ class PADATrainer(GRPOTrainer):
             output = plain_generate(*args, **kwargs)
             self._round_overruled = processor.overruled  # row order = this round's prompts
             self._log_value("time/constraint_s", processor.seconds)
+            self._log_value("time/constraint_wait_s", processor.wait_seconds)  # GPU: the forward's share
             # where that time goes: draws refused, and rows that fell back to scanning the vocabulary
             self._log_value("time/constraint_scan_s", processor.scan_seconds)
             self._log_value("constraint/refused_draws", float(processor.refused_draws))

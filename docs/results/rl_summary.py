@@ -57,6 +57,14 @@ def summary(run: Path) -> dict:
         if values:
             out[f"{name}_first_{n}_{unit}"] = round(statistics.fmean(values[:n]), 3)
             out[f"{name}_last_{n}_{unit}"] = round(statistics.fmean(values[-n:]), 3)
+    # a round's generation: the constraint's time in it, of that the wait for the GPU's forward and
+    # the vocabulary scans (medians over the rounds after the first, which compiles)
+    for key, name in (("time/constraint_s", "constraint_median_s"),
+                      ("time/constraint_wait_s", "constraint_wait_median_s"),
+                      ("time/constraint_scan_s", "constraint_scan_median_s")):
+        values = [e[key] for e in rounds[1:] or rounds if key in e]
+        if values:
+            out[name] = round(statistics.median(values), 1)
     return out
 
 
