@@ -425,7 +425,7 @@ class CTRCConstraint(LogitsProcessor):
         self.vocabulary_scans = 0  # rows whose allowed set was looked for in the whole vocabulary
         self.scan_seconds = 0.0  # of self.seconds, the time in those scans (one check per token)
         self.indexed_scans = 0  # of the scans, those of a literal rule: only the tokens that fit its text
-        self.finite: torch.Tensor | None = None
+        self.finite: dict[int, torch.Tensor] = {}
 
     def _allowed(self, row: int, rule: Rule | None, candidates) -> list[int]:
         """The ``candidates`` that keep ``row`` inside its ``rule`` (None: free text) and inside the
@@ -472,7 +472,7 @@ class CTRCConstraint(LogitsProcessor):
             self.seconds += time.perf_counter() - start
 
     def _restrict(self, input_ids: torch.LongTensor, scores: torch.FloatTensor) -> torch.FloatTensor:
-        self.finite = None  # this step's finite mask, copied to the host by the first vocabulary scan
+        self.finite = {}  # this step's finite masks of the rows that scan the vocabulary, on the host
         rules = self._advance(input_ids)
         if not rules:
             return scores
@@ -552,14 +552,14 @@ class CTRCConstraint(LogitsProcessor):
 
     def _allowed_in_vocabulary(self, row: int, rule: Rule | None, scores: torch.Tensor) -> list[int]:
         """The allowed tokens of the whole vocabulary, less what other processors ruled out (-inf).
-        Under a literal rule (a copied zone, an id, the layout's start: most scans, where a small model
-        will not copy) only the tokens whose text fits one of its strings are checked
+        Under a literal rule (a copied zone, an id, the layout's start: where a small model that will
+        not copy exhausts its draws) only the tokens whose text fits one of its strings are checked
         (:meth:`_TokenIndex.literal_candidates`: the same allowed set, from ~10 checks instead of one
         per token of the vocabulary)."""
         start = time.perf_counter()
-        if self.finite is None:  # one host copy of the batch's mask a step, for every row that scans
-            self.finite = torch.isfinite(scores).cpu()  # (a copy per row was a device sync per scan)
-        finite_row = self.finite[row]
+        finite_row = self.finite.get(row)  # _draw copies every exhausted row's mask at once
+        if finite_row is None:
+            finite_row = self.finite[row] = torch.isfinite(scores[row]).cpu()
         candidates = self.token_index.literal_candidates(rule)
         if candidates is None:
             finite = finite_row.nonzero().flatten().tolist()
@@ -614,6 +614,8 @@ class CTRCConstraint(LogitsProcessor):
         if chosen_rows:  # one host-to-device copy of the (row, token) pairs
             chosen = tuple(torch.tensor([chosen_rows, chosen_tokens]).to(scores.device, non_blocking=True))
             out[chosen] = scores[chosen]
+        if exhausted:  # one device-to-host copy of their finite masks, not a sync per row
+            self.finite.update(zip(exhausted, torch.isfinite(scores[exhausted]).cpu()))
         for b in exhausted:
             allowed = self._allowed_in_vocabulary(b, rules[b], scores)
             if allowed:
