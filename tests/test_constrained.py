@@ -8,8 +8,8 @@ import torch
 from physcene.train.constrained import (
     CTRCConstraint,
     Rule,
-    _token_texts,
     _TokenIndex,
+    _vocabulary,
     constraint_rule,
     listed_instance_ids,
     prompt_zone,
@@ -329,8 +329,8 @@ def test_literal_rules_scan_only_the_tokens_that_fit_and_allow_the_same(records,
 def test_a_literal_rules_candidates_hold_every_token_it_admits(tokenizer):
     """``_TokenIndex.literal_candidates`` is a superset of what the rule admits, on open and closed
     literal rules part-way through their strings, and gives up (None) where any token may fit."""
-    index = _TokenIndex(_token_texts(tokenizer))
-    texts = _token_texts(tokenizer)
+    index = _vocabulary(tokenizer)
+    texts = index.texts
     zone = " [0.0, 113.7, 0.0, 48.25, 0.0, 0.0], \"z_rotation\":"
     copies = [Rule(zone[:k], "", choices=(zone,)) for k in (0, 1, 5, 12, len(zone) - 3)]
     steps = (" 2_cup_0 ", " 2_cup_0.", " 2_cup_1 ", " 2_cup_1.")

@@ -389,8 +389,8 @@ class CTRCConstraint(LogitsProcessor):
     def __init__(self, tokenizer: PreTrainedTokenizerBase, prompts: Sequence[str], *, top_k: int = 32,
                  greedy: bool = True, margin: float = 12.0, warpers: LogitsProcessorList | None = None,
                  redraws: int = 8):
-        self.token_text = _token_texts(tokenizer)
-        self.token_index = _token_index(self.token_text)
+        self.token_index = _vocabulary(tokenizer)
+        self.token_text = self.token_index.texts
         self.eos = tokenizer.eos_token_id
         self.listed = [listed_instance_ids(p) for p in prompts]
         self.zones = [prompt_zone(p) for p in prompts]
@@ -425,7 +425,6 @@ class CTRCConstraint(LogitsProcessor):
         self.vocabulary_scans = 0  # rows whose allowed set was looked for in the whole vocabulary
         self.scan_seconds = 0.0  # of self.seconds, the time in those scans (one check per token)
         self.indexed_scans = 0  # of the scans, those of a literal rule: only the tokens that fit its text
-        self.finite: dict[int, torch.Tensor] = {}
 
     def _allowed(self, row: int, rule: Rule | None, candidates) -> list[int]:
         """The ``candidates`` that keep ``row`` inside its ``rule`` (None: free text) and inside the
@@ -472,7 +471,6 @@ class CTRCConstraint(LogitsProcessor):
             self.seconds += time.perf_counter() - start
 
     def _restrict(self, input_ids: torch.LongTensor, scores: torch.FloatTensor) -> torch.FloatTensor:
-        self.finite = {}  # this step's finite masks of the rows that scan the vocabulary, on the host
         rules = self._advance(input_ids)
         if not rules:
             return scores
@@ -550,16 +548,17 @@ class CTRCConstraint(LogitsProcessor):
                 rules[b] = active_rule(partial, found[1], within=not searched and partial in admitted)
         return rules
 
-    def _allowed_in_vocabulary(self, row: int, rule: Rule | None, scores: torch.Tensor) -> list[int]:
-        """The allowed tokens of the whole vocabulary, less what other processors ruled out (-inf).
+    def _allowed_in_vocabulary(self, row: int, rule: Rule | None, scores: torch.Tensor,
+                               finite_row: torch.Tensor | None = None) -> list[int]:
+        """The allowed tokens of the whole vocabulary, less what other processors ruled out (-inf;
+        ``finite_row``: the row's finite mask already on the host, else it is copied here).
         Under a literal rule (a copied zone, an id, the layout's start: where a small model that will
         not copy exhausts its draws) only the tokens whose text fits one of its strings are checked
         (:meth:`_TokenIndex.literal_candidates`: the same allowed set, from ~10 checks instead of one
         per token of the vocabulary)."""
         start = time.perf_counter()
-        finite_row = self.finite.get(row)  # _draw copies every exhausted row's mask at once
         if finite_row is None:
-            finite_row = self.finite[row] = torch.isfinite(scores[row]).cpu()
+            finite_row = torch.isfinite(scores[row]).cpu()
         candidates = self.token_index.literal_candidates(rule)
         if candidates is None:
             finite = finite_row.nonzero().flatten().tolist()
@@ -614,10 +613,10 @@ class CTRCConstraint(LogitsProcessor):
         if chosen_rows:  # one host-to-device copy of the (row, token) pairs
             chosen = tuple(torch.tensor([chosen_rows, chosen_tokens]).to(scores.device, non_blocking=True))
             out[chosen] = scores[chosen]
-        if exhausted:  # one device-to-host copy of their finite masks, not a sync per row
-            self.finite.update(zip(exhausted, torch.isfinite(scores[exhausted]).cpu()))
-        for b in exhausted:
-            allowed = self._allowed_in_vocabulary(b, rules[b], scores)
+        # one device-to-host copy of their finite masks, not a sync per row
+        finite = torch.isfinite(scores[exhausted]).cpu() if exhausted else []
+        for b, finite_row in zip(exhausted, finite):
+            allowed = self._allowed_in_vocabulary(b, rules[b], scores, finite_row)
             if allowed:
                 out[b, allowed] = scores[b, allowed]
             else:  # nothing continues the rule: leave the row as it was, to the parser
@@ -654,25 +653,12 @@ def sampling_warpers(config: GenerationConfig) -> LogitsProcessorList | None:
     return warpers
 
 
-def _token_texts(tokenizer: PreTrainedTokenizerBase) -> list[str]:
-    """The text of every token id ("" for special tokens, which no rule allows)."""
-    key = (type(tokenizer).__name__, getattr(tokenizer, "name_or_path", ""), len(tokenizer))
-    cached = _TOKEN_TEXTS.get(key)
-    if cached is None:
-        special = set(tokenizer.all_special_ids)
-        cached = ["" if i in special else tokenizer.decode([i]) for i in range(len(tokenizer))]
-        _TOKEN_TEXTS[key] = cached
-    return cached
-
-
-_TOKEN_TEXTS: dict[tuple, list[str]] = {}
-
-
 class _TokenIndex:
     """The vocabulary's token texts by text and in sorted order, to find the tokens that fit a
     literal rule without checking every token."""
 
-    def __init__(self, texts: Sequence[str]):
+    def __init__(self, texts: list[str]):
+        self.texts = texts  # by token id
         self.by_text: dict[str, list[int]] = {}
         for t, text in enumerate(texts):
             if text:  # special tokens ("") fit no rule
@@ -714,13 +700,16 @@ class _TokenIndex:
         return sorted(out)
 
 
-def _token_index(texts: list[str]) -> _TokenIndex:
-    """The :class:`_TokenIndex` of a vocabulary's token texts (:func:`_token_texts`' list: built once
-    per vocabulary)."""
-    kept = _TOKEN_INDEX.get(id(texts))
-    if kept is None or kept[0] is not texts:
-        kept = _TOKEN_INDEX[id(texts)] = (texts, _TokenIndex(texts))
-    return kept[1]
+def _vocabulary(tokenizer: PreTrainedTokenizerBase) -> _TokenIndex:
+    """The :class:`_TokenIndex` of the tokenizer's token texts ("" for special tokens, which no rule
+    allows), built once per vocabulary."""
+    key = (type(tokenizer).__name__, getattr(tokenizer, "name_or_path", ""), len(tokenizer))
+    cached = _VOCABULARIES.get(key)
+    if cached is None:
+        special = set(tokenizer.all_special_ids)
+        texts = ["" if i in special else tokenizer.decode([i]) for i in range(len(tokenizer))]
+        cached = _VOCABULARIES[key] = _TokenIndex(texts)
+    return cached
 
 
-_TOKEN_INDEX: dict[int, tuple[list[str], _TokenIndex]] = {}
+_VOCABULARIES: dict[tuple, _TokenIndex] = {}
