@@ -17,6 +17,7 @@ Sizes are measured or catalogue figures for ordinary household items.
 
 from __future__ import annotations
 
+import functools
 import re
 from dataclasses import dataclass
 
@@ -70,15 +71,24 @@ class SizePrior:
 
     def band_cm(self, tolerance: float) -> tuple[np.ndarray, np.ndarray]:
         """The sizes within ``tolerance`` spreads of the mean in log space, per ascending dimension:
-        (low, high) = mean · exp(∓tolerance · sigma), cm (the rule judge's OSR does not penalise them)."""
-        _, mean, sigma = self.aligned(self.mean_cm)
-        return mean * np.exp(-tolerance * sigma), mean * np.exp(tolerance * sigma)
+        (low, high) = mean · exp(∓tolerance · sigma), cm (the rule judge's OSR does not penalise them).
+        Computed once per prior and tolerance (the reward's size guard asks per object); read-only."""
+        return _band_cm(self, float(tolerance))
 
     def outside_band_cm(self, size, tolerance: float) -> float:
         """How far (cm, summed over the dimensions) ``size`` lies outside :meth:`band_cm`; 0 inside."""
         low, high = self.band_cm(tolerance)
         size = np.sort(np.asarray(size, dtype=np.float64))  # ascending, as the band's dimensions
         return float((np.maximum(low - size, 0.0) + np.maximum(size - high, 0.0)).sum())
+
+
+@functools.lru_cache(maxsize=1024)
+def _band_cm(prior: SizePrior, tolerance: float) -> tuple[np.ndarray, np.ndarray]:
+    _, mean, sigma = prior.aligned(prior.mean_cm)
+    band = mean * np.exp(-tolerance * sigma), mean * np.exp(tolerance * sigma)
+    for edge in band:
+        edge.setflags(write=False)
+    return band
 
 
 def canonical_category(category: str) -> str:
