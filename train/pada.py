@@ -228,15 +228,20 @@ _PLAN_STEP = re.compile(r"\s*\d+\.\s+Place (\S+)\s")
 OBJECT_CREDIT_SCOPES = ("line", "numbers")
 
 
+def object_credit_scope_checked(scope: str) -> str:
+    """``scope`` if it is one of :data:`OBJECT_CREDIT_SCOPES`, else a ValueError naming them."""
+    if scope not in OBJECT_CREDIT_SCOPES:
+        raise ValueError(f"object credit scope must be one of {list(OBJECT_CREDIT_SCOPES)}, got {scope!r}")
+    return scope
+
+
 def object_text_spans(text: str, scope: str = "line") -> list[list[tuple[int, int]]]:
     """Per object of a CTRC layout, in the order written (object k of the parsed scene): the
     character spans of the text that places it. ``scope`` ``line``: its plan step ("k. Place <id>
     ...", the first one naming it, when the plan has one) and its layout line
     (:func:`object_line_spans`); ``numbers``: only the numbers of its geometry (:data:`GEOMETRY_KEYS`)
     on that line, so its id, category, relation and description are never charged."""
-    if scope not in OBJECT_CREDIT_SCOPES:
-        raise ValueError(f"object credit scope must be one of {OBJECT_CREDIT_SCOPES}, got {scope!r}")
-    if scope == "numbers":
+    if object_credit_scope_checked(scope) == "numbers":
         return [[(a + x, a + y) for x, y in numeric_spans(text[a:b])] for a, b in object_line_spans(text)]
     plan_end = text.find(LAYOUT_HEADER)
     steps, start = {}, 0
@@ -773,9 +778,10 @@ def pada_arguments(cfg, variant: str) -> PADAConfig:
     denoise_tto = [str(x) for x in (OmegaConf.to_container(denoise_tto) if OmegaConf.is_config(denoise_tto)
                                     else denoise_tto or [])]
     scope = str(p.get("object_credit_scope", "line"))
-    if scope not in OBJECT_CREDIT_SCOPES:
-        raise ValueError(f"pada.object_credit_scope must be one of {list(OBJECT_CREDIT_SCOPES)}, "
-                         f"got {scope!r}")
+    try:
+        object_credit_scope_checked(scope)
+    except ValueError as exc:
+        raise ValueError(f"pada.object_credit_scope: {exc}") from None
     penetration = str(p.get("object_credit_penetration", "depth"))
     try:
         penetration_charge_checked(penetration)
