@@ -76,6 +76,8 @@ def _coerce(value, kind: type | None):
             return float(value)
         except ValueError:
             raise ValueError("expected a number") from None
+    if kind is tuple and isinstance(value, str):
+        return (value,)  # `key=name` for a tuple of names: one name, not its characters
     return kind(value)
 
 
@@ -99,4 +101,7 @@ def load_dataclass(cls, name: str, overrides: Sequence[str] = ()):
             values[key] = _coerce(value, kind)
         except (TypeError, ValueError) as exc:
             raise ConfigError(f"configs/{name}.yaml: {key}={value!r}: {exc}") from None
-    return cls(**values)
+    try:
+        return cls(**values)
+    except ValueError as exc:  # the dataclass's own checks (__post_init__)
+        raise ConfigError(f"configs/{name}.yaml: {exc}") from None

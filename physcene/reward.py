@@ -7,6 +7,10 @@ with E_pen = Σ_{i<j} pen(i, j) in MILLIMETRES over pairs deeper than the tolera
 (cm) outside its category prior's band (:meth:`physcene.assets.SizePrior.outside_band_cm`), the total
 still ≥ −max_penalty. A reward of penetration alone pays for flattening objects — a thin box cannot be
 penetrated deeply — and a small policy finds that (docs/results.md, "Session 16 run").
+``valid_terms`` (NOT in the paper; empty by default) pays a parsed layout that breaks one of them
+``invalid`` whatever its penetration: ``floating`` (an object above its support) and ``shrunk`` (a
+dimension far below its category's band). A collision-free reward pays for lifting and flattening
+objects out of each other's way; 36 PADA steps did both (docs/results.md, "Session 18 run").
 
 >>> reward = PhysicsReward(RewardConfig(device="cuda"))
 >>> trainer = GRPOTrainer(..., reward_funcs=[reward])        # reward.last_metrics after each call
@@ -45,6 +49,8 @@ OBJECT_TERMS = ("penetration", "floating", "out_of_zone", "size")
 # How a penetrating pair charges its later-written object: its depth (cm), or 1 per pair. A depth charge
 # falls with the objects' thickness (a flat box cannot be penetrated deeply), a pair count does not.
 PENETRATION_CHARGES = ("depth", "pairs")
+# What ``RewardConfig.valid_terms`` may ask of a layout before it is paid for its penetration.
+VALID_TERMS = ("floating", "shrunk")
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -70,11 +76,26 @@ class RewardConfig:
     size_tolerance: float = 2.0
     """Half-width of that band, in prior spreads (log space): 2 leaves 8 % of the test references'
     objects outside it, by 0.12 cm on average."""
+    valid_terms: tuple[str, ...] = ()
+    """Not in the paper (empty: the paper's reward). A parsed layout that breaks one of these gets
+    ``invalid``, whatever its penetration: ``floating``, an object more than the engine's
+    ``floating_tolerance_cm`` above its support (the floating metric); ``shrunk``, an object with a
+    dimension below ``shrink_ratio`` x the low edge of its category's size band at ``size_tolerance``
+    (:meth:`physcene.assets.SizePrior.low_ratio`; a flattened box). Without it, lifting an object off
+    its support or flattening it takes it out of a collision and earns the collision-free reward."""
+    invalid: float = -50.0
+    """Reward of a parsed layout that breaks a ``valid_terms`` term (the worst colliding layout's)."""
+    shrink_ratio: float = 0.5
+    """``shrunk``: a dimension below this fraction of its band's low edge (test references: 2 of 1,899
+    objects; the SFT model's greedy outputs 23; after 36 PADA steps of the paper's reward 161)."""
     device: str = "cpu"
     """Engine device, ``cpu`` or ``cuda[:N]``."""
     fast_parse: bool = True
     """Read canonical CTRC completions with the compiled scanner (PhysicsEngine.pack_texts);
     the others, and every completion when False, with :func:`physcene.ctrc.parse`."""
+
+    def __post_init__(self):
+        object.__setattr__(self, "valid_terms", valid_terms_checked(self.valid_terms))
 
     @classmethod
     def load(cls, overrides: Sequence[str] = ()) -> RewardConfig:
@@ -187,6 +208,12 @@ class PhysicsReward:
                 size_cm = size_outside_band_cm(batch, cfg.size_tolerance)  # host work: only when asked
             if cfg.size_per_cm:
                 rewards[ok] = np.maximum(rewards[ok] - cfg.size_per_cm * size_cm.sum(1), -cfg.max_penalty)
+            if cfg.valid_terms:
+                broken = self.broken_objects(batch)
+                invalid = np.zeros(ok.size, dtype=bool)
+                for objects in broken.values():
+                    invalid |= objects.any(1)
+                rewards[ok] = np.where(invalid, cfg.invalid, rewards[ok])
         self.last_object_depths = [None] * n_text
         self.last_placement_depths = [None] * n_text
         if self.object_depths and ok.size:
@@ -205,7 +232,26 @@ class PhysicsReward:
         }
         if size_cm is not None:
             self.last_metrics["mean_size_outside_cm"] = float(size_cm.sum(1).mean())
+        if cfg.valid_terms and ok.size:
+            self.last_metrics["invalid_rate"] = float(invalid.mean())
+            for term, objects in broken.items():
+                self.last_metrics[f"mean_{term}_objects"] = float(objects.sum(1).mean())
         return rewards.tolist()
+
+    def broken_objects(self, batch) -> dict[str, np.ndarray]:
+        """Per ``valid_terms`` term, (S, N) bool on the host: the objects of each scene that break it
+        (padded slots never do)."""
+        cfg = self.config
+        mask = batch.mask.cpu().numpy()
+        broken = {}
+        if "floating" in cfg.valid_terms:
+            gap = self.engine.support_gap(batch).cpu().numpy()
+            broken["floating"] = (gap > self.engine.config.floating_tolerance_cm) & mask
+        if "shrunk" in cfg.valid_terms:
+            ratio = per_object_prior_values(
+                batch, lambda prior, size: prior.low_ratio(size, cfg.size_tolerance), empty=np.inf)
+            broken["shrunk"] = (ratio < cfg.shrink_ratio) & mask
+        return broken
 
     def _object_depths(self, batch, out: dict) -> list[np.ndarray]:
         """Per batch row, (n_objects,) cm: what each object is charged with (``object_terms``; the
@@ -247,13 +293,24 @@ class PhysicsReward:
 
 def object_terms_checked(terms: Sequence[str]) -> tuple[str, ...]:
     """``terms`` as a tuple, each one of :data:`OBJECT_TERMS`, at least one, no repeats."""
+    return _distinct_names(terms, OBJECT_TERMS, "object terms", at_least_one=True)
+
+
+def valid_terms_checked(terms: Sequence[str]) -> tuple[str, ...]:
+    """``terms`` as a tuple, each one of :data:`VALID_TERMS`, no repeats (none: the paper's reward)."""
+    return _distinct_names(terms, VALID_TERMS, "valid terms", at_least_one=False)
+
+
+def _distinct_names(terms, allowed: tuple[str, ...], what: str, *, at_least_one: bool) -> tuple[str, ...]:
+    """``terms`` (one name or a sequence of them) as a tuple of distinct names among ``allowed``, else a
+    ValueError naming ``what`` and the allowed names."""
     if isinstance(terms, str):
-        terms = (terms,)
+        terms = (terms,) if terms else ()
     terms = tuple(str(t) for t in terms)
-    unknown = [t for t in terms if t not in OBJECT_TERMS]
-    if unknown or not terms or len(set(terms)) != len(terms):
-        raise ValueError(f"object terms must be distinct names among {list(OBJECT_TERMS)} (at least one), "
-                         f"got {list(terms)}")
+    unknown = [t for t in terms if t not in allowed]
+    if unknown or (at_least_one and not terms) or len(set(terms)) != len(terms):
+        least = " (at least one)" if at_least_one else ""
+        raise ValueError(f"{what} must be distinct names among {list(allowed)}{least}, got {list(terms)}")
     return terms
 
 
@@ -262,19 +319,25 @@ def _prior_of(instance: str):
     return CATEGORY_PRIORS.get(canonical_category(category_from_instance(instance)))
 
 
-def size_outside_band_cm(batch, tolerance: float) -> np.ndarray:
-    """(S, N) cm on the host: how far each object's size lies outside its category prior's band at
-    ``tolerance`` spreads (:meth:`physcene.assets.SizePrior.outside_band_cm`; the category read from
-    the instance id). 0 inside the band, for a category without a prior and on padded slots."""
+def per_object_prior_values(batch, value_of, empty: float = 0.0) -> np.ndarray:
+    """(S, N) on the host: ``value_of(prior, size_cm)`` for each object whose category (read from the
+    instance id) has a size prior; ``empty`` for the others and on padded slots."""
     sizes = batch.sizes.detach().cpu().numpy().astype(np.float64)
-    out = np.zeros(sizes.shape[:2])
+    out = np.full(sizes.shape[:2], empty)
     for s, n in enumerate(batch.count.cpu().tolist()):
         ids = batch.ids[s]
         for k in range(int(n)):
             prior = _prior_of(ids[k])
             if prior is not None:
-                out[s, k] = prior.outside_band_cm(sizes[s, k], tolerance)
+                out[s, k] = value_of(prior, sizes[s, k])
     return out
+
+
+def size_outside_band_cm(batch, tolerance: float) -> np.ndarray:
+    """(S, N) cm on the host: how far each object's size lies outside its category prior's band at
+    ``tolerance`` spreads (:meth:`physcene.assets.SizePrior.outside_band_cm`; the category read from
+    the instance id). 0 inside the band, for a category without a prior and on padded slots."""
+    return per_object_prior_values(batch, lambda prior, size: prior.outside_band_cm(size, tolerance))
 
 
 def penetration_charge_checked(charge: str) -> str:

@@ -708,7 +708,9 @@ class PhysicsRewardFunction:
     Each rank scores only its own completions (TRL gathers the rewards afterwards), so on N GPUs the
     engine runs N-way parallel. After each batch it logs, through the trainer's ``log_metric``:
     ``time/reward_s`` (this rank's seconds), ``parse_rate``, and over the parsed layouts
-    ``penetration_mm`` (mean E_pen, mm), ``max_depth_mm`` and ``collision_free_rate``.
+    ``penetration_mm`` (mean E_pen, mm), ``max_depth_mm`` and ``collision_free_rate``; with the
+    reward's size guard ``size_outside_cm``, with its ``valid_terms`` ``invalid_rate`` and
+    ``floating_objects`` / ``shrunk_objects`` (mean per layout).
     """
 
     __name__ = "physics"
@@ -736,6 +738,11 @@ class PhysicsRewardFunction:
                 log_metric("collision_free_rate", m["collision_free_rate"])
                 if "mean_size_outside_cm" in m:
                     log_metric("size_outside_cm", m["mean_size_outside_cm"])
+                if "invalid_rate" in m:  # reward.valid_terms: the share paid `invalid`, objects per term
+                    log_metric("invalid_rate", m["invalid_rate"])
+                    for term in ("floating", "shrunk"):
+                        if f"mean_{term}_objects" in m:
+                            log_metric(f"{term}_objects", m[f"mean_{term}_objects"])
         return rewards
 
 

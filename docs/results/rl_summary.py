@@ -52,6 +52,9 @@ def summary(run: Path) -> dict:
         out["anchor_ce_last_8_mean"] = round(statistics.fmean(ce[-8:]), 3)
     for key, name, n, unit in (("penetration_mm", "penetration_mm", 2, "rounds"),  # logged once a round
                                ("size_outside_cm", "size_outside_cm", 2, "rounds"),
+                               ("invalid_rate", "invalid_rate", 2, "rounds"),  # reward.valid_terms
+                               ("floating_objects", "floating_objects", 2, "rounds"),
+                               ("shrunk_objects", "shrunk_objects", 2, "rounds"),
                                ("denoise/nll", "denoise_nll", 8, "steps")):         # once a step
         values = [e[key] for e in log if key in e]
         if values:

@@ -81,6 +81,12 @@ class SizePrior:
         size = np.sort(np.asarray(size, dtype=np.float64))  # ascending, as the band's dimensions
         return float((np.maximum(low - size, 0.0) + np.maximum(size - high, 0.0)).sum())
 
+    def low_ratio(self, size, tolerance: float) -> float:
+        """The smallest ratio of ``size`` to the low edge of :meth:`band_cm`, dimension by dimension in
+        ascending order: below 1, some dimension is smaller than the band allows (a flattened box: ~0)."""
+        low, _ = self.band_cm(tolerance)
+        return float((np.sort(np.asarray(size, dtype=np.float64)) / low).min())
+
 
 @functools.lru_cache(maxsize=1024)
 def _band_cm(prior: SizePrior, tolerance: float) -> tuple[np.ndarray, np.ndarray]:
