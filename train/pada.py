@@ -740,9 +740,8 @@ class PhysicsRewardFunction:
                     log_metric("size_outside_cm", m["mean_size_outside_cm"])
                 if "invalid_rate" in m:  # reward.valid_terms: the share paid `invalid`, objects per term
                     log_metric("invalid_rate", m["invalid_rate"])
-                    for term in ("floating", "shrunk"):
-                        if f"mean_{term}_objects" in m:
-                            log_metric(f"{term}_objects", m[f"mean_{term}_objects"])
+                    for term in self.reward.config.valid_terms:
+                        log_metric(f"{term}_objects", m[f"mean_{term}_objects"])
         return rewards
 
 
