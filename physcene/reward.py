@@ -38,8 +38,9 @@ from physcene.ctrc import ParseError, parse
 from physcene.layout import category_from_instance
 from physcene.scene import ZONE_TOLERANCE_CM, Scene
 
-__all__ = ["OBJECT_TERMS", "PENETRATION_CHARGES", "PhysicsReward", "RewardConfig", "completion_text_of",
-           "penetration_charge_checked", "physics_reward", "reward_from_energy", "size_outside_band_cm"]
+__all__ = ["OBJECT_TERMS", "PENETRATION_CHARGES", "VALID_TERMS", "PhysicsReward", "RewardConfig",
+           "band_low_ratio", "completion_text_of", "penetration_charge_checked", "physics_reward",
+           "prior_bands", "reward_from_energy", "size_outside_band_cm", "valid_terms_checked"]
 
 # What an object can be charged with (cm) when PhysicsReward keeps per-object charges (PADA's
 # object_credit): the penetration of the pairs it was written into, its support gap when it floats,
@@ -248,9 +249,7 @@ class PhysicsReward:
             gap = self.engine.support_gap(batch).cpu().numpy()
             broken["floating"] = (gap > self.engine.config.floating_tolerance_cm) & mask
         if "shrunk" in cfg.valid_terms:
-            ratio = per_object_prior_values(
-                batch, lambda prior, size: prior.low_ratio(size, cfg.size_tolerance), empty=np.inf)
-            broken["shrunk"] = (ratio < cfg.shrink_ratio) & mask
+            broken["shrunk"] = (band_low_ratio(batch, cfg.size_tolerance) < cfg.shrink_ratio) & mask
         return broken
 
     def _object_depths(self, batch, out: dict) -> list[np.ndarray]:
@@ -319,25 +318,45 @@ def _prior_of(instance: str):
     return CATEGORY_PRIORS.get(canonical_category(category_from_instance(instance)))
 
 
-def per_object_prior_values(batch, value_of, empty: float = 0.0) -> np.ndarray:
-    """(S, N) on the host: ``value_of(prior, size_cm)`` for each object whose category (read from the
-    instance id) has a size prior; ``empty`` for the others and on padded slots."""
-    sizes = batch.sizes.detach().cpu().numpy().astype(np.float64)
-    out = np.full(sizes.shape[:2], empty)
+def prior_bands(batch, tolerance: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """On the host, per object of ``batch``: its size (S, N, 3) sorted ascending, and the low and high
+    edges (S, N, 3) of its category prior's band at ``tolerance`` spreads, per ascending dimension
+    (:meth:`physcene.assets.SizePrior.band_cm`; the category read from the instance id), with ``known``
+    (S, N): whether it has a prior (edges 1 otherwise; False on padded slots). One look-up per object,
+    the arithmetic batched."""
+    sizes = np.sort(batch.sizes.detach().cpu().numpy().astype(np.float64), axis=-1)
+    low, high = np.ones_like(sizes), np.ones_like(sizes)
+    known = np.zeros(sizes.shape[:2], dtype=bool)
     for s, n in enumerate(batch.count.cpu().tolist()):
         ids = batch.ids[s]
         for k in range(int(n)):
-            prior = _prior_of(ids[k])
-            if prior is not None:
-                out[s, k] = value_of(prior, sizes[s, k])
-    return out
+            band = _band_of(ids[k], float(tolerance))
+            if band is not None:
+                low[s, k], high[s, k] = band
+                known[s, k] = True
+    return sizes, low, high, known
+
+
+@functools.lru_cache(maxsize=8192)
+def _band_of(instance: str, tolerance: float):
+    prior = _prior_of(instance)
+    return None if prior is None else prior.band_cm(tolerance)
 
 
 def size_outside_band_cm(batch, tolerance: float) -> np.ndarray:
     """(S, N) cm on the host: how far each object's size lies outside its category prior's band at
-    ``tolerance`` spreads (:meth:`physcene.assets.SizePrior.outside_band_cm`; the category read from
-    the instance id). 0 inside the band, for a category without a prior and on padded slots."""
-    return per_object_prior_values(batch, lambda prior, size: prior.outside_band_cm(size, tolerance))
+    ``tolerance`` spreads (:meth:`physcene.assets.SizePrior.outside_band_cm`, batched by
+    :func:`prior_bands`). 0 inside the band, for a category without a prior and on padded slots."""
+    sizes, low, high, known = prior_bands(batch, tolerance)
+    outside = (np.maximum(low - sizes, 0.0) + np.maximum(sizes - high, 0.0)).sum(-1)
+    return np.where(known, outside, 0.0)
+
+
+def band_low_ratio(batch, tolerance: float) -> np.ndarray:
+    """(S, N) on the host: each object's :meth:`physcene.assets.SizePrior.low_ratio` (the smallest ratio
+    of a dimension to its band's low edge), batched by :func:`prior_bands`; inf without a prior."""
+    sizes, low, _, known = prior_bands(batch, tolerance)
+    return np.where(known, (sizes / low).min(-1), np.inf)
 
 
 def penetration_charge_checked(charge: str) -> str:

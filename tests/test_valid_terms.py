@@ -6,10 +6,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from physcene.assets import CATEGORY_PRIORS
+from physcene.assets import CATEGORY_PRIORS, canonical_category
 from physcene.config import ConfigError
 from physcene.ctrc import completion_text, parse
-from physcene.reward import PhysicsReward, RewardConfig
+from physcene.reward import PhysicsReward, RewardConfig, band_low_ratio
 from physcene.scene import TABLE
 
 
@@ -68,12 +68,22 @@ def test_the_papers_reward_pays_for_lifting_and_flattening_and_valid_terms_take_
     assert both.broken_objects(both.engine.pack([scenes[0]]))["shrunk"].sum() == 0
 
 
-def test_low_ratio_reads_the_band_in_any_orientation():
+def test_low_ratio_reads_the_band_in_any_orientation(scenes):
     book = CATEGORY_PRIORS["book"]
     low, _ = book.band_cm(2.0)
     w, d, h = book.mean_cm
     assert book.low_ratio((w, d, h), 2.0) > 1.0 and book.low_ratio((h, w, d), 2.0) > 1.0
     assert book.low_ratio((w, d, 0.01), 2.0) == pytest.approx(0.01 / low.min())
+    # the reward's batched form gives each object's own figure (inf without a prior, on padded slots)
+    batch = PhysicsReward(RewardConfig()).engine.pack(scenes)
+    ratio = band_low_ratio(batch, 2.0)
+    for s, scene in enumerate(scenes):
+        for k, o in enumerate(scene.objects):
+            prior = CATEGORY_PRIORS.get(canonical_category(o.category))
+            expected = np.inf if prior is None else prior.low_ratio(batch.sizes[s, k].numpy(), 2.0)
+            assert ratio[s, k] == pytest.approx(expected)
+        assert np.isinf(ratio[s, len(scene.objects):]).all()
+    assert ratio[3].min() < 0.5 <= ratio[0].min()  # the flattened object, and none in the clean scene
 
 
 def test_valid_terms_from_the_config_and_bad_ones_are_named():
