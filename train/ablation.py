@@ -2,7 +2,7 @@
 
 ``run_ablation(cfg, budget_min)`` runs SFT -> anchors -> ``grpo``, ``pada_star``, ``pada`` -> eval of
 SFT, SFT + TTO, GRPO, PADA* and PADA on the test split with the eval harness (rule judge), and writes
-``ablation.json`` ``{"rows": [{name, scr, acr, qpr7, judge_avg, parse_rate, n, by_level}], "gpu",
+``ablation.json`` ``{"rows": [{name, scr, acr, qpr7, judge_avg, parse_rate, n, floating, by_level}], "gpu",
 "commands", "stages"}`` plus Markdown tables (all levels; SCR / ACR per level). ``ablation.variants``
 picks the RL rows; ``ablation.checkpoints`` adds a row per kept intermediate checkpoint of them
 (``"pada@12"``, under ``checkpoint_rows``: the metrics against RL steps); ``ablation.layouts`` keeps
@@ -33,7 +33,9 @@ DEFAULT_SHARES = {"sft": 0.45, "anchors": 0.10, "grpo": 0.10, "pada_star": 0.10,
 
 
 def _figures(summary: dict) -> dict:
-    """SCR/ACR at 0 cm, QPR at τ = 7, judge average and parse rate of one eval-harness summary."""
+    """SCR/ACR at 0 cm, QPR at τ = 7, judge average and parse rate of one eval-harness summary, and the
+    share of floating objects where it has one (a collision-only reward pays for lifting objects out of
+    collisions: docs/results.md, "Session 18 run")."""
     collision = summary["collision"].get(0.0, summary["collision"].get("0.0", {}))
     qpr = summary["QPR"].get(7.0, summary["QPR"].get("7.0"))
     n = int(summary["n"])
@@ -41,9 +43,12 @@ def _figures(summary: dict) -> dict:
     def finite(x):  # NaN (no parsed layout to measure) -> null in JSON, "—" in the table
         return None if x is None or x != x else float(x)
 
-    return {"scr": finite(collision.get("SCR")), "acr": finite(collision.get("ACR")),
-            "qpr7": finite(qpr), "judge_avg": finite(summary["judge"]["avg"]),
-            "parse_rate": (n - int(summary.get("parse_errors", 0))) / max(n, 1), "n": n}
+    figures = {"scr": finite(collision.get("SCR")), "acr": finite(collision.get("ACR")),
+               "qpr7": finite(qpr), "judge_avg": finite(summary["judge"]["avg"]),
+               "parse_rate": (n - int(summary.get("parse_errors", 0))) / max(n, 1), "n": n}
+    if "floating" in summary:
+        figures["floating"] = finite(summary["floating"]["objects"])
+    return figures
 
 
 def ablation_row(name: str, report: dict) -> dict:
@@ -142,13 +147,15 @@ def markdown_table(rows: list[dict]) -> str:
     """The ablation rows as a Markdown table (rates in %)."""
     pct = (lambda x: "—" if x is None else f"{100 * x:.1f}%")  # noqa: E731
     num = (lambda x: "—" if x is None else f"{x:.2f}")  # noqa: E731
-    lines = ["| method | SCR | ACR | QPR(7) | judge avg | parse rate | n |", "|---|---|---|---|---|---|---|"]
+    lines = ["| method | SCR | ACR | QPR(7) | judge avg | parse rate | n | floating objects |",
+             "|---|---|---|---|---|---|---|---|"]
     for r in rows:
         if "skipped" in r:
-            lines.append(f"| {r['name']} | skipped: {r['skipped']} | | | | | |")
+            lines.append(f"| {r['name']} | skipped: {r['skipped']} | | | | | | |")
             continue
         lines.append(f"| {r['name']} | {pct(r['scr'])} | {pct(r['acr'])} | {pct(r['qpr7'])} | "
-                     f"{num(r['judge_avg'])} | {pct(r['parse_rate'])} | {r['n']} |")
+                     f"{num(r['judge_avg'])} | {pct(r['parse_rate'])} | {r['n']} | "
+                     f"{pct(r.get('floating'))} |")
     return "\n".join(lines) + "\n"
 
 
