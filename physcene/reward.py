@@ -205,12 +205,16 @@ class PhysicsReward:
             both = (torch.stack([e, out["max_depth"]]) * 10.0).cpu().numpy().astype(np.float64)  # one sync
             e_mm, depth_mm = both[0], both[1]
             rewards[ok] = reward_from_energy(e_mm, cfg)
-            if cfg.size_per_cm or (self.object_depths and "size" in self.object_terms):
-                size_cm = size_outside_band_cm(batch, cfg.size_tolerance)  # host work: only when asked
+            wants_size = cfg.size_per_cm or (self.object_depths and "size" in self.object_terms)
+            bands = None  # host work per object: only when asked, and once for both of its uses
+            if wants_size or "shrunk" in cfg.valid_terms:
+                bands = prior_bands(batch, cfg.size_tolerance)
+            if wants_size:
+                size_cm = _outside_cm(bands)
             if cfg.size_per_cm:
                 rewards[ok] = np.maximum(rewards[ok] - cfg.size_per_cm * size_cm.sum(1), -cfg.max_penalty)
             if cfg.valid_terms:
-                broken = self.broken_objects(batch)
+                broken = self.broken_objects(batch, bands)
                 invalid = np.zeros(ok.size, dtype=bool)
                 for objects in broken.values():
                     invalid |= objects.any(1)
@@ -239,9 +243,10 @@ class PhysicsReward:
                 self.last_metrics[f"mean_{term}_objects"] = float(objects.sum(1).mean())
         return rewards.tolist()
 
-    def broken_objects(self, batch) -> dict[str, np.ndarray]:
+    def broken_objects(self, batch, bands=None) -> dict[str, np.ndarray]:
         """Per ``valid_terms`` term, (S, N) bool on the host: the objects of each scene that break it
-        (padded slots never do)."""
+        (padded slots never do). ``bands``: the batch's :func:`prior_bands` at ``size_tolerance``, if
+        the caller has them."""
         cfg = self.config
         mask = batch.mask.cpu().numpy()
         broken = {}
@@ -249,7 +254,9 @@ class PhysicsReward:
             gap = self.engine.support_gap(batch).cpu().numpy()
             broken["floating"] = (gap > self.engine.config.floating_tolerance_cm) & mask
         if "shrunk" in cfg.valid_terms:
-            broken["shrunk"] = (band_low_ratio(batch, cfg.size_tolerance) < cfg.shrink_ratio) & mask
+            if bands is None:
+                bands = prior_bands(batch, cfg.size_tolerance)
+            broken["shrunk"] = (_low_ratio(bands) < cfg.shrink_ratio) & mask
         return broken
 
     def _object_depths(self, batch, out: dict) -> list[np.ndarray]:
@@ -347,15 +354,22 @@ def size_outside_band_cm(batch, tolerance: float) -> np.ndarray:
     """(S, N) cm on the host: how far each object's size lies outside its category prior's band at
     ``tolerance`` spreads (:meth:`physcene.assets.SizePrior.outside_band_cm`, batched by
     :func:`prior_bands`). 0 inside the band, for a category without a prior and on padded slots."""
-    sizes, low, high, known = prior_bands(batch, tolerance)
-    outside = (np.maximum(low - sizes, 0.0) + np.maximum(sizes - high, 0.0)).sum(-1)
-    return np.where(known, outside, 0.0)
+    return _outside_cm(prior_bands(batch, tolerance))
 
 
 def band_low_ratio(batch, tolerance: float) -> np.ndarray:
     """(S, N) on the host: each object's :meth:`physcene.assets.SizePrior.low_ratio` (the smallest ratio
     of a dimension to its band's low edge), batched by :func:`prior_bands`; inf without a prior."""
-    sizes, low, _, known = prior_bands(batch, tolerance)
+    return _low_ratio(prior_bands(batch, tolerance))
+
+
+def _outside_cm(bands) -> np.ndarray:
+    sizes, low, high, known = bands
+    return np.where(known, (np.maximum(low - sizes, 0.0) + np.maximum(sizes - high, 0.0)).sum(-1), 0.0)
+
+
+def _low_ratio(bands) -> np.ndarray:
+    sizes, low, _, known = bands
     return np.where(known, (sizes / low).min(-1), np.inf)
 
 
