@@ -1,9 +1,35 @@
-"""Fixtures shared by the test modules."""
+"""Fixtures shared by the test modules, and the one place that decides what runs.
 
+Markers (pyproject's ``[tool.pytest.ini_options]``): ``cuda`` tests skip without a CUDA device;
+``slow`` tests skip unless asked with ``--slow`` or ``PHYSCENE_SLOW=1``.
+"""
+
+import functools
 import importlib.util
+import os
 from pathlib import Path
 
 import pytest
+
+
+def pytest_addoption(parser):
+    parser.addoption("--slow", action="store_true", default=False, help="also run tests marked slow")
+
+
+@functools.cache
+def _has_cuda() -> bool:
+    import torch
+
+    return torch.cuda.is_available()
+
+
+def pytest_collection_modifyitems(config, items):
+    slow = config.getoption("--slow") or os.environ.get("PHYSCENE_SLOW") == "1"
+    for item in items:
+        if "cuda" in item.keywords and not _has_cuda():
+            item.add_marker(pytest.mark.skip(reason="needs a CUDA device"))
+        if "slow" in item.keywords and not slow:
+            item.add_marker(pytest.mark.skip(reason="slow: run with --slow or PHYSCENE_SLOW=1"))
 
 
 @pytest.fixture(scope="session")

@@ -169,14 +169,7 @@ def test_small_cube_inside_a_container_is_outside_its_shape(containers, category
     assert np.any(sample_sdf(asset, _cube_points_in_container(asset, into_wall, side)) < 0)
 
 
-def _has_cuda() -> bool:
-    import warp as wp
-
-    return wp.get_cuda_device_count() > 0
-
-
 @pytest.mark.cuda
-@pytest.mark.skipif(not _has_cuda(), reason="needs a CUDA device")
 def test_cpu_and_cuda_bakes_agree():
     meshes = [
         trimesh.creation.torus(TORUS_R, TORUS_r, major_sections=128, minor_sections=64),

@@ -77,8 +77,7 @@ def test_static_cache_gives_the_dynamic_cache_greedy_ids(model, tokenizer, recor
         assert texts == [tokenizer.decode(r, skip_special_tokens=True) for r in out["dynamic"]]
 
 
-@pytest.mark.skipif(not torch.cuda.is_available(), reason="static_compile: torch.compile takes ~10-20 s "
-                    "per graph on 2 CPU cores; checked on CUDA (and by `physcene bench generate` on CPU)")
+@pytest.mark.cuda  # static_compile: torch.compile takes ~10-20 s per graph on 2 CPU cores; checked on CUDA
 def test_static_compile_gives_the_dynamic_ids_on_cuda(tokenizer, records):
     model = build_scratch_model(ARCH, tokenizer, seed=3).cuda().eval()
     prompts = _prompts(records, tokenizer)

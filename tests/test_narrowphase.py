@@ -117,7 +117,6 @@ def test_narrowphase_config_is_checked():
 
 
 @pytest.mark.cuda
-@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
 @pytest.mark.parametrize("lanes,block_dim", [(8, 256), (32, 256), (32, 64), (16, 32)])
 def test_cuda_worklist_equals_cpu_buckets(library, lanes, block_dim):
     scenes = random_scenes(np.random.default_rng(41), 64, max_obj=12)
@@ -198,6 +197,5 @@ def test_graph_replay_equals_direct_launches_on_cpu(library):
 
 
 @pytest.mark.cuda
-@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
 def test_cuda_graph_replay_equals_direct_launches(library):
     _check_graph_replays(library, "cuda")

@@ -297,7 +297,6 @@ def test_floating_objects(engine):
 
 # CUDA ---------------------------------------------------------------------------------------------
 @pytest.mark.cuda
-@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
 def test_cuda_matches_cpu():
     lib = PrimitiveLibrary()
     cpu, gpu = PhysicsEngine(lib, "cpu"), PhysicsEngine(lib, "cuda")

@@ -347,7 +347,6 @@ def test_hypothesis_round_trip_layouts(engine, case):
 
 
 @pytest.mark.cuda
-@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
 def test_cuda_fast_path_matches_cpu_and_python():
     library = AssetLibrary(resolution=24, n_points=256)
     library.add_primitives()

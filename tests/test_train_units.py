@@ -415,7 +415,6 @@ def test_generation_rounds_map_to_trl_micro_steps():
             pada_arguments(load_config("train_small", [f"pada.{key}=0"]), "pada")
 
 @pytest.mark.cuda
-@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
 def test_reward_function_on_the_rank_device_matches_cpu():
     from physcene.train.pada import PhysicsRewardFunction
 
@@ -520,7 +519,7 @@ def test_training_forbids_cudnn_attention_unless_the_config_allows_it(cudnn_flag
     assert torch.backends.cuda.cudnn_sdp_enabled()
 
 
-@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+@pytest.mark.cuda
 @pytest.mark.parametrize("length", [704, 2240])  # 64 past a multiple of 128: where cuDNN's backward broke
 def test_attention_gradient_over_left_padded_rows_is_finite_with_the_training_kernels(cudnn_flag, length):
     """The PADA anchor forward's shape: a causal batch whose first row is left-padded (its pad queries

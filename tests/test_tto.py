@@ -278,7 +278,6 @@ def test_relation_preservation_measure():
 
 
 @pytest.mark.cuda
-@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
 def test_cuda_matches_cpu(engine):
     from physcene.graph import ensure_hierarchy
 

@@ -17,15 +17,12 @@ scenes.
 from __future__ import annotations
 
 import json
-import os
 
 import pytest
 
 from physcene.noisy_scenes import noisy_scenes
 from physcene.physics import PhysicsEngine
 from physcene.tto import TTOConfig, repair, summarize
-
-slow = pytest.mark.skipif(os.environ.get("PHYSCENE_SLOW") != "1", reason="slow: set PHYSCENE_SLOW=1")
 
 
 def _synthetic(n: int, seed: int):
@@ -61,14 +58,12 @@ def test_acceptance_synthetic_8():
 
 
 @pytest.mark.slow
-@slow
 @pytest.mark.parametrize("in_children", ["slide", "frozen"])
 def test_acceptance_noisy_200(in_children):
     _check(noisy_scenes(200, 16, seed=2026), 0.7, in_children)
 
 
 @pytest.mark.slow
-@slow
 @pytest.mark.parametrize("in_children", ["slide", "frozen"])
 def test_acceptance_synthetic_200(in_children):
     """The issue asks >= 95 % collision-free (every pair); measured 96.0 % with ``slide`` (the
