@@ -1,18 +1,17 @@
 #!/bin/bash
-# One `small` run on a lent machine's GPUs, in /tmp/run (a copy of the working tree), started detached.
+# One `small` run on the GPUs of a remote host, in /tmp/run (a copy of the working tree), started detached.
 # PADA from an SFT model + anchors carried in SEED chunks (one GPU):
 #   (PADA_MIN=20 STAGES='pada eval' setsid nohup bash train/scripts/pada_run.sh > /tmp/pada_run.log 2>&1 &)
 # The whole pipeline on all GPUs of the host, from training data synthesised elsewhere (DATA_XZ, a tar.xz of
-# data/train.jsonl: the lent machine's Warp has no CPU compiler to synthesise with):
+# data/train.jsonl: a Warp build without its CPU compiler cannot synthesise on the host):
 #   (DATA_XZ=.wp/data.tar.xz NPROC=2 STAGES='sft anchors pada eval' setsid nohup bash ... > /tmp/pada_run.log 2>&1 &)
-# SEED: tar chunks (concatenated) holding runs/small/sft + the anchors, if present (session 18's
-# `.wp/seed.a?`, written by this script's sft + anchors stages; the first two staged in /tmp by the calls that
-# carry the Warp parts, docs/training.md "GPU runs").
+# SEED: tar chunks (concatenated) holding runs/small/sft + the anchors, if present (`.wp/seed.a?`, written by
+# this script's sft + anchors stages; docs/training.md, "Runs on a remote GPU host").
 # RESUME: a runs/small/pada tar.xz to resume from (a snapshot.sh or end-of-run ckpt.tar.xz), if present.
 # Knobs: NPROC, PADA_MIN, SFT_MIN, SFT_STEPS, STAGES (of sft anchors pada eval), LAMBDA, TERMS, SIZE,
 # VALID (reward.valid_terms, '[]' for none), DENOISE, SCOPE, CHARGE.
-# After the anchors stage the SFT model + anchors are packed to /tmp/outS as seed chunks (the next
-# session's SEED) and /tmp/run/S_DONE is touched; at the end the results go to /tmp/outA (results.tar.xz:
+# After the anchors stage the SFT model + anchors are packed to /tmp/outS as seed chunks (the next run's
+# SEED) and /tmp/run/S_DONE is touched; at the end the results go to /tmp/outA (results.tar.xz:
 # logs + table; layouts.tar.xz; ckpt.tar.xz.*) and /tmp/run/A_DONE is touched; poll with poll.sh.
 set -uo pipefail
 export PYTHONPATH=/tmp/wp PYTHONUNBUFFERED=1
@@ -36,7 +35,7 @@ stamp start; nvidia-smi --query-gpu=name --format=csv,noheader; ls runs/small ru
 physcene assets bake --device cuda:0 2>&1 | tail -1
 stamp bake-done
 NPROC=${NPROC:-1}
-# session 14's SFT (1,400 steps of global batch 64, lr 1e-3 cosine, 2-decimal text) and anchors
+# the SFT recipe of docs/results/ablation_denoise.json (1,400 steps of global batch 64, lr 1e-3 cosine, 2-decimal text) and anchors
 # (512 constrained generations of level <= 3, TTO-repaired); every stage's shared overrides in EXTRA
 export NPROC CONSTRAINED=1 PADA_MIN=${PADA_MIN:-20} PADA_LEVEL=3 PADA_TOKENS=2304 PADA_BATCH=64 PADA_MICRO=8 \
   ANCHORS=512 N_TEST=200 DECIMALS=2 PADA_CACHE=static_compile SFT_MIN=${SFT_MIN:-12.5} \
@@ -49,7 +48,7 @@ if [ -n "$first" ]; then
   cp runs/small/sft/train_log.json /tmp/res/sft_train_log.json 2>/dev/null
   cp runs/small/anchors_l3*summary.json /tmp/res/anchors_summary.json 2>/dev/null
   mkdir -p /tmp/outS && tar --exclude='checkpoint-*' -cf - runs/small/sft runs/small/anchors_l3.* \
-    | split -b 15M - /tmp/outS/seed.   # the next session's SEED (model weights: xz gains little)
+    | split -b 15M - /tmp/outS/seed.   # the next run's SEED (model weights: xz gains little)
   touch /tmp/run/S_DONE
 fi
 rest=$(for s in pada eval; do want $s && echo -n "$s "; done)
