@@ -62,7 +62,8 @@ def _files() -> list[Path]:
 
 
 def test_the_diary_pattern_finds_what_it_should():
-    assert DIARY.search(f"measured in {WORD} 12") and DIARY.search("a lent\x20machine") and DIARY.search("the device\x20tool")
+    assert DIARY.search(f"measured in {WORD} 12") and DIARY.search("a lent\x20machine")
+    assert DIARY.search("the device\x20tool")
     assert DIARY.search(f"the next {WORD}'s run") and WORD_RE.search(f"one {WORD.upper()}")
     assert not DIARY.search("alpha = 1.0 for 151 steps left SCR at 86 %")
     assert not WORD_RE.search(PYTEST_SCOPE.sub("", f'@pytest.fixture(scope="{WORD}")'))
