@@ -1,7 +1,7 @@
 """physcene: physically consistent tabletop scene generation (PhyScene3D: CTRC + PADA).
 
 Data flows one way: text -> ``ctrc.parse`` -> ``Scene`` -> ``physics`` -> scores/gradients ->
-``tto`` -> ``Scene`` -> export / eval. See docs/ and DESIGN.md.
+``tto`` -> ``Scene`` -> export / eval. See docs/ and docs/design.md.
 """
 
 from pathlib import Path as _Path

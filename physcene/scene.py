@@ -1,6 +1,6 @@
 """The scene model: a tabletop layout in centimetres.
 
-Frame (DESIGN.md "Units and frames"): table top at z = 0, origin at the near-left corner of the
+Frame (docs/design.md "Units and frames"): table top at z = 0, origin at the near-left corner of the
 item placement zone, +x right, +y away from the viewer, +z up. ``size`` is [w, d, h] in the
 object's own yawed frame, ``center`` the box centre, ``yaw`` radians about +z through the centre.
 
@@ -170,7 +170,7 @@ class SceneObject:
                              field="parent")
         if self.parent == oid:
             raise SceneError("an object cannot be its own parent", obj=oid, field="parent")
-        # "near" is the table-level relation (DESIGN.md): it never hangs under an object, and
+        # "near" is the table-level relation (docs/design.md): it never hangs under an object, and
         # nothing is "in" the table.
         if self.relation == "near" and self.parent not in (None, TABLE):
             raise SceneError(f"relation 'near' needs parent {TABLE!r}, got {self.parent!r}", obj=oid,

@@ -5,9 +5,7 @@ Markers (pyproject's ``[tool.pytest.ini_options]``): ``cuda`` tests skip without
 """
 
 import functools
-import importlib.util
 import os
-from pathlib import Path
 
 import pytest
 
@@ -30,20 +28,6 @@ def pytest_collection_modifyitems(config, items):
             item.add_marker(pytest.mark.skip(reason="needs a CUDA device"))
         if "slow" in item.keywords and not slow:
             item.add_marker(pytest.mark.skip(reason="slow: run with --slow or PHYSCENE_SLOW=1"))
-
-
-@pytest.fixture(scope="session")
-def results_script():
-    """Load a ``docs/results/<name>.py`` analysis script (not a package module) by name."""
-
-    def load(name: str):
-        path = Path(__file__).resolve().parents[1] / "docs" / "results" / f"{name}.py"
-        spec = importlib.util.spec_from_file_location(name, path)
-        module = importlib.util.module_from_spec(spec)
-        spec.loader.exec_module(module)
-        return module
-
-    return load
 
 
 @pytest.fixture

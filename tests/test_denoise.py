@@ -255,11 +255,11 @@ def test_pada_with_denoise_trains_and_logs_it(tmp_path, monkeypatch):
                  variant="pada")
 
 
-def test_offline_check_supervises_the_rewritten_numbers_and_reads_the_originals(texts, targets,
-                                                                               results_script):
-    """docs/results/denoise_offline.py: the rows it trains on supervise the rewritten numbers, and the
+def test_offline_check_supervises_the_rewritten_numbers_and_reads_the_originals(texts, targets):
+    """physcene.train.analysis.denoise_offline: the rows it trains on supervise the rewritten numbers, and the
     held-out comparison reads the numbers they replaced in the original text."""
-    offline = results_script("denoise_offline")
+    from physcene.train.analysis import denoise_offline as offline
+
     _, moved = texts
     target = targets[1][1]
     old_spans = offline._original_spans(moved, target)
