@@ -3,15 +3,16 @@
 
 Generators (``--generator``): ``reference`` (the split's layouts), ``tto`` (reference + TTO),
 ``heuristic`` (non-learned placer), ``file:DIR`` (layouts on disk), ``model:PATH`` (a trained
-checkpoint through :func:`physcene.train.generate.generate`), ``endpoint:URL`` (zero-shot LLM with
-the paper's Prompt 3 over an OpenAI-compatible endpoint). Any of them can be followed by TTO
-(``repair=true``).
+checkpoint: the caller passes its :data:`Generate` callable, e.g. ``physcene eval`` builds one on
+:func:`physcene.train.generate.generate`; the harness never imports the training code),
+``endpoint:URL`` (zero-shot LLM with the paper's Prompt 3 over an OpenAI-compatible endpoint). Any
+of them can be followed by TTO (``repair=true``).
 """
 
 from __future__ import annotations
 
 import json
-from collections.abc import Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -22,7 +23,7 @@ from tqdm.auto import tqdm
 
 from physcene.scene import Scene
 
-__all__ = ["BenchmarkItem", "EvalError", "evaluate_method", "generate", "load_benchmark", "make_judge",
+__all__ = ["BenchmarkItem", "EvalError", "Generate", "evaluate_method", "generate", "load_benchmark", "make_judge",
            "method_name", "method_names", "method_report", "repair_outputs", "run_evaluation", "save_layouts",
            "score_scenes", "write_json"]
 
@@ -119,19 +120,25 @@ def _zero_shot(items: Sequence[BenchmarkItem], url: str, model: str, api_key_env
     return out
 
 
+Generate = Callable[[Sequence[BenchmarkItem]], list]
+"""A generator the caller supplies: benchmark items -> one output per item, a Scene, a ParseError
+or a completion text (parsed against the item's zone)."""
+
+
 def generate(items: Sequence[BenchmarkItem], generator: str, *, seed: int = 0, model: str = "gpt-4o",
-             api_key_env: str = "PHYSCENE_GENERATOR_API_KEY", max_new_tokens: int = 4096,
-             progress: bool = True, device: str | None = None, cache: str = "dynamic",
-             constrained: bool = False) -> list:
+             api_key_env: str = "PHYSCENE_GENERATOR_API_KEY", progress: bool = True,
+             generators: Mapping[str, Generate] | None = None) -> list:
     """One output per item: a Scene or a ParseError (model output that did not parse).
 
-    ``device``: where a ``model:PATH`` generator runs (default: the first GPU, else CPU); ``cache``:
-    its KV cache (``physcene.train.generate.CACHE_MODES``: dynamic, static, static_compile);
-    ``constrained``: decode it under the CTRC constraint (``physcene.train.constrained``).
+    ``generators``: callables by generator argument (``"model:runs/sft"``), looked up before the
+    built-in kinds; a ``model:PATH`` generator must be one of them.
     """
-    from physcene.ctrc import ParseError
+    from physcene.ctrc import ParseError, parse
 
-    if generator in ("reference", "tto"):
+    if generators and generator in generators:
+        out = [parse(o, zone=it.reference.zone) if isinstance(o, str) else o
+               for o, it in zip(generators[generator](items), items)]
+    elif generator in ("reference", "tto"):
         out = [it.reference for it in items]
     elif generator == "heuristic":
         from physcene.eval.baselines import heuristic_place
@@ -140,15 +147,8 @@ def generate(items: Sequence[BenchmarkItem], generator: str, *, seed: int = 0, m
     elif generator.startswith("file:"):
         out = _load_dir(items, Path(generator[5:]))
     elif generator.startswith("model:"):
-        try:
-            from physcene.train.generate import generate as model_generate
-        except ImportError as exc:
-            raise EvalError(f"generator {generator}: physcene.train.generate is unavailable ({exc})") from exc
-        from physcene.ctrc import parse
-
-        texts = model_generate(generator[6:], [it.prompt for it in items], max_new_tokens=max_new_tokens,
-                               device=device, cache=cache, constrained=constrained)
-        out = [parse(t, zone=it.reference.zone) for t, it in zip(texts, items)]
+        raise EvalError(f"generator {generator}: no model generator was passed (generators=...); "
+                        "physcene eval builds one from the checkpoint")
     elif generator.startswith("endpoint:"):
         out = _zero_shot(items, generator[9:], model, api_key_env, progress)
     else:
@@ -176,7 +176,7 @@ def repair_outputs(outputs: list, *, tto_overrides: Sequence[str] = (), engine=N
     extras: energy before/after, max displacement, relation preservation)."""
     from physcene.tto import TTOConfig, relation_preservation, repair
 
-    config = TTOConfig.from_config(list(tto_overrides))
+    config = TTOConfig.load(list(tto_overrides))
     idx = [k for k, o in enumerate(outputs) if isinstance(o, Scene)]
     extras: list[dict] = [{} for _ in outputs]
     out = list(outputs)
@@ -260,7 +260,9 @@ def method_report(results: Sequence[SceneResult], outputs: Sequence) -> dict:
 def evaluate_method(items: Sequence[BenchmarkItem], generator: str, judge, *, engine=None,
                     repair: bool = False, tto_overrides: Sequence[str] = (), settle: bool = False,
                     seed: int = 0, progress: bool = True, **generator_options) -> tuple[dict, list]:
-    """Generate (+ repair) and score one method. Returns (its report dict, its outputs)."""
+    """Generate (+ repair) and score one method. Returns (its report dict, its outputs).
+
+    ``generator_options``: passed to :func:`generate` (``model``, ``generators`` ...)."""
     outputs = generate(items, generator, seed=seed, progress=progress, **generator_options)
     extras = None
     if repair or generator == "tto":
@@ -315,10 +317,12 @@ def method_names(generators: Sequence[str], repair: bool = False) -> list[str]:
 
 
 def run_evaluation(cfg, *, command: str = "", title: str = "physcene evaluation",
-                   progress: bool = True) -> tuple[dict, Path]:
+                   progress: bool = True,
+                   generators: Mapping[str, Generate] | None = None) -> tuple[dict, Path]:
     """The whole ``physcene eval`` job for a config (configs/eval.yaml): benchmark, every
     generator in ``cfg.generator`` (comma-separated), scoring, renders, results.json and
-    report.md under ``cfg.out``. Returns (the methods' reports, the report path)."""
+    report.md under ``cfg.out``. ``generators``: the callables of the ``model:PATH`` generators
+    (see :func:`generate`). Returns (the methods' reports, the report path)."""
     from physcene.eval.render import render_views
     from physcene.eval.report import write_report
 
@@ -353,8 +357,7 @@ def run_evaluation(cfg, *, command: str = "", title: str = "physcene evaluation"
         report, outputs = evaluate_method(items, gen, judge, engine=engine, repair=bool(cfg.repair),
                                           tto_overrides=tto_overrides, settle=bool(cfg.settle),
                                           seed=cfg.seed, progress=progress, model=cfg.generator_model,
-                                          cache=str(cfg.get("cache", "dynamic")),
-                                          constrained=bool(cfg.get("constrained", False)))
+                                          generators=generators)
         methods[name] = report
         slug = name.lower().replace(" + ", "_").replace(" ", "_").replace("(", "").replace(")", "")
         if cfg.get("save_layouts", False):  # re-score later with --generator file:<out>/layouts/<slug>

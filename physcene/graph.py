@@ -22,10 +22,12 @@ from __future__ import annotations
 
 import functools
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 from shapely.geometry import Polygon
 
+from physcene.config import load_dataclass
 from physcene.scene import TABLE, Scene, SceneObject
 
 __all__ = [
@@ -63,10 +65,8 @@ class GraphConfig:
     purely geometric rule of DESIGN.md."""
 
     @classmethod
-    def from_config(cls, overrides=()) -> GraphConfig:
+    def load(cls, overrides: Sequence[str] = ()) -> GraphConfig:
         """Read ``configs/graph.yaml`` with ``key=value`` overrides."""
-        from physcene.config import load_dataclass
-
         return load_dataclass(cls, "graph", list(overrides))
 
 

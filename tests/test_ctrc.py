@@ -468,4 +468,4 @@ def test_text_and_tto_rest_on_children_the_same_distance_up():
     """TTO's output written as text and read back must not move its `on` children (tto.yaml)."""
     from physcene.tto import TTOConfig
 
-    assert TTOConfig.from_config().contact_gap_cm == ON_CONTACT_GAP_CM
+    assert TTOConfig.load().contact_gap_cm == ON_CONTACT_GAP_CM

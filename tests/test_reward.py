@@ -120,8 +120,8 @@ def test_resting_contacts_written_as_text_are_not_penetration(fast_parse):
     from physcene.tto import TTOConfig, repair
 
     engine = PhysicsEngine()
-    results = repair(noisy_scenes(24, 8, seed=5, push_cm=3.0), TTOConfig.from_config(["steps=60"]), engine)
-    assert all(r.report["collision_free"] for r in results)
+    results = repair(noisy_scenes(24, 8, seed=5, push_cm=3.0), TTOConfig.load(["steps=60"]), engine)
+    assert all(r.report.collision_free for r in results)
     stacked = [ensure_hierarchy(r.scene) for r in results]
     stacked = [s for s in stacked if any(o.relation == "on" for o in s.objects)]
     assert len(stacked) >= 16

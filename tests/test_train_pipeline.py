@@ -94,7 +94,7 @@ def test_tiny_pipeline_end_to_end(tmp_path, one_thread, monkeypatch):
     assert summary["tokens_max"] <= 32 and 0.0 <= summary["truncated_rate"] <= 1.0
 
     # Anchors through the same TTO path from the noisy reference completions (SFT-like, colliding).
-    rows = anchor_records(train, [r["completion"] for r in train], tto_config=TTOConfig.from_config(TTO_FAST),
+    rows = anchor_records(train, [r["completion"] for r in train], tto_config=TTOConfig.load(TTO_FAST),
                           engine=engine)
     stats = anchor_summary(rows)
     assert stats["parse_rate"] == 1.0

@@ -36,7 +36,7 @@ def run(args) -> dict:
     engine = PhysicsEngine(device=device)
     scenes = noisy_scenes(args.scenes, args.objects, seed=args.seed)
     # configs/tto.yaml with the command's key=value overrides, sized for one batch
-    base = replace(TTOConfig.from_config(getattr(args, "overrides", [])), steps=args.steps,
+    base = replace(TTOConfig.load(getattr(args, "overrides", [])), steps=args.steps,
                    device=str(device), batch_size=max(1, args.scenes))
     full, early = replace(base, early_stop=False), replace(base, early_stop=True)
     engine.pack(scenes)  # loads (or bakes) the assets once, outside the timings

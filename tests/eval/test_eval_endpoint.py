@@ -13,7 +13,7 @@ from physcene.eval.judges import SYSTEM_PROMPT, EndpointJudge, EvalCase, parse_j
 
 from physcene.layout import read_layout
 
-EXAMPLE = Path(__file__).resolve().parents[1] / "examples" / "office_table.layout.json"
+EXAMPLE = Path(__file__).resolve().parents[2] / "examples" / "office_table.layout.json"
 SCORES = {
     "Consistency with Task": 8,
     "Object Size Reasonableness": 9,

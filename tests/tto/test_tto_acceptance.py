@@ -37,7 +37,7 @@ def _check(scenes, min_collided: float, in_children: str = "slide", min_free: fl
     pair (every pair counted) deeper than 1 mm (the issue: 0.95)."""
     results = repair(scenes, TTOConfig(in_children=in_children), PhysicsEngine())
     figures = summarize(results)
-    collided = sum(r.report["max_depth_before_cm"] > 0.1 for r in results)
+    collided = sum(r.report.max_depth_before_cm > 0.1 for r in results)
     figures["input_scenes_deeper_than_1mm"] = collided
     figures["in_children"] = in_children
     print(json.dumps(figures, indent=1))
