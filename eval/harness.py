@@ -23,9 +23,9 @@ from tqdm.auto import tqdm
 
 from physcene.scene import Scene
 
-__all__ = ["BenchmarkItem", "EvalError", "Generate", "evaluate_method", "generate", "load_benchmark", "make_judge",
-           "method_name", "method_names", "method_report", "repair_outputs", "run_evaluation", "save_layouts",
-           "score_scenes", "write_json"]
+__all__ = ["BenchmarkItem", "EvalError", "Generate", "evaluate_method", "generate", "load_benchmark",
+           "make_judge", "method_name", "method_names", "method_report", "repair_outputs", "run_evaluation",
+           "save_layouts", "score_scenes", "write_json"]
 
 GENERATOR_KINDS = ("reference", "tto", "heuristic", "file:", "model:", "endpoint:")
 
@@ -328,10 +328,10 @@ def run_evaluation(cfg, *, command: str = "", title: str = "physcene evaluation"
 
     from physcene.physics import PhysicsEngine
 
-    generators = [g.strip() for g in str(cfg.generator).split(",") if g.strip()]
-    if not generators:
+    specs = [g.strip() for g in str(cfg.generator).split(",") if g.strip()]
+    if not specs:
         raise EvalError("no generator given")
-    for g in generators:
+    for g in specs:
         if not (g in GENERATOR_KINDS or g.startswith(GENERATOR_KINDS[3:])):
             raise EvalError(f"unknown generator {g!r}; expected reference, tto, heuristic, file:DIR, "
                             "model:PATH or endpoint:URL")
@@ -353,7 +353,7 @@ def run_evaluation(cfg, *, command: str = "", title: str = "physcene evaluation"
     methods: dict[str, dict] = {}
     renders: dict[str, dict[str, str]] = {}
     n_render = min(int(cfg.render), len(items))
-    for gen, name in zip(generators, method_names(generators, bool(cfg.repair))):
+    for gen, name in zip(specs, method_names(specs, bool(cfg.repair))):
         report, outputs = evaluate_method(items, gen, judge, engine=engine, repair=bool(cfg.repair),
                                           tto_overrides=tto_overrides, settle=bool(cfg.settle),
                                           seed=cfg.seed, progress=progress, model=cfg.generator_model,
@@ -371,7 +371,7 @@ def run_evaluation(cfg, *, command: str = "", title: str = "physcene evaluation"
             for view, p in paths.items():
                 renders.setdefault(it.id, {})[f"{name} {view}"] = str(p.relative_to(out))
     write_json(out / "results.json", {"split": cfg.split, "n": len(items), "judge": cfg.judge,
-                                      "generators": generators, "repair": bool(cfg.repair),
+                                      "generators": specs, "repair": bool(cfg.repair),
                                       "methods": methods})
     tables = {k: {kk: vv for kk, vv in v.items() if kk != "scenes"} for k, v in methods.items()}
     path = write_report(out, tables, title=title, command=command, renders=renders)

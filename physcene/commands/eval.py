@@ -50,7 +50,8 @@ def model_generators(cfg, *, max_new_tokens: int = 4096, device: str | None = No
             try:  # here: transformers loads only when a checkpoint is evaluated
                 from physcene.train.generate import generate
             except ImportError as exc:
-                raise EvalError(f"generator model:{path}: physcene.train.generate is unavailable ({exc})") from exc
+                raise EvalError(f"generator model:{path}: physcene.train.generate is unavailable "
+                                f"({exc})") from exc
             return generate(path, [it.prompt for it in items], max_new_tokens=max_new_tokens, device=device,
                             cache=cache, constrained=constrained)
         return run_model

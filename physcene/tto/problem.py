@@ -27,7 +27,8 @@ from physcene.relations import DIRECTION_AXES
 from physcene.scene import TABLE, Scene, SceneObject
 from physcene.tto.config import TTOConfig
 
-__all__ = ["CM", "IN", "LIFT_CM", "ON", "ROOT", "TTOProblem", "build_problem", "forward_kinematics", "reattach"]
+__all__ = ["CM", "IN", "LIFT_CM", "ON", "ROOT", "TTOProblem", "build_problem", "forward_kinematics",
+           "reattach"]
 
 # Kinds of parametrisation per object slot.
 ROOT, ON, IN = 0, 1, 2

@@ -46,7 +46,8 @@ class ResidualCollision:
 
 @dataclass(frozen=True, kw_only=True)
 class RelationReport:
-    """How much of the input's hierarchy the result keeps (:func:`physcene.relations.relation_preservation`)."""
+    """How much of the input's hierarchy the result keeps
+    (:func:`physcene.relations.relation_preservation`)."""
 
     in_on_edges: int
     """``in``/``on`` edges of the input."""
