@@ -17,7 +17,8 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-from physcene.eval.judges import EndpointJudge, EvalCase, LayoutStats, RuleJudge, post_chat, reply_text
+from physcene.eval.endpoint import EndpointJudge, chat_url, post_chat, reply_text
+from physcene.eval.judges import EvalCase, LayoutStats, RuleJudge
 from physcene.eval.metrics import ScenePhysics, SceneResult, physics_from_score
 from tqdm.auto import tqdm
 
@@ -103,11 +104,10 @@ def _zero_shot(items: Sequence[BenchmarkItem], url: str, model: str, api_key_env
     import os
 
     from physcene.eval.baselines import zero_shot_prompt
-    from physcene.eval.judges import _chat_url
 
     from physcene.ctrc import parse
 
-    endpoint = _chat_url(url)
+    endpoint = chat_url(url)
     out = []
     for it in tqdm(items, desc="zero-shot LLM", disable=not progress, unit="scene"):
         payload = {"model": model, "temperature": 0.0,

@@ -10,6 +10,7 @@ repair is only credited with what the geometry really shows.
 
 from __future__ import annotations
 
+from physcene.graph import build_hierarchy, ensure_hierarchy, near_direction, near_references
 from physcene.scene import TABLE, Scene
 
 __all__ = ["DIRECTION_AXES", "relation_preservation"]
@@ -32,8 +33,6 @@ def relation_preservation(before: Scene, after: Scene, graph_config=None) -> dic
     [0, 1], 1.0 when there is nothing to keep), the counts, and the ids of broken relations.
     Objects are matched by instance id; an object missing from ``after`` counts as broken.
     """
-    from physcene.graph import build_hierarchy, ensure_hierarchy, near_direction, near_references
-
     before = ensure_hierarchy(before, graph_config)
     stripped = after.with_objects(o.moved(parent=None, relation=None) for o in after.objects)
     rebuilt = build_hierarchy(stripped, graph_config).by_id()

@@ -27,8 +27,8 @@ from physcene.train.sft import run_sft
 
 from physcene.config import load_config
 from physcene.ctrc import ParseError, build_prompt, completion_text, parse
+from physcene.data.noisy import noisy_scenes
 from physcene.layout import layout_to_dict
-from physcene.noisy_scenes import noisy_scenes
 from physcene.reward import PhysicsReward, RewardConfig
 from physcene.tto import TTOConfig
 

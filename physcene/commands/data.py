@@ -14,6 +14,8 @@ import json
 import sys
 from pathlib import Path
 
+from physcene.eval.metrics import measure_reference
+
 NAME = "data"
 HELP = "Build benchmark data: synthetic MesaTask-style splits or MesaTask-CTRC from real layouts"
 
@@ -89,7 +91,8 @@ def _run_synth(args) -> int:
     if args.measure == "auto":
         measure = args.split in ("test", "ood")
     stats = write_split(
-        args.out, args.split, args.n, args.seed, config, progress=not args.no_progress, measure=measure
+        args.out, args.split, args.n, args.seed, config, progress=not args.no_progress, measure=measure,
+        measurer=measure_reference,
     )
     out = Path(args.out)
     print(
@@ -144,7 +147,7 @@ def _run_import(args) -> int:
         for r in chosen:
             r["split"] = split
         write_records((dumps_record(r) for r in chosen), out / f"{split}.jsonl")
-        stats = split_stats(chosen, measure=args.measure and bool(chosen))
+        stats = split_stats(chosen, measurer=measure_reference if args.measure and chosen else None)
         stats.update(split=split, seed=args.seed, file=f"{split}.jsonl", source=str(root))
         (out / f"{split}_stats.json").write_text(json.dumps(stats, indent=2, sort_keys=True) + "\n")
         (out / f"{split}_stats.md").write_text(stats_markdown(stats))

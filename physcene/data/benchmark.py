@@ -12,7 +12,7 @@ from __future__ import annotations
 import json
 import multiprocessing as mp
 import time
-from collections.abc import Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -33,7 +33,6 @@ __all__ = [
     "DataConfig",
     "build_record",
     "build_scenes",
-    "measure_reference",
     "split_stats",
     "stats_markdown",
     "synthesize",
@@ -163,11 +162,14 @@ def write_split(
     *,
     progress: bool = True,
     measure: bool | None = None,
+    measurer: Callable[[list[Scene]], dict] | None = None,
 ) -> dict:
     """Write ``<out_dir>/<split>.jsonl`` and its stats; returns the stats dict.
 
     ``measure`` (None = ``config.measure``; "auto" measures test and ood) scores every scene with
-    the physics engine in one batched call for the reference SCR/ACR.
+    ``measurer`` (:func:`physcene.eval.metrics.measure_reference`: the physics engine in one batched
+    call) for the reference SCR/ACR. The measurer is passed in because the benchmark metrics live
+    in the evaluation stage, which reads the data stage (not the other way round).
     """
     from tqdm import tqdm
 
@@ -197,7 +199,10 @@ def write_split(
         measure = (
             split in ("test", "ood") if config.measure == "auto" else config.measure in ("true", "1", "yes")
         )
-    stats = split_stats(records, measure=measure)
+    if measure and measurer is None:
+        raise ValueError(f"write_split: measuring the {split} split's reference needs measurer= "
+                         "(e.g. physcene.eval.metrics.measure_reference)")
+    stats = split_stats(records, measurer=measurer if measure else None)
     stats.update(split=split, seed=seed, file=path.name)
     (out_dir / f"{split}_stats.json").write_text(json.dumps(stats, indent=2, sort_keys=True) + "\n")
     (out_dir / f"{split}_stats.md").write_text(stats_markdown(stats))
@@ -209,24 +214,9 @@ def _scene_of(record: dict) -> Scene:
     return load_layout(record["layout"], source=record["id"])
 
 
-def measure_reference(scenes: list[Scene], engine=None) -> dict:
-    """SCR/ACR at 0 / 0.5 / 1.0 cm and floating rates of ``scenes`` with the engine (one batch)."""
-    from physcene.eval.metrics import collision_rates, floating_rate, physics_from_score
-    from physcene.physics import PhysicsEngine
-
-    engine = engine or PhysicsEngine()
-    score = engine.score(scenes)
-    phys = physics_from_score(scenes, score)
-    rates = collision_rates(phys)
-    return {
-        "collision": {f"{t:g}cm": v for t, v in rates.items()},
-        "floating": floating_rate(phys),
-        "per_scene_pairs": [len(p) for p in score.pairs],
-    }
-
-
-def split_stats(records: list[dict], *, measure: bool = False, engine=None) -> dict:
-    """Type × level counts, noise totals and (``measure``) the engine's reference SCR/ACR."""
+def split_stats(records: list[dict], *, measurer: Callable[[list[Scene]], dict] | None = None) -> dict:
+    """Type × level counts, noise totals and (with a ``measurer``, e.g.
+    :func:`physcene.eval.metrics.measure_reference`) the engine's reference SCR/ACR."""
     found: dict[str, dict[str, int]] = {}
     for r in records:
         row = found.setdefault(r["scene_type"], {str(lv): 0 for lv in range(1, 6)})
@@ -251,8 +241,8 @@ def split_stats(records: list[dict], *, measure: bool = False, engine=None) -> d
     }
     if agreement:
         stats["hierarchy_agreement"] = round(sum(agreement) / len(agreement), 4)
-    if measure and records:
-        ref = measure_reference([_scene_of(r) for r in records], engine)
+    if measurer is not None and records:
+        ref = measurer([_scene_of(r) for r in records])
         per_scene = ref.pop("per_scene_pairs")
         stats["reference"] = ref
         by_level: dict[str, list[int]] = {}

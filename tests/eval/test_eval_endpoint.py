@@ -9,7 +9,8 @@ from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from pathlib import Path
 
 import pytest
-from physcene.eval.judges import SYSTEM_PROMPT, EndpointJudge, EvalCase, parse_judge_reply
+from physcene.eval.endpoint import SYSTEM_PROMPT, EndpointJudge, parse_judge_reply
+from physcene.eval.judges import EvalCase
 
 from physcene.layout import read_layout
 

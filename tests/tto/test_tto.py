@@ -12,8 +12,8 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from physcene.config import ConfigError
+from physcene.data.noisy import noisy_scenes
 from physcene.graph import footprint_overlap
-from physcene.noisy_scenes import noisy_scenes
 from physcene.physics import PhysicsEngine
 from physcene.relations import relation_preservation
 from physcene.scene import TABLE, Scene, SceneObject, Zone

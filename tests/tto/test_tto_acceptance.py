@@ -1,6 +1,6 @@
 """Issue 5 acceptance with the real engine and asset library, on two inputs:
 
-- ``noisy``: :func:`physcene.noisy_scenes.noisy_scenes` (stacks, containers, groups pushed into
+- ``noisy``: :func:`physcene.data.noisy.noisy_scenes` (stacks, containers, groups pushed into
   their neighbours), 16 objects per scene;
 - ``synthetic``: the synthetic benchmark's ``test`` split (:func:`physcene.data.synthesize`:
   MesaTask-style layouts with interpenetration / sunk / hover noise), 1-20+ objects.
@@ -20,7 +20,7 @@ import json
 
 import pytest
 
-from physcene.noisy_scenes import noisy_scenes
+from physcene.data.noisy import noisy_scenes
 from physcene.physics import PhysicsEngine
 from physcene.tto import TTOConfig, repair, summarize
 
