@@ -1,6 +1,6 @@
 """The hierarchical scene graph (HSG): who stands in / on what, and the anchor-first order.
 
-Relations (paper appendix A.1, DESIGN.md "Hierarchical scene graph"), priority in ≻ on ≻ near:
+Relations (paper appendix A.1, docs/scene_language.md "Hierarchical scene graph"), priority in ≻ on ≻ near:
 
 - ``in``  (A in B): vol(B)/vol(A) ≥ ``in_volume_ratio``, footprint overlap |A∩B|xy/|A|xy ≥
   ``in_footprint_overlap`` (yaw-aware polygon overlap), and at least ``in_height_fraction`` of
@@ -62,7 +62,7 @@ class GraphConfig:
     """|top ∩ support|xy / |top|xy must exceed this."""
     in_requires_container: bool = True
     """``in`` only into a parent whose category can contain (:func:`can_contain`); False = the
-    purely geometric rule of DESIGN.md."""
+    purely geometric rule (docs/scene_language.md)."""
 
     @classmethod
     def load(cls, overrides: Sequence[str] = ()) -> GraphConfig:

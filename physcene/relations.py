@@ -1,7 +1,7 @@
 """Which hierarchy relations a layout keeps: the measure shared by TTO and evaluation.
 
-A layout's meaning (DESIGN "Hierarchical scene graph") is its forest of ``in``/``on`` edges plus,
-for every table-level object, the direction of its ``near`` reference
+A layout's meaning (docs/scene_language.md, "Hierarchical scene graph") is its forest of
+``in``/``on`` edges plus, for every table-level object, the direction of its ``near`` reference
 (:func:`physcene.graph.near_references`: the nearest table-level object placed before it in
 Algorithm 1's anchor order). :func:`relation_preservation` compares two layouts of the same
 objects: the ``after`` layout's graph is rebuilt from its geometry with :mod:`physcene.graph`, so a

@@ -13,12 +13,13 @@ import json
 import multiprocessing as mp
 import time
 from collections.abc import Callable, Iterable, Iterator
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from pathlib import Path
 
 import numpy as np
 from omegaconf import OmegaConf
 
+from physcene.config import ConfigError, load_config
 from physcene.ctrc import DECIMALS, MAX_DECIMALS
 from physcene.data.captions import describe
 from physcene.data.mesatask_ctrc import ctrc_record, dumps_record
@@ -46,19 +47,27 @@ class DataConfig:
     """All knobs of the benchmark (``configs/data.yaml``)."""
 
     synth: SynthConfig = field(default_factory=SynthConfig)
+    """The clean generator's knobs (``synth:`` section)."""
     noise: NoiseConfig = field(default_factory=NoiseConfig)
+    """The annotation-noise knobs (``noise:`` section)."""
     prompt_objects: bool = True
+    """``record.prompt_objects``: the prompt lists the requested objects."""
     decimals: int = DECIMALS
+    """``record.decimals``: digits after the point in completion text, 0 to ``MAX_DECIMALS``."""
     workers: int = 2
+    """``record.workers``: processes that synthesise a split (more than 1 only above 32 scenes)."""
     measure: str = "auto"
+    """``record.measure``: score the reference layouts with the engine (auto: test and ood)."""
+
+    def __post_init__(self) -> None:
+        if isinstance(self.decimals, bool) or not isinstance(self.decimals, int) \
+                or not 0 <= self.decimals <= MAX_DECIMALS:
+            raise ValueError(f"record.decimals must be an integer from 0 to {MAX_DECIMALS}, "
+                             f"got {self.decimals!r}")
 
     @classmethod
     def load(cls, overrides=()) -> DataConfig:
         """``configs/data.yaml`` with ``key=value`` overrides; unknown keys are a ConfigError."""
-        from dataclasses import fields
-
-        from physcene.config import ConfigError, load_config
-
         cfg = OmegaConf.to_container(load_config("data", list(overrides)), resolve=True)
 
         def build(kind, section: str):
@@ -76,23 +85,17 @@ class DataConfig:
         if unknown:
             raise ConfigError(f"unknown data config sections {unknown}; known: synth, noise, record")
         rec = cfg.get("record") or {}
-        return cls(
-            synth=build(SynthConfig, "synth"),
-            noise=build(NoiseConfig, "noise"),
-            prompt_objects=bool(rec.get("prompt_objects", True)),
-            decimals=_decimals(rec.get("decimals", DECIMALS)),
-            workers=int(rec.get("workers", 2)),
-            measure=str(rec.get("measure", "auto")).lower(),
-        )
-
-
-def _decimals(value) -> int:
-    """``record.decimals``: digits after the point in completion text, 0 to ``MAX_DECIMALS``."""
-    from physcene.config import ConfigError
-
-    if isinstance(value, bool) or not isinstance(value, int) or not 0 <= value <= MAX_DECIMALS:
-        raise ConfigError(f"record.decimals must be an integer from 0 to {MAX_DECIMALS}, got {value!r}")
-    return value
+        try:
+            return cls(
+                synth=build(SynthConfig, "synth"),
+                noise=build(NoiseConfig, "noise"),
+                prompt_objects=bool(rec.get("prompt_objects", True)),
+                decimals=rec.get("decimals", DECIMALS),
+                workers=int(rec.get("workers", 2)),
+                measure=str(rec.get("measure", "auto")).lower(),
+            )
+        except ValueError as exc:  # the dataclass's own checks (__post_init__)
+            raise ConfigError(str(exc)) from None
 
 
 _FIT: ContainerFit | None = None

@@ -98,7 +98,7 @@ def boxes_touch(a: np.ndarray, b: np.ndarray, gap: float) -> bool:
 
 
 def counts_as_in(container: Node, content: Node, z: float) -> bool:
-    """The graph's ``in`` test (DESIGN.md) with a margin: volume ratio ≥ 1.5 and at least 60 % of
+    """The graph's ``in`` test (:mod:`physcene.graph`) with a margin: volume ratio ≥ 1.5 and at least 60 % of
     the content's height inside the container's z-range (footprints are inside by construction)."""
     if np.prod(container.size) < 1.5 * np.prod(content.size):
         return False
