@@ -73,6 +73,11 @@ def test_config_defaults_are_the_papers_and_overrides_apply():
     assert TTOConfig.load(["in_children=frozen"]).in_children == "frozen"
     with pytest.raises(ConfigError, match="in_children"):
         TTOConfig.load(["in_children=loose"])
+    # the checks live in the dataclass: a directly built config is checked too, naming the field
+    for bad, field in ((dict(in_children="bogus"), "in_children"), (dict(in_lr_scale=2.0), "in_lr_scale"),
+                       (dict(batch_size=0), "batch_size")):
+        with pytest.raises(ValueError, match=field):
+            TTOConfig(**bad)
 
 
 def _holder_scene() -> Scene:
@@ -219,6 +224,14 @@ def test_degenerate_inputs_finish_and_report(engine):
     ))
     results = repair([empty, single, huge, over_sink], TTOConfig(steps=40), engine)
     assert results[0].scene == empty and results[0].report.n_objects == 0
+    assert list(results[0].report.as_dict()) == [  # the JSON key order of physcene repair's report
+        "n_objects", "energy_before", "energy_after", "max_depth_before_cm", "max_depth_after_cm",
+        "collision_free", "residual_collisions", "max_displacement_cm", "steps", "kept_input", "relations",
+        "unsatisfied"]
+    assert list(results[2].report.as_dict()) == [
+        "n_objects", "max_depth_before_cm", "max_depth_after_cm", "collision_free", "residual_collisions",
+        "relations", "unsatisfied", "reattached", "energy_before", "energy_after", "max_displacement_cm",
+        "mean_displacement_cm", "steps", "kept_input"]
     assert results[1].energy_after == 0.0 and results[1].max_displacement_cm < 1e-6
     assert any("larger than the placement zone" in u for u in results[2].report.unsatisfied)
     assert results[2].scene.get("cup_1").zmin == pytest.approx(2.0, abs=1e-4)  # still on the board
