@@ -12,17 +12,33 @@ of them can be followed by TTO (``repair=true``).
 from __future__ import annotations
 
 import json
+import os
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+from physcene.eval.baselines import heuristic_place, zero_shot_prompt
 from physcene.eval.endpoint import EndpointJudge, chat_url, post_chat, reply_text
 from physcene.eval.judges import EvalCase, LayoutStats, RuleJudge
-from physcene.eval.metrics import ScenePhysics, SceneResult, physics_from_score
+from physcene.eval.metrics import (
+    ScenePhysics,
+    SceneResult,
+    breakdown,
+    diversity,
+    physics_from_score,
+    summarize,
+)
+from physcene.eval.render import render_views
+from physcene.eval.report import write_report
 from tqdm.auto import tqdm
 
+from physcene.ctrc import ParseError, parse
+from physcene.data import synthesize
+from physcene.data.splits import DEFAULT_SIZES
+from physcene.layout import load_layout, read_layout, write_layout
 from physcene.scene import Scene
+from physcene.tto import TTOConfig, relation_preservation, repair
 
 __all__ = ["BenchmarkItem", "EvalError", "Generate", "evaluate_method", "generate", "load_benchmark",
            "make_judge", "method_name", "method_names", "method_report", "repair_outputs", "run_evaluation",
@@ -52,12 +68,7 @@ def load_benchmark(split: str, n: int | None = None, seed: int = 0,
                    progress: bool = True) -> list[BenchmarkItem]:
     """The first ``n`` records of a synthetic split (``train``/``test``/``ood``) from
     :func:`physcene.data.synthesize`, as benchmark items."""
-    from physcene.data import synthesize
-    from physcene.layout import load_layout
-
     items = []
-    from physcene.data.splits import DEFAULT_SIZES
-
     records = synthesize(split, n=n, seed=seed)
     total = n if n is not None else DEFAULT_SIZES.get(split)
     for rec in tqdm(records, total=total, desc=f"synthesise {split}", disable=not progress, unit="scene"):
@@ -79,9 +90,6 @@ def _with_request(scene: Scene, item: BenchmarkItem) -> Scene:
 def _load_dir(items: Sequence[BenchmarkItem], directory: Path) -> list:
     """Layouts from ``DIR``: ``<id>.json`` / ``<id>/layout.json`` (MesaTask) or ``<id>.txt`` (a
     model completion, CTRC or Prompt-3 flat JSON). A missing file is an error naming the id."""
-    from physcene.ctrc import parse
-    from physcene.layout import read_layout
-
     if not directory.is_dir():
         raise EvalError(f"generator file:{directory}: not a directory")
     out = []
@@ -101,11 +109,8 @@ def _load_dir(items: Sequence[BenchmarkItem], directory: Path) -> list:
 
 def _zero_shot(items: Sequence[BenchmarkItem], url: str, model: str, api_key_env: str,
                progress: bool) -> list:
-    import os
 
-    from physcene.eval.baselines import zero_shot_prompt
 
-    from physcene.ctrc import parse
 
     endpoint = chat_url(url)
     out = []
@@ -133,15 +138,12 @@ def generate(items: Sequence[BenchmarkItem], generator: str, *, seed: int = 0, m
     ``generators``: callables by generator argument (``"model:runs/sft"``), looked up before the
     built-in kinds; a ``model:PATH`` generator must be one of them.
     """
-    from physcene.ctrc import ParseError, parse
-
     if generators and generator in generators:
         out = [parse(o, zone=it.reference.zone) if isinstance(o, str) else o
                for o, it in zip(generators[generator](items), items)]
     elif generator in ("reference", "tto"):
         out = [it.reference for it in items]
     elif generator == "heuristic":
-        from physcene.eval.baselines import heuristic_place
 
         out = [heuristic_place(it.reference, seed=seed * 100003 + k) for k, it in enumerate(items)]
     elif generator.startswith("file:"):
@@ -160,8 +162,6 @@ def generate(items: Sequence[BenchmarkItem], generator: str, *, seed: int = 0, m
 def save_layouts(items: Sequence[BenchmarkItem], outputs: Sequence, directory: Path) -> int:
     """Write each parsed output as ``directory/<id>.json`` (MesaTask layout), re-scorable with
     ``--generator file:DIR``; outputs that did not parse are skipped. Returns how many were written."""
-    from physcene.layout import write_layout
-
     written = 0
     for it, scene in zip(items, outputs):
         if isinstance(scene, Scene):
@@ -174,8 +174,6 @@ def repair_outputs(outputs: list, *, tto_overrides: Sequence[str] = (), engine=N
                    progress: bool = True) -> tuple[list, list[dict]]:
     """TTO over every parsed output (ParseErrors pass through). Returns (outputs, per-scene
     extras: energy before/after, max displacement, relation preservation)."""
-    from physcene.tto import TTOConfig, relation_preservation, repair
-
     config = TTOConfig.load(list(tto_overrides))
     idx = [k for k, o in enumerate(outputs) if isinstance(o, Scene)]
     extras: list[dict] = [{} for _ in outputs]
@@ -211,10 +209,8 @@ def score_scenes(items: Sequence[BenchmarkItem], outputs: Sequence, judge, engin
                  batch_size: int = 16, settle: bool = False, extras: Sequence[dict] | None = None,
                  progress: bool = True, desc: str = "score") -> list[SceneResult]:
     """Physics (engine, batched) + judge (+ optional MuJoCo settling) for every output."""
-    from physcene.ctrc import ParseError
-
     if engine is None:
-        from physcene.physics import PhysicsEngine
+        from physcene.physics import PhysicsEngine  # here: Warp loads only when an engine is needed
 
         engine = PhysicsEngine()
     extras = list(extras) if extras is not None else [{} for _ in outputs]
@@ -239,7 +235,7 @@ def score_scenes(items: Sequence[BenchmarkItem], outputs: Sequence, judge, engin
         if k not in physics:
             bar.update(1)
         if settle and len(out):
-            from physcene.settle import settle as settle_scene
+            from physcene.settle import settle as settle_scene  # here: MuJoCo only for the stability column
 
             extra["stable"] = bool(settle_scene(out).stable)
         results.append(SceneResult(it.id, it.scene_type, it.level, ph, judge.score(out, it.case, ph), extra))
@@ -249,8 +245,6 @@ def score_scenes(items: Sequence[BenchmarkItem], outputs: Sequence, judge, engin
 
 def method_report(results: Sequence[SceneResult], outputs: Sequence) -> dict:
     """summary, per-level and per-type breakdowns and diversity of one method's results."""
-    from physcene.eval.metrics import breakdown, diversity, summarize
-
     scenes = [o for o in outputs if isinstance(o, Scene)]
     return {"summary": summarize(results), "by_level": breakdown(results, "level"),
             "by_type": breakdown(results, "scene_type"), "diversity": diversity(scenes),
@@ -323,10 +317,8 @@ def run_evaluation(cfg, *, command: str = "", title: str = "physcene evaluation"
     generator in ``cfg.generator`` (comma-separated), scoring, renders, results.json and
     report.md under ``cfg.out``. ``generators``: the callables of the ``model:PATH`` generators
     (see :func:`generate`). Returns (the methods' reports, the report path)."""
-    from physcene.eval.render import render_views
-    from physcene.eval.report import write_report
 
-    from physcene.physics import PhysicsEngine
+    from physcene.physics import PhysicsEngine  # here: Warp loads only when an engine is needed
 
     specs = [g.strip() for g in str(cfg.generator).split(",") if g.strip()]
     if not specs:

@@ -21,6 +21,7 @@ import numpy as np
 from physcene.eval.metrics import CRITERIA, ScenePhysics
 
 from physcene.assets import CATEGORY_PRIORS, canonical_category
+from physcene.graph import build_hierarchy
 from physcene.scene import TABLE, Scene
 
 __all__ = ["EvalCase", "JudgeError", "LayoutStats", "RuleJudge", "adjacency_pairs", "canonical_category",
@@ -84,8 +85,6 @@ def stated_relations(scene: Scene) -> tuple[tuple[str, str, str], ...]:
     """(child category, relation, parent category) of every ``in``/``on`` edge of the hierarchy
     (built with :func:`physcene.graph.build_hierarchy` when the scene carries none)."""
     if not scene.has_hierarchy:
-        from physcene.graph import build_hierarchy  # the scene-language owner's thresholds
-
         scene = build_hierarchy(scene)
     by_id = scene.by_id()
     rels = []

@@ -12,8 +12,16 @@ from __future__ import annotations
 
 import json
 import sys
+from dataclasses import replace
 from pathlib import Path
 
+from tqdm import tqdm
+
+from physcene.config import load_config
+from physcene.data.benchmark import DataConfig, split_stats, stats_markdown, write_records, write_split
+from physcene.data.instructions import EndpointInstructor
+from physcene.data.mesatask_ctrc import dumps_record, import_layout_tree
+from physcene.data.splits import select_test
 from physcene.eval.metrics import measure_reference
 
 NAME = "data"
@@ -57,22 +65,13 @@ def add_arguments(parser) -> None:
 
 
 def _config(args):
-    from physcene.data.benchmark import DataConfig
-
     config = DataConfig.load(args.overrides)
     if getattr(args, "workers", None):
-        from dataclasses import replace
-
         config = replace(config, workers=int(args.workers))
-    if config.measure not in ("auto", "true", "false", "yes", "no", "1", "0"):
-        raise ValueError(f"record.measure must be auto/true/false, got {config.measure!r}")
     return config
 
 
 def _instructor(args):
-    from physcene.config import load_config
-    from physcene.data.instructions import EndpointInstructor
-
     endpoint = load_config("data", args.overrides).record.endpoint
     if endpoint.base_url and endpoint.model:
         return EndpointInstructor(
@@ -82,8 +81,6 @@ def _instructor(args):
 
 
 def _run_synth(args) -> int:
-    from physcene.data.benchmark import write_split
-
     if args.n is not None and args.n < 1:
         raise ValueError(f"--n must be at least 1, got {args.n}")
     config = _config(args)
@@ -108,12 +105,6 @@ def _run_synth(args) -> int:
 
 
 def _run_import(args) -> int:
-    from tqdm import tqdm
-
-    from physcene.data.benchmark import split_stats, stats_markdown, write_records
-    from physcene.data.mesatask_ctrc import dumps_record, import_layout_tree
-    from physcene.data.splits import select_test
-
     root = Path(args.layout_info)
     if not root.is_dir():
         raise FileNotFoundError(f"{str(root)!r} is not a directory (expected MesaTask's Layout_info)")

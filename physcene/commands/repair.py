@@ -19,6 +19,7 @@ from pathlib import Path
 from physcene.ctrc import MAX_DECIMALS, completion_text, decimals_of
 from physcene.layout import layout_to_dict, load_layout
 from physcene.scene import SceneError
+from physcene.tto import TTOConfig, repair, summarize
 
 NAME = "repair"
 HELP = "Repair layouts by hierarchy-constrained test-time optimisation (layout.json, a tree, or JSONL)"
@@ -110,8 +111,7 @@ def _items_jsonl(src: Path):
 
 
 def run(args) -> int:
-    from physcene.physics import PhysicsEngine
-    from physcene.tto import TTOConfig, repair
+    from physcene.physics import PhysicsEngine  # here: Warp loads only when the command runs
 
     src, out = Path(args.input), Path(args.output)
     if args.decimals is not None and not 0 <= args.decimals <= MAX_DECIMALS:
@@ -155,8 +155,6 @@ def run(args) -> int:
 
 
 def _summary(results, config) -> str:
-    from physcene.tto import summarize
-
     s = summarize(results)
     return (f"repaired {s['scenes']} scene(s): {s['collision_free']:.1%} without a pair deeper than "
             f"{config.collision_depth_cm} cm (every pair), in/on kept {s['in_on_kept']:.1%}, "

@@ -42,6 +42,10 @@ __all__ = [
 ]
 
 
+MEASURE_VALUES = ("auto", "true", "false", "yes", "no", "1", "0")
+"""Accepted ``record.measure`` values (auto: test and ood are measured)."""
+
+
 @dataclass(frozen=True, kw_only=True)
 class DataConfig:
     """All knobs of the benchmark (``configs/data.yaml``)."""
@@ -60,6 +64,8 @@ class DataConfig:
     """``record.measure``: score the reference layouts with the engine (auto: test and ood)."""
 
     def __post_init__(self) -> None:
+        if self.measure not in MEASURE_VALUES:
+            raise ValueError(f"record.measure must be auto/true/false, got {self.measure!r}")
         if isinstance(self.decimals, bool) or not isinstance(self.decimals, int) \
                 or not 0 <= self.decimals <= MAX_DECIMALS:
             raise ValueError(f"record.decimals must be an integer from 0 to {MAX_DECIMALS}, "
