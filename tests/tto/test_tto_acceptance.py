@@ -9,7 +9,7 @@ Every pair counts ("no pair deeper than 1 mm"), a container and its contents inc
 ``collision_free_excluding_frozen`` (``in_children=frozen``) and ``scenes_with_in_body_residual``
 are printed beside it. The 200-scene runs are ``slow`` (about a minute each on 2 CPU cores) and
 run only when asked:
-    PHYSCENE_SLOW=1 python -m pytest tests/test_tto_acceptance.py -q -s -k 200
+    PHYSCENE_SLOW=1 python -m pytest tests/tto/test_tto_acceptance.py -q -s -k 200
 they print the figures (docs/tto.md, "Measured"); the normal suite runs the same checks on a few
 scenes.
 """
