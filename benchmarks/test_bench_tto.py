@@ -3,7 +3,7 @@
     python -m pytest benchmarks/test_bench_tto.py --benchmark-enable -q            # CPU (+ GPU if any)
     python -m pytest benchmarks/test_bench_tto.py --benchmark-enable -q -k cuda    # GPU only
 
-Noisy scenes (stacks, containers, overlaps; :mod:`physcene.noisy_scenes`) are packed once; the
+Noisy scenes (stacks, containers, overlaps; :mod:`physcene.data.noisy`) are packed once; the
 timed call is :func:`physcene.tto.optimise` with early stop OFF, so every scene runs all 100 steps
 (the worst case). With ``--benchmark-enable`` each case asserts its median against the target.
 """
@@ -13,8 +13,8 @@ from __future__ import annotations
 import pytest
 import torch
 
+from physcene.data.noisy import noisy_scenes
 from physcene.graph import ensure_hierarchy
-from physcene.noisy_scenes import noisy_scenes
 from physcene.physics import PhysicsEngine
 from physcene.tto import TTOConfig, build_problem, optimise
 

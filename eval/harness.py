@@ -3,28 +3,46 @@
 
 Generators (``--generator``): ``reference`` (the split's layouts), ``tto`` (reference + TTO),
 ``heuristic`` (non-learned placer), ``file:DIR`` (layouts on disk), ``model:PATH`` (a trained
-checkpoint through :func:`physcene.train.generate.generate`), ``endpoint:URL`` (zero-shot LLM with
-the paper's Prompt 3 over an OpenAI-compatible endpoint). Any of them can be followed by TTO
-(``repair=true``).
+checkpoint: the caller passes its :data:`Generate` callable, e.g. ``physcene eval`` builds one on
+:func:`physcene.train.generate.generate`; the harness never imports the training code),
+``endpoint:URL`` (zero-shot LLM with the paper's Prompt 3 over an OpenAI-compatible endpoint). Any
+of them can be followed by TTO (``repair=true``).
 """
 
 from __future__ import annotations
 
 import json
-from collections.abc import Sequence
+import os
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-from physcene.eval.judges import EndpointJudge, EvalCase, LayoutStats, RuleJudge, post_chat, reply_text
-from physcene.eval.metrics import ScenePhysics, SceneResult, physics_from_score
+from physcene.eval.baselines import heuristic_place, zero_shot_prompt
+from physcene.eval.endpoint import EndpointJudge, chat_url, post_chat, reply_text
+from physcene.eval.judges import EvalCase, LayoutStats, RuleJudge
+from physcene.eval.metrics import (
+    ScenePhysics,
+    SceneResult,
+    breakdown,
+    diversity,
+    physics_from_score,
+    summarize,
+)
+from physcene.eval.render import render_views
+from physcene.eval.report import write_report
 from tqdm.auto import tqdm
 
+from physcene.ctrc import ParseError, parse
+from physcene.data import synthesize
+from physcene.data.splits import DEFAULT_SIZES
+from physcene.layout import load_layout, read_layout, write_layout
 from physcene.scene import Scene
+from physcene.tto import TTOConfig, relation_preservation, repair
 
-__all__ = ["BenchmarkItem", "EvalError", "evaluate_method", "generate", "load_benchmark", "make_judge",
-           "method_name", "method_names", "method_report", "repair_outputs", "run_evaluation", "save_layouts",
-           "score_scenes", "write_json"]
+__all__ = ["BenchmarkItem", "EvalError", "Generate", "evaluate_method", "generate", "load_benchmark",
+           "make_judge", "method_name", "method_names", "method_report", "repair_outputs", "run_evaluation",
+           "save_layouts", "score_scenes", "write_json"]
 
 GENERATOR_KINDS = ("reference", "tto", "heuristic", "file:", "model:", "endpoint:")
 
@@ -50,12 +68,7 @@ def load_benchmark(split: str, n: int | None = None, seed: int = 0,
                    progress: bool = True) -> list[BenchmarkItem]:
     """The first ``n`` records of a synthetic split (``train``/``test``/``ood``) from
     :func:`physcene.data.synthesize`, as benchmark items."""
-    from physcene.data import synthesize
-    from physcene.layout import load_layout
-
     items = []
-    from physcene.data.splits import DEFAULT_SIZES
-
     records = synthesize(split, n=n, seed=seed)
     total = n if n is not None else DEFAULT_SIZES.get(split)
     for rec in tqdm(records, total=total, desc=f"synthesise {split}", disable=not progress, unit="scene"):
@@ -77,9 +90,6 @@ def _with_request(scene: Scene, item: BenchmarkItem) -> Scene:
 def _load_dir(items: Sequence[BenchmarkItem], directory: Path) -> list:
     """Layouts from ``DIR``: ``<id>.json`` / ``<id>/layout.json`` (MesaTask) or ``<id>.txt`` (a
     model completion, CTRC or Prompt-3 flat JSON). A missing file is an error naming the id."""
-    from physcene.ctrc import parse
-    from physcene.layout import read_layout
-
     if not directory.is_dir():
         raise EvalError(f"generator file:{directory}: not a directory")
     out = []
@@ -99,14 +109,10 @@ def _load_dir(items: Sequence[BenchmarkItem], directory: Path) -> list:
 
 def _zero_shot(items: Sequence[BenchmarkItem], url: str, model: str, api_key_env: str,
                progress: bool) -> list:
-    import os
 
-    from physcene.eval.baselines import zero_shot_prompt
-    from physcene.eval.judges import _chat_url
 
-    from physcene.ctrc import parse
 
-    endpoint = _chat_url(url)
+    endpoint = chat_url(url)
     out = []
     for it in tqdm(items, desc="zero-shot LLM", disable=not progress, unit="scene"):
         payload = {"model": model, "temperature": 0.0,
@@ -119,36 +125,32 @@ def _zero_shot(items: Sequence[BenchmarkItem], url: str, model: str, api_key_env
     return out
 
 
+Generate = Callable[[Sequence[BenchmarkItem]], list]
+"""A generator the caller supplies: benchmark items -> one output per item, a Scene, a ParseError
+or a completion text (parsed against the item's zone)."""
+
+
 def generate(items: Sequence[BenchmarkItem], generator: str, *, seed: int = 0, model: str = "gpt-4o",
-             api_key_env: str = "PHYSCENE_GENERATOR_API_KEY", max_new_tokens: int = 4096,
-             progress: bool = True, device: str | None = None, cache: str = "dynamic",
-             constrained: bool = False) -> list:
+             api_key_env: str = "PHYSCENE_GENERATOR_API_KEY", progress: bool = True,
+             generators: Mapping[str, Generate] | None = None) -> list:
     """One output per item: a Scene or a ParseError (model output that did not parse).
 
-    ``device``: where a ``model:PATH`` generator runs (default: the first GPU, else CPU); ``cache``:
-    its KV cache (``physcene.train.generate.CACHE_MODES``: dynamic, static, static_compile);
-    ``constrained``: decode it under the CTRC constraint (``physcene.train.constrained``).
+    ``generators``: callables by generator argument (``"model:runs/sft"``), looked up before the
+    built-in kinds; a ``model:PATH`` generator must be one of them.
     """
-    from physcene.ctrc import ParseError
-
-    if generator in ("reference", "tto"):
+    if generators and generator in generators:
+        out = [parse(o, zone=it.reference.zone) if isinstance(o, str) else o
+               for o, it in zip(generators[generator](items), items)]
+    elif generator in ("reference", "tto"):
         out = [it.reference for it in items]
     elif generator == "heuristic":
-        from physcene.eval.baselines import heuristic_place
 
         out = [heuristic_place(it.reference, seed=seed * 100003 + k) for k, it in enumerate(items)]
     elif generator.startswith("file:"):
         out = _load_dir(items, Path(generator[5:]))
     elif generator.startswith("model:"):
-        try:
-            from physcene.train.generate import generate as model_generate
-        except ImportError as exc:
-            raise EvalError(f"generator {generator}: physcene.train.generate is unavailable ({exc})") from exc
-        from physcene.ctrc import parse
-
-        texts = model_generate(generator[6:], [it.prompt for it in items], max_new_tokens=max_new_tokens,
-                               device=device, cache=cache, constrained=constrained)
-        out = [parse(t, zone=it.reference.zone) for t, it in zip(texts, items)]
+        raise EvalError(f"generator {generator}: no model generator was passed (generators=...); "
+                        "physcene eval builds one from the checkpoint")
     elif generator.startswith("endpoint:"):
         out = _zero_shot(items, generator[9:], model, api_key_env, progress)
     else:
@@ -160,8 +162,6 @@ def generate(items: Sequence[BenchmarkItem], generator: str, *, seed: int = 0, m
 def save_layouts(items: Sequence[BenchmarkItem], outputs: Sequence, directory: Path) -> int:
     """Write each parsed output as ``directory/<id>.json`` (MesaTask layout), re-scorable with
     ``--generator file:DIR``; outputs that did not parse are skipped. Returns how many were written."""
-    from physcene.layout import write_layout
-
     written = 0
     for it, scene in zip(items, outputs):
         if isinstance(scene, Scene):
@@ -174,9 +174,7 @@ def repair_outputs(outputs: list, *, tto_overrides: Sequence[str] = (), engine=N
                    progress: bool = True) -> tuple[list, list[dict]]:
     """TTO over every parsed output (ParseErrors pass through). Returns (outputs, per-scene
     extras: energy before/after, max displacement, relation preservation)."""
-    from physcene.tto import TTOConfig, relation_preservation, repair
-
-    config = TTOConfig.from_config(list(tto_overrides))
+    config = TTOConfig.load(list(tto_overrides))
     idx = [k for k, o in enumerate(outputs) if isinstance(o, Scene)]
     extras: list[dict] = [{} for _ in outputs]
     out = list(outputs)
@@ -211,10 +209,8 @@ def score_scenes(items: Sequence[BenchmarkItem], outputs: Sequence, judge, engin
                  batch_size: int = 16, settle: bool = False, extras: Sequence[dict] | None = None,
                  progress: bool = True, desc: str = "score") -> list[SceneResult]:
     """Physics (engine, batched) + judge (+ optional MuJoCo settling) for every output."""
-    from physcene.ctrc import ParseError
-
     if engine is None:
-        from physcene.physics import PhysicsEngine
+        from physcene.physics import PhysicsEngine  # here: Warp loads only when an engine is needed
 
         engine = PhysicsEngine()
     extras = list(extras) if extras is not None else [{} for _ in outputs]
@@ -239,7 +235,7 @@ def score_scenes(items: Sequence[BenchmarkItem], outputs: Sequence, judge, engin
         if k not in physics:
             bar.update(1)
         if settle and len(out):
-            from physcene.settle import settle as settle_scene
+            from physcene.settle import settle as settle_scene  # here: MuJoCo only for the stability column
 
             extra["stable"] = bool(settle_scene(out).stable)
         results.append(SceneResult(it.id, it.scene_type, it.level, ph, judge.score(out, it.case, ph), extra))
@@ -249,8 +245,6 @@ def score_scenes(items: Sequence[BenchmarkItem], outputs: Sequence, judge, engin
 
 def method_report(results: Sequence[SceneResult], outputs: Sequence) -> dict:
     """summary, per-level and per-type breakdowns and diversity of one method's results."""
-    from physcene.eval.metrics import breakdown, diversity, summarize
-
     scenes = [o for o in outputs if isinstance(o, Scene)]
     return {"summary": summarize(results), "by_level": breakdown(results, "level"),
             "by_type": breakdown(results, "scene_type"), "diversity": diversity(scenes),
@@ -260,7 +254,9 @@ def method_report(results: Sequence[SceneResult], outputs: Sequence) -> dict:
 def evaluate_method(items: Sequence[BenchmarkItem], generator: str, judge, *, engine=None,
                     repair: bool = False, tto_overrides: Sequence[str] = (), settle: bool = False,
                     seed: int = 0, progress: bool = True, **generator_options) -> tuple[dict, list]:
-    """Generate (+ repair) and score one method. Returns (its report dict, its outputs)."""
+    """Generate (+ repair) and score one method. Returns (its report dict, its outputs).
+
+    ``generator_options``: passed to :func:`generate` (``model``, ``generators`` ...)."""
     outputs = generate(items, generator, seed=seed, progress=progress, **generator_options)
     extras = None
     if repair or generator == "tto":
@@ -315,19 +311,19 @@ def method_names(generators: Sequence[str], repair: bool = False) -> list[str]:
 
 
 def run_evaluation(cfg, *, command: str = "", title: str = "physcene evaluation",
-                   progress: bool = True) -> tuple[dict, Path]:
+                   progress: bool = True,
+                   generators: Mapping[str, Generate] | None = None) -> tuple[dict, Path]:
     """The whole ``physcene eval`` job for a config (configs/eval.yaml): benchmark, every
     generator in ``cfg.generator`` (comma-separated), scoring, renders, results.json and
-    report.md under ``cfg.out``. Returns (the methods' reports, the report path)."""
-    from physcene.eval.render import render_views
-    from physcene.eval.report import write_report
+    report.md under ``cfg.out``. ``generators``: the callables of the ``model:PATH`` generators
+    (see :func:`generate`). Returns (the methods' reports, the report path)."""
 
-    from physcene.physics import PhysicsEngine
+    from physcene.physics import PhysicsEngine  # here: Warp loads only when an engine is needed
 
-    generators = [g.strip() for g in str(cfg.generator).split(",") if g.strip()]
-    if not generators:
+    specs = [g.strip() for g in str(cfg.generator).split(",") if g.strip()]
+    if not specs:
         raise EvalError("no generator given")
-    for g in generators:
+    for g in specs:
         if not (g in GENERATOR_KINDS or g.startswith(GENERATOR_KINDS[3:])):
             raise EvalError(f"unknown generator {g!r}; expected reference, tto, heuristic, file:DIR, "
                             "model:PATH or endpoint:URL")
@@ -349,12 +345,11 @@ def run_evaluation(cfg, *, command: str = "", title: str = "physcene evaluation"
     methods: dict[str, dict] = {}
     renders: dict[str, dict[str, str]] = {}
     n_render = min(int(cfg.render), len(items))
-    for gen, name in zip(generators, method_names(generators, bool(cfg.repair))):
+    for gen, name in zip(specs, method_names(specs, bool(cfg.repair))):
         report, outputs = evaluate_method(items, gen, judge, engine=engine, repair=bool(cfg.repair),
                                           tto_overrides=tto_overrides, settle=bool(cfg.settle),
                                           seed=cfg.seed, progress=progress, model=cfg.generator_model,
-                                          cache=str(cfg.get("cache", "dynamic")),
-                                          constrained=bool(cfg.get("constrained", False)))
+                                          generators=generators)
         methods[name] = report
         slug = name.lower().replace(" + ", "_").replace(" ", "_").replace("(", "").replace(")", "")
         if cfg.get("save_layouts", False):  # re-score later with --generator file:<out>/layouts/<slug>
@@ -368,7 +363,7 @@ def run_evaluation(cfg, *, command: str = "", title: str = "physcene evaluation"
             for view, p in paths.items():
                 renders.setdefault(it.id, {})[f"{name} {view}"] = str(p.relative_to(out))
     write_json(out / "results.json", {"split": cfg.split, "n": len(items), "judge": cfg.judge,
-                                      "generators": generators, "repair": bool(cfg.repair),
+                                      "generators": specs, "repair": bool(cfg.repair),
                                       "methods": methods})
     tables = {k: {kk: vv for kk, vv in v.items() if kk != "scenes"} for k, v in methods.items()}
     path = write_report(out, tables, title=title, command=command, renders=renders)

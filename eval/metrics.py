@@ -21,10 +21,11 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from physcene.data.splits import level_of  # one definition of the levels, shared with the data
+from physcene.relations import relation_preservation
 from physcene.scene import ZONE_TOLERANCE_CM, Scene, zone_overshoot
 
 __all__ = ["CRITERIA", "DIFFICULTY_LEVELS", "THRESHOLDS_CM", "ScenePhysics", "SceneResult", "breakdown",
-           "collision_rates", "diversity", "floating_rate", "level_of", "out_of_zone",
+           "collision_rates", "diversity", "floating_rate", "level_of", "measure_reference", "out_of_zone",
            "out_of_zone_rate", "parse_error_kinds", "physics_from_score", "qpr", "relation_preservation_rate",
            "summarize"]
 
@@ -138,9 +139,7 @@ def qpr(judge_averages: Sequence[float], scenes: Sequence[ScenePhysics], taus: I
 
 def relation_preservation_rate(before: Sequence[Scene], after: Sequence[Scene]) -> dict:
     """Mean share of ``in``/``on`` (and ``near``) relations of each ``before`` layout that still hold
-    in the matching ``after`` layout (:func:`physcene.tto.relation_preservation`, per pair)."""
-    from physcene.tto import relation_preservation
-
+    in the matching ``after`` layout (:func:`physcene.relations.relation_preservation`, per pair)."""
     if len(before) != len(after):
         raise ValueError(f"relation_preservation_rate: {len(before)} layouts before, {len(after)} after")
     kept = [relation_preservation(b, a) for b, a in zip(before, after)]
@@ -242,3 +241,18 @@ def breakdown(results: Sequence[SceneResult], key: Callable[[SceneResult], objec
     for r in results:
         groups[get(r)].append(r)
     return {k: summarize(v) for k, v in sorted(groups.items(), key=lambda kv: str(kv[0]))}
+
+
+def measure_reference(scenes: list[Scene], engine=None) -> dict:
+    """SCR/ACR at 0 / 0.5 / 1.0 cm and floating rates of ``scenes`` with the engine (one batch)."""
+    from physcene.physics import PhysicsEngine  # here: Warp loads only when a split is measured
+
+    engine = engine or PhysicsEngine()
+    score = engine.score(scenes)
+    phys = physics_from_score(scenes, score)
+    rates = collision_rates(phys)
+    return {
+        "collision": {f"{t:g}cm": v for t, v in rates.items()},
+        "floating": floating_rate(phys),
+        "per_scene_pairs": [len(p) for p in score.pairs],
+    }

@@ -1,6 +1,6 @@
 """The hierarchical scene graph (HSG): who stands in / on what, and the anchor-first order.
 
-Relations (paper appendix A.1, docs/design.md "Hierarchical scene graph"), priority in ≻ on ≻ near:
+Relations (paper appendix A.1, docs/scene_language.md "Hierarchical scene graph"), priority in ≻ on ≻ near:
 
 - ``in``  (A in B): vol(B)/vol(A) ≥ ``in_volume_ratio``, footprint overlap |A∩B|xy/|A|xy ≥
   ``in_footprint_overlap`` (yaw-aware polygon overlap), and at least ``in_height_fraction`` of
@@ -22,10 +22,12 @@ from __future__ import annotations
 
 import functools
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 from shapely.geometry import Polygon
 
+from physcene.config import load_dataclass
 from physcene.scene import TABLE, Scene, SceneObject
 
 __all__ = [
@@ -60,13 +62,11 @@ class GraphConfig:
     """|top ∩ support|xy / |top|xy must exceed this."""
     in_requires_container: bool = True
     """``in`` only into a parent whose category can contain (:func:`can_contain`); False = the
-    purely geometric rule of docs/design.md."""
+    purely geometric rule (docs/scene_language.md)."""
 
     @classmethod
-    def from_config(cls, overrides=()) -> GraphConfig:
+    def load(cls, overrides: Sequence[str] = ()) -> GraphConfig:
         """Read ``configs/graph.yaml`` with ``key=value`` overrides."""
-        from physcene.config import load_dataclass
-
         return load_dataclass(cls, "graph", list(overrides))
 
 

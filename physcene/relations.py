@@ -1,7 +1,7 @@
 """Which hierarchy relations a layout keeps: the measure shared by TTO and evaluation.
 
-A layout's meaning (DESIGN "Hierarchical scene graph") is its forest of ``in``/``on`` edges plus,
-for every table-level object, the direction of its ``near`` reference
+A layout's meaning (docs/scene_language.md, "Hierarchical scene graph") is its forest of
+``in``/``on`` edges plus, for every table-level object, the direction of its ``near`` reference
 (:func:`physcene.graph.near_references`: the nearest table-level object placed before it in
 Algorithm 1's anchor order). :func:`relation_preservation` compares two layouts of the same
 objects: the ``after`` layout's graph is rebuilt from its geometry with :mod:`physcene.graph`, so a
@@ -10,6 +10,7 @@ repair is only credited with what the geometry really shows.
 
 from __future__ import annotations
 
+from physcene.graph import build_hierarchy, ensure_hierarchy, near_direction, near_references
 from physcene.scene import TABLE, Scene
 
 __all__ = ["DIRECTION_AXES", "relation_preservation"]
@@ -32,8 +33,6 @@ def relation_preservation(before: Scene, after: Scene, graph_config=None) -> dic
     [0, 1], 1.0 when there is nothing to keep), the counts, and the ids of broken relations.
     Objects are matched by instance id; an object missing from ``after`` counts as broken.
     """
-    from physcene.graph import build_hierarchy, ensure_hierarchy, near_direction, near_references
-
     before = ensure_hierarchy(before, graph_config)
     stripped = after.with_objects(o.moved(parent=None, relation=None) for o in after.objects)
     rebuilt = build_hierarchy(stripped, graph_config).by_id()

@@ -456,7 +456,7 @@ def test_completion_text_of_a_box_thinner_than_the_last_decimal_still_parses():
 
 @pytest.mark.parametrize("decimals", [0, 1, 2, 5])
 def test_decimals_of_reads_back_the_precision_completion_text_wrote(decimals):
-    from physcene.noisy_scenes import noisy_scenes
+    from physcene.data.noisy import noisy_scenes
 
     [scene] = noisy_scenes(1, 8, seed=3, push_cm=3.0)  # poses off the whole centimetre
     assert decimals_of(completion_text(scene, decimals=decimals)) == decimals
@@ -468,4 +468,4 @@ def test_text_and_tto_rest_on_children_the_same_distance_up():
     """TTO's output written as text and read back must not move its `on` children (tto.yaml)."""
     from physcene.tto import TTOConfig
 
-    assert TTOConfig.from_config().contact_gap_cm == ON_CONTACT_GAP_CM
+    assert TTOConfig.load().contact_gap_cm == ON_CONTACT_GAP_CM

@@ -21,7 +21,7 @@ from physcene.reward import PhysicsReward, RewardConfig
 from physcene.scene import TABLE, ZONE_TOLERANCE_CM, zone_overshoot
 from physcene.tto import TTOConfig
 
-TTO = TTOConfig.from_config(["lambda_zone=100.0", "report_relations=false"])
+TTO = TTOConfig.load(["lambda_zone=100.0", "report_relations=false"])
 
 
 @pytest.fixture(scope="module")

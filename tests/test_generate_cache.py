@@ -149,6 +149,8 @@ def test_eval_cache_reaches_the_model_generator(monkeypatch):
     import physcene.train.generate as train_generate
     from physcene.eval.harness import generate, load_benchmark
 
+    from physcene.commands.eval import model_generators
+
     items = load_benchmark("test", n=1, progress=False)
     seen = {}
 
@@ -157,7 +159,8 @@ def test_eval_cache_reaches_the_model_generator(monkeypatch):
         return ["not a layout"] * len(prompts)
 
     monkeypatch.setattr(train_generate, "generate", fake_generate)
-    generate(items, "model:runs/x", progress=False, cache="static", constrained=True)
+    cfg = load_config("eval", ["generator=model:runs/x", "cache=static", "constrained=true"])
+    generate(items, "model:runs/x", progress=False, generators=model_generators(cfg))
     assert seen["cache"] == "static" and seen["constrained"] is True
     assert load_config("eval").cache == "dynamic" and load_config("eval").constrained is False
     for name in ("tiny", "qwen3_vl_8b"):

@@ -88,10 +88,10 @@ def test_yaw_aware_footprint():
 
 def test_thresholds_from_config():
     with pytest.raises(ConfigError, match="on_gap"):
-        GraphConfig.from_config(["on_gap=0.1"])  # a typo is an error, not silently ignored
+        GraphConfig.load(["on_gap=0.1"])  # a typo is an error, not silently ignored
     with pytest.raises(ConfigError, match="on_gap_cm='wide': expected a number"):
-        GraphConfig.from_config(["on_gap_cm=wide"])
-    cfg = GraphConfig.from_config(["on_gap_cm=0.1"])
+        GraphConfig.load(["on_gap_cm=wide"])
+    cfg = GraphConfig.load(["on_gap_cm=0.1"])
     assert cfg.on_gap_cm == 0.1 and cfg.in_volume_ratio == 1.5
     base, top = box("book_0", 50, 30, 0, 20, 20, 4), box("book_1", 50, 30, 4.5, 20, 20, 2)
     assert relations(base, top)["book_1"] == ("book_0", "on")
@@ -172,7 +172,7 @@ def test_container_role_resolves_names_and_unknown_keeps_geometry():
 
 
 def test_in_requires_container_from_config():
-    assert GraphConfig.from_config().in_requires_container is True
-    assert GraphConfig.from_config(["in_requires_container=false"]).in_requires_container is False
+    assert GraphConfig.load().in_requires_container is True
+    assert GraphConfig.load(["in_requires_container=false"]).in_requires_container is False
     with pytest.raises(ConfigError, match="in_requires_container"):
-        GraphConfig.from_config(["in_requires_container=2"])
+        GraphConfig.load(["in_requires_container=2"])

@@ -115,13 +115,13 @@ def test_resting_contacts_written_as_text_are_not_penetration(fast_parse):
     """An `on` child written at relative zmin 0 rests on its support: exact contact read as float32
     noise (1e-7-1e-6 cm) and, at the paper's 0 cm threshold, took a repaired stack's +50 away — 14
     of these 20 stacked scenes before ctrc.ON_CONTACT_GAP_CM. Both parse paths decode alike."""
+    from physcene.data.noisy import noisy_scenes
     from physcene.graph import ensure_hierarchy
-    from physcene.noisy_scenes import noisy_scenes
     from physcene.tto import TTOConfig, repair
 
     engine = PhysicsEngine()
-    results = repair(noisy_scenes(24, 8, seed=5, push_cm=3.0), TTOConfig.from_config(["steps=60"]), engine)
-    assert all(r.report["collision_free"] for r in results)
+    results = repair(noisy_scenes(24, 8, seed=5, push_cm=3.0), TTOConfig.load(["steps=60"]), engine)
+    assert all(r.report.collision_free for r in results)
     stacked = [ensure_hierarchy(r.scene) for r in results]
     stacked = [s for s in stacked if any(o.relation == "on" for o in s.objects)]
     assert len(stacked) >= 16

@@ -28,7 +28,7 @@ CUP_SIZE = (6.0, 6.0, 7.0)
 
 @pytest.fixture(scope="session")
 def export_config(tmp_path_factory) -> ExportConfig:
-    """The shipped settings, with CoACD parts cached once per test session (shared with test_export)."""
+    """The shipped settings, with CoACD parts cached once per test run (shared with test_export)."""
     cache = tmp_path_factory.getbasetemp() / "physcene-coacd"
     return ExportConfig.load([f"decomposition.cache_dir={cache}"])
 

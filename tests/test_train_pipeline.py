@@ -27,8 +27,8 @@ from physcene.train.sft import run_sft
 
 from physcene.config import load_config
 from physcene.ctrc import ParseError, build_prompt, completion_text, parse
+from physcene.data.noisy import noisy_scenes
 from physcene.layout import layout_to_dict
-from physcene.noisy_scenes import noisy_scenes
 from physcene.reward import PhysicsReward, RewardConfig
 from physcene.tto import TTOConfig
 
@@ -94,7 +94,7 @@ def test_tiny_pipeline_end_to_end(tmp_path, one_thread, monkeypatch):
     assert summary["tokens_max"] <= 32 and 0.0 <= summary["truncated_rate"] <= 1.0
 
     # Anchors through the same TTO path from the noisy reference completions (SFT-like, colliding).
-    rows = anchor_records(train, [r["completion"] for r in train], tto_config=TTOConfig.from_config(TTO_FAST),
+    rows = anchor_records(train, [r["completion"] for r in train], tto_config=TTOConfig.load(TTO_FAST),
                           engine=engine)
     stats = anchor_summary(rows)
     assert stats["parse_rate"] == 1.0

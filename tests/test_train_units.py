@@ -419,7 +419,7 @@ def test_reward_function_on_the_rank_device_matches_cpu():
     from physcene.train.pada import PhysicsRewardFunction
 
     from physcene.ctrc import completion_text
-    from physcene.noisy_scenes import noisy_scenes
+    from physcene.data.noisy import noisy_scenes
 
     texts = [completion_text(s) for s in noisy_scenes(6, n_objects=6, seed=3)] + ["not a layout"]
     logged = {}

@@ -19,9 +19,11 @@ import json
 import shutil
 import sys
 import time
+from functools import partial
 from pathlib import Path
 
 from omegaconf import DictConfig, OmegaConf
+from physcene.train.generate import generate as checkpoint_generate
 from physcene.train.models import RUN_INFO, TrainingSetupError, read_run_info
 from physcene.train.sft import TimeBudget
 
@@ -77,6 +79,11 @@ def checkpoint_models(models: dict[str, Path]) -> dict[str, Path]:
     return out
 
 
+def _completions(path: Path, items, **options) -> list[str]:
+    """The checkpoint's completions of the items' prompts: the eval harness's ``model:PATH`` generator."""
+    return checkpoint_generate(path, [it.prompt for it in items], **options)
+
+
 def _gpu() -> str:
     import torch
 
@@ -124,10 +131,11 @@ def _evaluate(cfg: DictConfig, models: dict[str, Path], budget_s: float) -> list
 
     for name, path in models.items():
         with state.split_between_processes(list(range(len(items)))) as shard:
-            part = generate([items[i] for i in shard], f"model:{path}", progress=False,
-                            max_new_tokens=int(cfg.eval.max_new_tokens), device=str(state.device),
-                            cache=str(cfg.eval.get("cache", "dynamic")),
+            model = partial(_completions, path, max_new_tokens=int(cfg.eval.max_new_tokens),
+                            device=str(state.device), cache=str(cfg.eval.get("cache", "dynamic")),
                             constrained=bool(cfg.eval.get("constrained", False)))
+            part = generate([items[i] for i in shard], f"model:{path}", progress=False,
+                            generators={f"model:{path}": model})
         outputs = gather_object(part)  # rank order = shard order = input order
         if not state.is_main_process:
             continue

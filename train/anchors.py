@@ -166,7 +166,7 @@ def run_anchors(cfg: DictConfig) -> Path:
         del model
         completions = [tokenizer.decode(row, skip_special_tokens=True) for row in ids]
         lengths = [completion_length(row, tokenizer) for row in ids]
-        tto = TTOConfig.from_config([*a.tto, f"device={device}"])
+        tto = TTOConfig.load([*a.tto, f"device={device}"])
         rows = anchor_records([records[i] for i in shard], completions, tto_config=tto,
                               engine=PhysicsEngine(device=device), decimals=a.get("decimals"),
                               lengths=lengths)

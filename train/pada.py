@@ -342,7 +342,7 @@ class PADATrainer(GRPOTrainer):
 
             from physcene.tto import TTOConfig
 
-            self._denoise_tto = replace(TTOConfig.from_config(list(args.denoise_tto)),
+            self._denoise_tto = replace(TTOConfig.load(list(args.denoise_tto)),
                                         device=str(self._credit_reward.engine.device))
         if args.cache_implementation == "static" and getattr(self, "generation_config", None) is not None:
             # One static cache size for the whole run (longest prompt + completion): HF sizes it per

@@ -4,7 +4,7 @@
     physcene bench tto --device cpu --scenes 16 --json
     physcene bench tto --device cuda in_lr_scale=1.0     # any configs/tto.yaml key=value override
 
-Scenes come from :func:`physcene.noisy_scenes.noisy_scenes` (stacks, containers, overlaps). Timed:
+Scenes come from :func:`physcene.data.noisy.noisy_scenes` (stacks, containers, overlaps). Timed:
 ``optimise`` with every scene running all steps (no early stop: the worst case the target is
 about), ``optimise`` with per-scene early stop, and the host preparation (hierarchy + packing).
 The quality figures of the timed optimisation come from one full :func:`physcene.tto.repair`.
@@ -27,8 +27,8 @@ def add_arguments(parser) -> None:
 
 def run(args) -> dict:
     from physcene.commands.bench import _device_name, timed
+    from physcene.data.noisy import noisy_scenes
     from physcene.graph import ensure_hierarchy
-    from physcene.noisy_scenes import noisy_scenes
     from physcene.physics import PhysicsEngine
     from physcene.tto import TTOConfig, build_problem, optimise, repair, summarize
 
@@ -36,7 +36,7 @@ def run(args) -> dict:
     engine = PhysicsEngine(device=device)
     scenes = noisy_scenes(args.scenes, args.objects, seed=args.seed)
     # configs/tto.yaml with the command's key=value overrides, sized for one batch
-    base = replace(TTOConfig.from_config(getattr(args, "overrides", [])), steps=args.steps,
+    base = replace(TTOConfig.load(getattr(args, "overrides", [])), steps=args.steps,
                    device=str(device), batch_size=max(1, args.scenes))
     full, early = replace(base, early_stop=False), replace(base, early_stop=True)
     engine.pack(scenes)  # loads (or bakes) the assets once, outside the timings

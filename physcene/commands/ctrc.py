@@ -77,7 +77,7 @@ def run(args) -> int:
         sys.stdout.write(dumps_layout(result))
         return 0
 
-    graph_config = GraphConfig.from_config(args.overrides)  # checked even when unused
+    graph_config = GraphConfig.load(args.overrides)  # checked even when unused
     source = "<stdin>" if args.input == "-" else args.input
     if args.input == "-":
         try:

@@ -12,7 +12,17 @@ from __future__ import annotations
 
 import json
 import sys
+from dataclasses import replace
 from pathlib import Path
+
+from tqdm import tqdm
+
+from physcene.config import load_config
+from physcene.data.benchmark import DataConfig, split_stats, stats_markdown, write_records, write_split
+from physcene.data.instructions import EndpointInstructor
+from physcene.data.mesatask_ctrc import dumps_record, import_layout_tree
+from physcene.data.splits import select_test
+from physcene.eval.metrics import measure_reference
 
 NAME = "data"
 HELP = "Build benchmark data: synthetic MesaTask-style splits or MesaTask-CTRC from real layouts"
@@ -55,22 +65,13 @@ def add_arguments(parser) -> None:
 
 
 def _config(args):
-    from physcene.data.benchmark import DataConfig
-
     config = DataConfig.load(args.overrides)
     if getattr(args, "workers", None):
-        from dataclasses import replace
-
         config = replace(config, workers=int(args.workers))
-    if config.measure not in ("auto", "true", "false", "yes", "no", "1", "0"):
-        raise ValueError(f"record.measure must be auto/true/false, got {config.measure!r}")
     return config
 
 
 def _instructor(args):
-    from physcene.config import load_config
-    from physcene.data.instructions import EndpointInstructor
-
     endpoint = load_config("data", args.overrides).record.endpoint
     if endpoint.base_url and endpoint.model:
         return EndpointInstructor(
@@ -80,8 +81,6 @@ def _instructor(args):
 
 
 def _run_synth(args) -> int:
-    from physcene.data.benchmark import write_split
-
     if args.n is not None and args.n < 1:
         raise ValueError(f"--n must be at least 1, got {args.n}")
     config = _config(args)
@@ -89,7 +88,8 @@ def _run_synth(args) -> int:
     if args.measure == "auto":
         measure = args.split in ("test", "ood")
     stats = write_split(
-        args.out, args.split, args.n, args.seed, config, progress=not args.no_progress, measure=measure
+        args.out, args.split, args.n, args.seed, config, progress=not args.no_progress, measure=measure,
+        measurer=measure_reference,
     )
     out = Path(args.out)
     print(
@@ -105,12 +105,6 @@ def _run_synth(args) -> int:
 
 
 def _run_import(args) -> int:
-    from tqdm import tqdm
-
-    from physcene.data.benchmark import split_stats, stats_markdown, write_records
-    from physcene.data.mesatask_ctrc import dumps_record, import_layout_tree
-    from physcene.data.splits import select_test
-
     root = Path(args.layout_info)
     if not root.is_dir():
         raise FileNotFoundError(f"{str(root)!r} is not a directory (expected MesaTask's Layout_info)")
@@ -144,7 +138,7 @@ def _run_import(args) -> int:
         for r in chosen:
             r["split"] = split
         write_records((dumps_record(r) for r in chosen), out / f"{split}.jsonl")
-        stats = split_stats(chosen, measure=args.measure and bool(chosen))
+        stats = split_stats(chosen, measurer=measure_reference if args.measure and chosen else None)
         stats.update(split=split, seed=args.seed, file=f"{split}.jsonl", source=str(root))
         (out / f"{split}_stats.json").write_text(json.dumps(stats, indent=2, sort_keys=True) + "\n")
         (out / f"{split}_stats.md").write_text(stats_markdown(stats))

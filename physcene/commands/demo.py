@@ -10,6 +10,8 @@ from __future__ import annotations
 import time
 
 from physcene.config import load_config
+from physcene.eval.harness import run_evaluation
+from physcene.eval.report import main_table, threshold_table
 
 NAME = "demo"
 HELP = "synthesise a small benchmark, score it, repair it with TTO, write a before/after report"
@@ -22,9 +24,6 @@ def add_arguments(parser) -> None:
 
 
 def run(args) -> int:
-    from physcene.eval.harness import run_evaluation
-    from physcene.eval.report import main_table, threshold_table
-
     cfg = load_config("demo", args.overrides)
     if args.out:
         cfg.out = args.out

@@ -6,6 +6,8 @@ import shlex
 import sys
 
 from physcene.config import load_config
+from physcene.eval.harness import EvalError, run_evaluation
+from physcene.eval.report import main_table
 
 NAME = "eval"
 HELP = "evaluate layout generators on the test/OOD benchmark (SCR, ACR, judge scores, QPR)"
@@ -35,15 +37,34 @@ def _config(args):
     return cfg
 
 
-def run(args) -> int:
-    from physcene.eval.harness import run_evaluation
-    from physcene.eval.report import main_table
+def model_generators(cfg, *, max_new_tokens: int = 4096, device: str | None = None) -> dict:
+    """A :data:`physcene.eval.harness.Generate` per ``model:PATH`` in ``cfg.generator``: the
+    checkpoint's completions of the items' prompts (:func:`physcene.train.generate.generate`) with
+    the config's KV ``cache`` and ``constrained`` decoding; ``device``: None = the first GPU, else
+    CPU. The harness itself never imports the training code (eval/ sits below train/)."""
+    specs = [g.strip() for g in str(cfg.generator).split(",") if g.strip().startswith("model:")]
+    cache, constrained = str(cfg.get("cache", "dynamic")), bool(cfg.get("constrained", False))
 
+    def model(path: str):
+        def run_model(items) -> list[str]:
+            try:  # here: transformers loads only when a checkpoint is evaluated
+                from physcene.train.generate import generate
+            except ImportError as exc:
+                raise EvalError(f"generator model:{path}: physcene.train.generate is unavailable "
+                                f"({exc})") from exc
+            return generate(path, [it.prompt for it in items], max_new_tokens=max_new_tokens, device=device,
+                            cache=cache, constrained=constrained)
+        return run_model
+
+    return {spec: model(spec[len("model:"):]) for spec in specs}
+
+
+def run(args) -> int:
     cfg = _config(args)
     argv = sys.argv[1:] or ["eval"]
     command = "physcene " + " ".join(shlex.quote(a) for a in argv)
     tables, path = run_evaluation(cfg, command=command, title=f"physcene eval — {cfg.split} split",
-                                  progress=not args.quiet)
+                                  progress=not args.quiet, generators=model_generators(cfg))
     print(main_table(tables))
     print(f"\nreport: {path}\nresults: {path.parent / 'results.json'}")
     return 0

@@ -19,6 +19,7 @@ from pathlib import Path
 from physcene.ctrc import MAX_DECIMALS, completion_text, decimals_of
 from physcene.layout import layout_to_dict, load_layout
 from physcene.scene import SceneError
+from physcene.tto import TTOConfig, repair, summarize
 
 NAME = "repair"
 HELP = "Repair layouts by hierarchy-constrained test-time optimisation (layout.json, a tree, or JSONL)"
@@ -110,8 +111,7 @@ def _items_jsonl(src: Path):
 
 
 def run(args) -> int:
-    from physcene.physics import PhysicsEngine
-    from physcene.tto import TTOConfig, repair
+    from physcene.physics import PhysicsEngine  # here: Warp loads only when the command runs
 
     src, out = Path(args.input), Path(args.output)
     if args.decimals is not None and not 0 <= args.decimals <= MAX_DECIMALS:
@@ -119,7 +119,7 @@ def run(args) -> int:
     if not src.exists():
         raise FileNotFoundError(f"repair input {str(src)!r} does not exist")
     overrides = list(args.overrides) + ([f"device={args.device}"] if args.device else [])
-    config = TTOConfig.from_config(overrides)
+    config = TTOConfig.load(overrides)
     if src.is_dir():
         mode, items = "tree", _items_tree(src)
     elif src.suffix == ".jsonl":
@@ -134,20 +134,20 @@ def run(args) -> int:
         for (rel, raw, _), result in zip(items, results):
             path = out / rel
             _write_json(path, _merged(raw, result.scene))
-            reports.append({"layout": rel, **result.report})
+            reports.append({"layout": rel, **result.report.as_dict()})
         report_path = out / "repair_report.json"
     elif mode == "jsonl":
         lines = []
         for k, ((record, raw, _), result) in enumerate(zip(items, results)):
             columns = _repaired_columns(record, raw, result.scene, args.decimals)
             lines.append(json.dumps({**record, **columns}, ensure_ascii=False))
-            reports.append({"record": k, "id": record.get("id"), **result.report})
+            reports.append({"record": k, "id": record.get("id"), **result.report.as_dict()})
         _write_text(out, "\n".join(lines) + ("\n" if lines else ""))
         report_path = _report_path(out)
     else:
         (_, raw, _), result = items[0], results[0]
         _write_json(out, _merged(raw, result.scene))
-        reports.append({"layout": str(src), **result.report})
+        reports.append({"layout": str(src), **result.report.as_dict()})
         report_path = _report_path(out)
     _write_text(report_path, json.dumps(reports, indent=1, ensure_ascii=False) + "\n")
     print(_summary(results, config), f"report: {report_path}")
@@ -155,8 +155,6 @@ def run(args) -> int:
 
 
 def _summary(results, config) -> str:
-    from physcene.tto import summarize
-
     s = summarize(results)
     return (f"repaired {s['scenes']} scene(s): {s['collision_free']:.1%} without a pair deeper than "
             f"{config.collision_depth_cm} cm (every pair), in/on kept {s['in_on_kept']:.1%}, "

@@ -22,7 +22,9 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from physcene.commands.check import collect
+from physcene.export import ExportConfig
 from physcene.scene import Scene
+from physcene.settle import SettleConfig, object_stability_rate, settle_many, stability_rate
 
 NAME = "settle"
 HELP = "Simulate layouts in MuJoCo for 2 s and report which objects stay put (stability rate)"
@@ -56,9 +58,6 @@ class _NoRecord:
 
 
 def run(args) -> int:
-    from physcene.export import ExportConfig
-    from physcene.settle import SettleConfig, object_stability_rate, settle_many, stability_rate
-
     items = read_inputs(args.paths)
     export_config = ExportConfig.load(args.overrides)
     config = SettleConfig.load(args.overrides)

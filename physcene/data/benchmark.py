@@ -12,13 +12,14 @@ from __future__ import annotations
 import json
 import multiprocessing as mp
 import time
-from collections.abc import Iterable, Iterator
-from dataclasses import dataclass, field
+from collections.abc import Callable, Iterable, Iterator
+from dataclasses import dataclass, field, fields
 from pathlib import Path
 
 import numpy as np
 from omegaconf import OmegaConf
 
+from physcene.config import ConfigError, load_config
 from physcene.ctrc import DECIMALS, MAX_DECIMALS
 from physcene.data.captions import describe
 from physcene.data.mesatask_ctrc import ctrc_record, dumps_record
@@ -33,7 +34,6 @@ __all__ = [
     "DataConfig",
     "build_record",
     "build_scenes",
-    "measure_reference",
     "split_stats",
     "stats_markdown",
     "synthesize",
@@ -42,24 +42,38 @@ __all__ = [
 ]
 
 
+MEASURE_VALUES = ("auto", "true", "false", "yes", "no", "1", "0")
+"""Accepted ``record.measure`` values (auto: test and ood are measured)."""
+
+
 @dataclass(frozen=True, kw_only=True)
 class DataConfig:
     """All knobs of the benchmark (``configs/data.yaml``)."""
 
     synth: SynthConfig = field(default_factory=SynthConfig)
+    """The clean generator's knobs (``synth:`` section)."""
     noise: NoiseConfig = field(default_factory=NoiseConfig)
+    """The annotation-noise knobs (``noise:`` section)."""
     prompt_objects: bool = True
+    """``record.prompt_objects``: the prompt lists the requested objects."""
     decimals: int = DECIMALS
+    """``record.decimals``: digits after the point in completion text, 0 to ``MAX_DECIMALS``."""
     workers: int = 2
+    """``record.workers``: processes that synthesise a split (more than 1 only above 32 scenes)."""
     measure: str = "auto"
+    """``record.measure``: score the reference layouts with the engine (auto: test and ood)."""
+
+    def __post_init__(self) -> None:
+        if self.measure not in MEASURE_VALUES:
+            raise ValueError(f"record.measure must be auto/true/false, got {self.measure!r}")
+        if isinstance(self.decimals, bool) or not isinstance(self.decimals, int) \
+                or not 0 <= self.decimals <= MAX_DECIMALS:
+            raise ValueError(f"record.decimals must be an integer from 0 to {MAX_DECIMALS}, "
+                             f"got {self.decimals!r}")
 
     @classmethod
     def load(cls, overrides=()) -> DataConfig:
         """``configs/data.yaml`` with ``key=value`` overrides; unknown keys are a ConfigError."""
-        from dataclasses import fields
-
-        from physcene.config import ConfigError, load_config
-
         cfg = OmegaConf.to_container(load_config("data", list(overrides)), resolve=True)
 
         def build(kind, section: str):
@@ -77,23 +91,17 @@ class DataConfig:
         if unknown:
             raise ConfigError(f"unknown data config sections {unknown}; known: synth, noise, record")
         rec = cfg.get("record") or {}
-        return cls(
-            synth=build(SynthConfig, "synth"),
-            noise=build(NoiseConfig, "noise"),
-            prompt_objects=bool(rec.get("prompt_objects", True)),
-            decimals=_decimals(rec.get("decimals", DECIMALS)),
-            workers=int(rec.get("workers", 2)),
-            measure=str(rec.get("measure", "auto")).lower(),
-        )
-
-
-def _decimals(value) -> int:
-    """``record.decimals``: digits after the point in completion text, 0 to ``MAX_DECIMALS``."""
-    from physcene.config import ConfigError
-
-    if isinstance(value, bool) or not isinstance(value, int) or not 0 <= value <= MAX_DECIMALS:
-        raise ConfigError(f"record.decimals must be an integer from 0 to {MAX_DECIMALS}, got {value!r}")
-    return value
+        try:
+            return cls(
+                synth=build(SynthConfig, "synth"),
+                noise=build(NoiseConfig, "noise"),
+                prompt_objects=bool(rec.get("prompt_objects", True)),
+                decimals=rec.get("decimals", DECIMALS),
+                workers=int(rec.get("workers", 2)),
+                measure=str(rec.get("measure", "auto")).lower(),
+            )
+        except ValueError as exc:  # the dataclass's own checks (__post_init__)
+            raise ConfigError(str(exc)) from None
 
 
 _FIT: ContainerFit | None = None
@@ -163,11 +171,14 @@ def write_split(
     *,
     progress: bool = True,
     measure: bool | None = None,
+    measurer: Callable[[list[Scene]], dict] | None = None,
 ) -> dict:
     """Write ``<out_dir>/<split>.jsonl`` and its stats; returns the stats dict.
 
     ``measure`` (None = ``config.measure``; "auto" measures test and ood) scores every scene with
-    the physics engine in one batched call for the reference SCR/ACR.
+    ``measurer`` (:func:`physcene.eval.metrics.measure_reference`: the physics engine in one batched
+    call) for the reference SCR/ACR. The measurer is passed in because the benchmark metrics live
+    in the evaluation stage, which reads the data stage (not the other way round).
     """
     from tqdm import tqdm
 
@@ -197,7 +208,10 @@ def write_split(
         measure = (
             split in ("test", "ood") if config.measure == "auto" else config.measure in ("true", "1", "yes")
         )
-    stats = split_stats(records, measure=measure)
+    if measure and measurer is None:
+        raise ValueError(f"write_split: measuring the {split} split's reference needs measurer= "
+                         "(e.g. physcene.eval.metrics.measure_reference)")
+    stats = split_stats(records, measurer=measurer if measure else None)
     stats.update(split=split, seed=seed, file=path.name)
     (out_dir / f"{split}_stats.json").write_text(json.dumps(stats, indent=2, sort_keys=True) + "\n")
     (out_dir / f"{split}_stats.md").write_text(stats_markdown(stats))
@@ -209,24 +223,9 @@ def _scene_of(record: dict) -> Scene:
     return load_layout(record["layout"], source=record["id"])
 
 
-def measure_reference(scenes: list[Scene], engine=None) -> dict:
-    """SCR/ACR at 0 / 0.5 / 1.0 cm and floating rates of ``scenes`` with the engine (one batch)."""
-    from physcene.eval.metrics import collision_rates, floating_rate, physics_from_score
-    from physcene.physics import PhysicsEngine
-
-    engine = engine or PhysicsEngine()
-    score = engine.score(scenes)
-    phys = physics_from_score(scenes, score)
-    rates = collision_rates(phys)
-    return {
-        "collision": {f"{t:g}cm": v for t, v in rates.items()},
-        "floating": floating_rate(phys),
-        "per_scene_pairs": [len(p) for p in score.pairs],
-    }
-
-
-def split_stats(records: list[dict], *, measure: bool = False, engine=None) -> dict:
-    """Type × level counts, noise totals and (``measure``) the engine's reference SCR/ACR."""
+def split_stats(records: list[dict], *, measurer: Callable[[list[Scene]], dict] | None = None) -> dict:
+    """Type × level counts, noise totals and (with a ``measurer``, e.g.
+    :func:`physcene.eval.metrics.measure_reference`) the engine's reference SCR/ACR."""
     found: dict[str, dict[str, int]] = {}
     for r in records:
         row = found.setdefault(r["scene_type"], {str(lv): 0 for lv in range(1, 6)})
@@ -251,8 +250,8 @@ def split_stats(records: list[dict], *, measure: bool = False, engine=None) -> d
     }
     if agreement:
         stats["hierarchy_agreement"] = round(sum(agreement) / len(agreement), 4)
-    if measure and records:
-        ref = measure_reference([_scene_of(r) for r in records], engine)
+    if measurer is not None and records:
+        ref = measurer([_scene_of(r) for r in records])
         per_scene = ref.pop("per_scene_pairs")
         stats["reference"] = ref
         by_level: dict[str, list[int]] = {}

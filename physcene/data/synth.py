@@ -19,40 +19,29 @@ mean no pair interpenetrates; tests confirm it with the engine.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
-from physcene.assets import CATEGORY_PRIORS
 from physcene.data.scene_types import STANDING, GroupSpec, SceneTypeSpec
 from physcene.data.seating import ContainerFit
+from physcene.data.units import (
+    Node,
+    boxes_touch,
+    choose_yaw,
+    counts_as_in,
+    footprint_halfextents,
+    rotated,
+    rotated_rel,
+    sample_size,
+    uniform_offset,
+    weighted_choice,
+)
 from physcene.scene import TABLE, Scene, SceneObject, Zone
 
 __all__ = ["ContainerFit", "SynthConfig", "SynthError", "synthesize_layout"]
 
 
-# Categories that face the viewer: yaw stays near 0 (or turns to face the table centre).
-_FACING = frozenset(
-    {
-        "monitor",
-        "television",
-        "mirror",
-        "picture_frame",
-        "clock",
-        "laptop",
-        "keyboard",
-        "cash_register",
-        "speaker",
-        "receipt_printer",
-        "lamp",
-        "toaster",
-        "coffee_maker",
-        "game_console",
-        "router",
-        "tissue_box",
-        "monitor_stand",
-    }
-)
 # Containers in which long things stand upright (pens in a holder, toothbrushes in a cup).
 _UPRIGHT_CONTAINERS = frozenset({"pen_holder", "toothbrush_cup", "cup", "mug", "glass", "jar", "vase"})
 # Objects tall enough to go to the back in the "back_row" style.
@@ -87,48 +76,6 @@ class SynthConfig:
     """Whole-scene restarts (new zone) before giving up."""
 
 
-@dataclass(eq=False)
-class _Node:
-    category: str
-    size: np.ndarray  # (3,) w, d, h cm
-    center: np.ndarray = field(default_factory=lambda: np.zeros(3))  # (3,) cm
-    yaw: float = 0.0  # rad
-    parent: int | None = None  # index into the scene's node list, None = table
-    relation: str = "near"
-    group: str | None = None  # name of the hierarchy it belongs to
-
-
-def _sample_size(category: str, rng: np.random.Generator, config: SynthConfig) -> np.ndarray:
-    prior = CATEGORY_PRIORS[category]
-    z = np.clip(rng.standard_normal(3), -config.size_clip_sigma, config.size_clip_sigma)
-    size = np.asarray(prior.mean_cm) + z * np.asarray(prior.std_cm)
-    return np.maximum(size, 0.3)
-
-
-def _footprint_halfextents(size: np.ndarray, yaw: float) -> tuple[float, float]:
-    """Half extents (cm) of the axis-aligned box around a yawed w×d rectangle."""
-    c, s = abs(math.cos(yaw)), abs(math.sin(yaw))
-    return 0.5 * (c * size[0] + s * size[1]), 0.5 * (s * size[0] + c * size[1])
-
-
-def _choose_yaw(category: str, rng: np.random.Generator) -> float:
-    if category in _FACING:
-        return float(np.deg2rad(rng.normal(0.0, 4.0)))
-    u = rng.random()
-    if u < 0.55:
-        return 0.0
-    if u < 0.75:
-        return float(rng.choice([0.5 * math.pi, -0.5 * math.pi]))
-    if u < 0.9:
-        return float(np.deg2rad(rng.normal(0.0, 15.0)))
-    return float(rng.uniform(-math.pi, math.pi))
-
-
-def _weighted_choice(rng: np.random.Generator, items: list, weights: list[float]):
-    w = np.asarray(weights, dtype=np.float64)
-    return items[int(rng.choice(len(items), p=w / w.sum()))]
-
-
 class _Builder:
     """One scene under construction (see the module docstring)."""
 
@@ -149,7 +96,7 @@ class _Builder:
             config,
             fit,
         )
-        self.nodes: list[_Node] = []
+        self.nodes: list[Node] = []
         self.used: dict[str, int] = {}
         self.boxes: list[tuple[float, float, float, float]] = []  # placed footprints xmin,xmax,ymin,ymax
 
@@ -176,7 +123,7 @@ class _Builder:
                     round(min(cy + 0.5 * sd, d), 1),
                 )
             )
-        self.style = _weighted_choice(rng, list(spec.styles), list(spec.styles.values()))
+        self.style = weighted_choice(rng, list(spec.styles), list(spec.styles.values()))
         n_clusters = int(rng.integers(1, 4))
         self.cluster_centres = [
             (float(rng.uniform(0.15, 0.85)) * w, float(rng.uniform(0.2, 0.8)) * d) for _ in range(n_clusters)
@@ -188,7 +135,7 @@ class _Builder:
 
     def pick_single(self) -> str:
         cats = list(self.spec.vocabulary)
-        return _weighted_choice(
+        return weighted_choice(
             self.rng, cats, [self._category_weight(c, self.spec.vocabulary[c]) for c in cats]
         )
 
@@ -201,28 +148,28 @@ class _Builder:
         ]
         if not groups or remaining < 2:
             return None
-        return _weighted_choice(
+        return weighted_choice(
             self.rng, groups, [g.weight * (0.6 ** self.used.get(g.name, 0)) for g in groups]
         )
 
-    def instantiate_group(self, group: GroupSpec, remaining: int) -> list[_Node]:
+    def instantiate_group(self, group: GroupSpec, remaining: int) -> list[Node]:
         rng = self.rng
         base_cat = group.base[int(rng.integers(len(group.base)))]
-        base = _Node(base_cat, _sample_size(base_cat, rng, self.config), group=group.name)
+        base = Node(base_cat, sample_size(base_cat, rng, self.config.size_clip_sigma), group=group.name)
         nodes = [base]
         budget = remaining - 1
         for rel, cats, lo, hi in group.children:
             count = min(int(rng.integers(lo, hi + 1)), budget)
             for _ in range(count):
                 cat = cats[int(rng.integers(len(cats)))]
-                size = _sample_size(cat, rng, self.config)
+                size = sample_size(cat, rng, self.config.size_clip_sigma)
                 if rel == "in" and cat in STANDING and base_cat in _UPRIGHT_CONTAINERS:
                     size = (
                         np.array([size[1], size[2], size[0]])
                         if size[1] >= size[2]
                         else np.array([size[2], size[1], size[0]])
                     )
-                nodes.append(_Node(cat, size, relation=rel, group=group.name))
+                nodes.append(Node(cat, size, relation=rel, group=group.name))
                 budget -= 1
         if len(nodes) == 1:
             return []
@@ -252,7 +199,7 @@ class _Builder:
                 return None
         return out
 
-    def fit_children(self, nodes: list[_Node], group: GroupSpec) -> list[_Node]:
+    def fit_children(self, nodes: list[Node], group: GroupSpec) -> list[Node]:
         """Sizes and local layout of a unit's children; drops children that cannot fit.
 
         Poses are set relative to the base at the origin with yaw 0; :meth:`pose_unit` moves them.
@@ -271,7 +218,7 @@ class _Builder:
                 n.yaw = self._relative_yaw()
             offsets = None
             while ins and offsets is None:
-                offsets = self._pack_local(0.5 * inner_w, 0.5 * inner_d, [_rotated(n) for n in ins], 0.4)
+                offsets = self._pack_local(0.5 * inner_w, 0.5 * inner_d, [rotated(n) for n in ins], 0.4)
                 if offsets is None:
                     ins = ins[:-1]
             for n, (x, y) in zip(ins, offsets or []):
@@ -285,8 +232,8 @@ class _Builder:
                 n.yaw = self._relative_yaw()
                 for axis in (0, 1):
                     n.size[axis] = min(n.size[axis], 0.93 * parent.size[axis])
-                slack = 0.5 * parent.size[:2] - 0.5 * _rotated(n)[:2]
-                off = np.array([_uniform_offset(self.rng, slack[0]), _uniform_offset(self.rng, slack[1])])
+                slack = 0.5 * parent.size[:2] - 0.5 * rotated(n)[:2]
+                off = np.array([uniform_offset(self.rng, slack[0]), uniform_offset(self.rng, slack[1])])
                 n.center = np.array([parent.center[0] + off[0], parent.center[1] + off[1], 0.0])
                 n.parent = kept.index(parent)
                 kept.append(n)
@@ -300,7 +247,7 @@ class _Builder:
             offsets = None
             while ons and offsets is None:
                 offsets = self._pack_local(
-                    0.5 * base.size[0], 0.5 * base.size[1], [_rotated(n) for n in ons], 0.5
+                    0.5 * base.size[0], 0.5 * base.size[1], [rotated(n) for n in ons], 0.5
                 )
                 if offsets is None:
                     ons = ons[:-1]
@@ -348,17 +295,17 @@ class _Builder:
                 return False
         return True
 
-    def place_unit(self, nodes: list[_Node], anchor: bool) -> bool:
+    def place_unit(self, nodes: list[Node], anchor: bool) -> bool:
         base = nodes[0]
         if self.style == "place_settings" and base.group == "place setting":
             anchor = True
         yaw = (
-            _choose_yaw(base.category, self.rng)
+            choose_yaw(base.category, self.rng)
             if len(nodes) == 1
             else float(self.rng.choice([0.0, 0.0, 0.0, 0.5 * math.pi]))
             + float(np.deg2rad(self.rng.normal(0, 3)))
         )
-        hx, hy = _footprint_halfextents(base.size, yaw)
+        hx, hy = footprint_halfextents(base.size, yaw)
         height = max(base.size[2], *(n.size[2] for n in nodes))
         for _ in range(self.config.placement_tries):
             x, y = self._candidate(hx, hy, height, anchor)
@@ -371,7 +318,7 @@ class _Builder:
                 return True
         return False
 
-    def pose_unit(self, nodes: list[_Node], xy: np.ndarray, yaw: float) -> None:
+    def pose_unit(self, nodes: list[Node], xy: np.ndarray, yaw: float) -> None:
         """Turn a unit's local layout into world poses; seats ``in`` contents on the SDFs."""
         offset = len(self.nodes)
         seated: list[tuple] = []  # (local box, zmax) of contents already in the base
@@ -401,7 +348,7 @@ class _Builder:
         return np.array([xy[0] + c * local[0] - s * local[1], xy[1] + s * local[0] + c * local[1]])
 
     def _seat_content(
-        self, parent: _Node, n: _Node, local: np.ndarray, xy: np.ndarray, yaw: float, seated: list[tuple]
+        self, parent: Node, n: Node, local: np.ndarray, xy: np.ndarray, yaw: float, seated: list[tuple]
     ) -> None:
         """Lower ``n`` into ``parent``; if it would not count as ``in`` (it rests too high, e.g.
         on a bowl's curved wall or a basket's handle), try other spots in the cavity and
@@ -413,18 +360,18 @@ class _Builder:
         for attempt in range(8):
             if attempt and attempt % 2 == 0:
                 n.size *= 0.85
-            half = 0.5 * _rotated_rel(n, n.yaw - yaw)
+            half = 0.5 * rotated_rel(n, n.yaw - yaw)
             if attempt:
                 lo, hi = -inner + half, inner - half
                 if np.any(lo > hi):
                     continue
                 local = np.array([self.rng.uniform(lo[0], hi[0]), self.rng.uniform(lo[1], hi[1])])
             box = np.array([local[0] - half[0], local[0] + half[0], local[1] - half[1], local[1] + half[1]])
-            if any(_boxes_touch(box, b, 0.4) for b, _ in seated):
+            if any(boxes_touch(box, b, 0.4) for b, _ in seated):
                 continue
             n.center = np.array([*self._world_xy(xy, yaw, local), parent.center[2]])
             z = self.fit.seat(parent, n, self.config)
-            if z is not None and _counts_as_in(parent, n, z):
+            if z is not None and counts_as_in(parent, n, z):
                 n.center[2] = z
                 seated.append((box, z + 0.5 * n.size[2]))
                 return
@@ -440,7 +387,7 @@ class _Builder:
         while len(self.nodes) < self.n:
             remaining = self.n - len(self.nodes)
             anchor = bool(anchors)
-            nodes: list[_Node] = []
+            nodes: list[Node] = []
             group = None
             if anchors:
                 name = anchors.pop(0)
@@ -448,14 +395,14 @@ class _Builder:
                     group = self.spec.group(name[6:])
                     nodes = self.instantiate_group(group, remaining) if remaining >= 2 else []
                 elif remaining >= 1:
-                    nodes = [_Node(name, _sample_size(name, self.rng, self.config))]
+                    nodes = [Node(name, sample_size(name, self.rng, self.config.size_clip_sigma))]
             elif self.rng.random() < self.spec.group_rate:
                 group = self.pick_group(remaining)
                 if group is not None:
                     nodes = self.instantiate_group(group, remaining)
             if not nodes:
                 cat = self.pick_single()
-                nodes = [_Node(cat, _sample_size(cat, self.rng, self.config))]
+                nodes = [Node(cat, sample_size(cat, self.rng, self.config.size_clip_sigma))]
             if group is not None and len(nodes) > 1:
                 nodes = self.fit_children(nodes, group)
                 self.used[group.name] = self.used.get(group.name, 0) + 1
@@ -501,38 +448,6 @@ class _Builder:
                 "group_phrases": phrases,
             },
         )
-
-
-def _rotated_rel(n: _Node, yaw: float) -> np.ndarray:
-    hx, hy = _footprint_halfextents(n.size, yaw)
-    return np.array([2.0 * hx, 2.0 * hy])
-
-
-def _boxes_touch(a: np.ndarray, b: np.ndarray, gap: float) -> bool:
-    """Whether boxes [x0, x1, y0, y1] come closer than ``gap`` (cm)."""
-    return bool(a[0] < b[1] + gap and b[0] < a[1] + gap and a[2] < b[3] + gap and b[2] < a[3] + gap)
-
-
-def _counts_as_in(container: _Node, content: _Node, z: float) -> bool:
-    """The graph's ``in`` test (docs/design.md) with a margin: volume ratio ≥ 1.5 and at least 60 % of
-    the content's height inside the container's z-range (footprints are inside by construction)."""
-    if np.prod(container.size) < 1.5 * np.prod(content.size):
-        return False
-    inside = min(container.center[2] + 0.5 * container.size[2], z + 0.5 * content.size[2]) - max(
-        container.center[2] - 0.5 * container.size[2], z - 0.5 * content.size[2]
-    )
-    return inside >= 0.6 * content.size[2]
-
-
-def _rotated(n: _Node) -> np.ndarray:
-    """(w, d) of the axis-aligned box around the node's footprint at its (relative) yaw, cm."""
-    hx, hy = _footprint_halfextents(n.size, n.yaw)
-    return np.array([2.0 * hx, 2.0 * hy])
-
-
-def _uniform_offset(rng: np.random.Generator, half_range: float) -> float:
-    """Uniform offset in [-half_range, half_range] (0 when there is no slack)."""
-    return float(rng.uniform(-half_range, half_range)) if half_range > 0 else 0.0
 
 
 def synthesize_layout(

@@ -116,7 +116,7 @@ def main() -> None:
                            object_terms=("penetration", "floating", "out_of_zone"))
     reward.score_texts(texts)
     targets = denoise_targets(texts, reward.last_object_depths, engine=reward.engine,
-                              margin_cm=args.margin_cm, config=TTOConfig.from_config(["lambda_zone=100.0"]))
+                              margin_cm=args.margin_cm, config=TTOConfig.load(["lambda_zone=100.0"]))
     tokenizer = load_tokenizer(args.model)
     rows = supervised_rows(tokenizer, records, targets)
     train, test = rows[:args.train], rows[args.train:args.train + args.test]

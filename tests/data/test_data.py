@@ -168,6 +168,8 @@ def test_record_decimals_set_the_completion_precision():
         assert np.abs(np.asarray(oa.center) - np.asarray(ob.center)).max() < 0.02
     with pytest.raises(ConfigError, match="record.decimals"):
         DataConfig.load(["record.decimals=-1"])
+    with pytest.raises(ValueError, match="record.decimals"):  # checked in the dataclass itself
+        DataConfig(decimals=99)
 
 
 def test_same_seed_gives_identical_files_and_datasets_loads_them(tmp_path):

@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 
 from physcene.cli import main
+from physcene.data.noisy import noisy_scenes
 from physcene.layout import layout_to_dict, load_layout, read_layout, write_layout
-from physcene.noisy_scenes import noisy_scenes
 
 
 @pytest.fixture(scope="module")

@@ -23,7 +23,7 @@ from physcene.eval.metrics import (
 from physcene.layout import read_layout
 from physcene.scene import TABLE, SceneObject
 
-EXAMPLE = Path(__file__).resolve().parents[1] / "examples" / "office_table.layout.json"
+EXAMPLE = Path(__file__).resolve().parents[2] / "examples" / "office_table.layout.json"
 
 
 @pytest.fixture(scope="module")

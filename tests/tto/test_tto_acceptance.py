@@ -1,6 +1,6 @@
 """Issue 5 acceptance with the real engine and asset library, on two inputs:
 
-- ``noisy``: :func:`physcene.noisy_scenes.noisy_scenes` (stacks, containers, groups pushed into
+- ``noisy``: :func:`physcene.data.noisy.noisy_scenes` (stacks, containers, groups pushed into
   their neighbours), 16 objects per scene;
 - ``synthetic``: the synthetic benchmark's ``test`` split (:func:`physcene.data.synthesize`:
   MesaTask-style layouts with interpenetration / sunk / hover noise), 1-20+ objects.
@@ -9,7 +9,7 @@ Every pair counts ("no pair deeper than 1 mm"), a container and its contents inc
 ``collision_free_excluding_frozen`` (``in_children=frozen``) and ``scenes_with_in_body_residual``
 are printed beside it. The 200-scene runs are ``slow`` (about a minute each on 2 CPU cores) and
 run only when asked:
-    PHYSCENE_SLOW=1 python -m pytest tests/test_tto_acceptance.py -q -s -k 200
+    PHYSCENE_SLOW=1 python -m pytest tests/tto/test_tto_acceptance.py -q -s -k 200
 they print the figures (docs/tto.md, "Measured"); the normal suite runs the same checks on a few
 scenes.
 """
@@ -20,7 +20,7 @@ import json
 
 import pytest
 
-from physcene.noisy_scenes import noisy_scenes
+from physcene.data.noisy import noisy_scenes
 from physcene.physics import PhysicsEngine
 from physcene.tto import TTOConfig, repair, summarize
 
@@ -37,7 +37,7 @@ def _check(scenes, min_collided: float, in_children: str = "slide", min_free: fl
     pair (every pair counted) deeper than 1 mm (the issue: 0.95)."""
     results = repair(scenes, TTOConfig(in_children=in_children), PhysicsEngine())
     figures = summarize(results)
-    collided = sum(r.report["max_depth_before_cm"] > 0.1 for r in results)
+    collided = sum(r.report.max_depth_before_cm > 0.1 for r in results)
     figures["input_scenes_deeper_than_1mm"] = collided
     figures["in_children"] = in_children
     print(json.dumps(figures, indent=1))

@@ -12,8 +12,8 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from physcene.config import ConfigError
+from physcene.data.noisy import noisy_scenes
 from physcene.graph import footprint_overlap
-from physcene.noisy_scenes import noisy_scenes
 from physcene.physics import PhysicsEngine
 from physcene.relations import relation_preservation
 from physcene.scene import TABLE, Scene, SceneObject, Zone
@@ -62,17 +62,22 @@ def _relative(child: SceneObject, parent: SceneObject) -> np.ndarray:
 
 
 def test_config_defaults_are_the_papers_and_overrides_apply():
-    cfg = TTOConfig.from_config()
+    cfg = TTOConfig.load()
     assert (cfg.steps, cfg.lr, cfg.lambda_sdf, cfg.lambda_rel, cfg.lambda_reg) == (100, 0.01, 10.0, 5.0, 1.0)
-    assert TTOConfig.from_config(["steps=7", "lambda_rel=2.5"]).steps == 7
+    assert TTOConfig.load(["steps=7", "lambda_rel=2.5"]).steps == 7
     with pytest.raises(ConfigError, match=r"tto.yaml: unknown keys \[.lamda_sdf.\]"):
-        TTOConfig.from_config(["lamda_sdf=3"])
+        TTOConfig.load(["lamda_sdf=3"])
     with pytest.raises(ConfigError, match="lr > 0"):
-        TTOConfig.from_config(["lr=0"])
+        TTOConfig.load(["lr=0"])
     assert cfg.in_children == "slide"
-    assert TTOConfig.from_config(["in_children=frozen"]).in_children == "frozen"
+    assert TTOConfig.load(["in_children=frozen"]).in_children == "frozen"
     with pytest.raises(ConfigError, match="in_children"):
-        TTOConfig.from_config(["in_children=loose"])
+        TTOConfig.load(["in_children=loose"])
+    # the checks live in the dataclass: a directly built config is checked too, naming the field
+    for bad, field in ((dict(in_children="bogus"), "in_children"), (dict(in_lr_scale=2.0), "in_lr_scale"),
+                       (dict(batch_size=0), "batch_size")):
+        with pytest.raises(ValueError, match=field):
+            TTOConfig(**bad)
 
 
 def _holder_scene() -> Scene:
@@ -96,16 +101,16 @@ def test_in_child_slides_out_of_its_containers_wall(engine):
     [slide] = repair([scene], TTOConfig(), engine)
     [frozen] = repair([scene], TTOConfig(in_children="frozen"), engine)
     pen, holder = slide.scene.get("pen_1"), slide.scene.get("pen_holder_0")
-    assert slide.report["collision_free"], slide.report["residual_collisions"]
+    assert slide.report.collision_free, slide.report.residual_collisions
     assert footprint_overlap(pen, holder) >= 0.9
     rebuilt = build_hierarchy(slide.scene.with_objects(o.moved(parent=None, relation=None)
                                                        for o in slide.scene.objects))
     assert (rebuilt.get("pen_1").parent, rebuilt.get("pen_1").relation) == ("pen_holder_0", "in")
     assert 0.0 <= pen.center[2] - holder.center[2] - 1.5 <= TTOConfig().in_lift_cm + 1e-4
     assert slide.energy_after <= slide.energy_before
-    pairs = frozen.report["residual_collisions"]
-    assert pairs and all(p["frozen"] and p["in_body"] for p in pairs)
-    assert any("frozen by the hierarchy" in u for u in frozen.report["unsatisfied"])
+    pairs = frozen.report.residual_collisions
+    assert pairs and all(p.frozen and p.in_body for p in pairs)
+    assert any("frozen by the hierarchy" in u for u in frozen.report.unsatisfied)
 
 
 def test_contents_of_a_pushed_container_do_not_step_into_its_wall(engine):
@@ -123,10 +128,10 @@ def test_contents_of_a_pushed_container_do_not_step_into_its_wall(engine):
     ))
     assert engine.score([scene]).max_depth[0] > 1.0
     [result] = repair([scene], TTOConfig(), engine)
-    assert result.report["collision_free"], result.report["unsatisfied"]
-    assert result.report["relations"]["in_on_kept"] == 1.0
+    assert result.report.collision_free, result.report.unsatisfied
+    assert result.report.relations.in_on_kept == 1.0
     with pytest.raises(ConfigError, match="in_lr_scale"):
-        TTOConfig.from_config(["in_lr_scale=0"])
+        TTOConfig.load(["in_lr_scale=0"])
 
 
 def test_forward_kinematics_reproduces_input_and_moves_subtrees_rigidly(engine):
@@ -159,14 +164,14 @@ def test_stack_overlapping_a_neighbour_moves_as_a_whole(engine, in_children):
     rel_before = _relative(scene.get("apple_3"), scene.get("bowl_2"))
     if in_children == "frozen":  # in: the whole relative pose is frozen (1e-4 cm)
         np.testing.assert_allclose(rel_after, rel_before, atol=1e-4)
-        assert all(p["frozen"] for p in result.report["residual_collisions"])
+        assert all(p.frozen for p in result.report.residual_collisions)
     else:  # in: it may slide and rise out of the floor it was sunk into, never sink or leave
         assert 0.0 <= rel_after[2] - rel_before[2] <= TTOConfig().in_lift_cm + 1e-4
         assert footprint_overlap(after.get("apple_3"), after.get("bowl_2")) >= 0.9
-        assert result.report["collision_free"]  # every pair, the apple and its bowl included
+        assert result.report.collision_free  # every pair, the apple and its bowl included
     assert result.energy_after < 1e-3 < result.energy_before
-    kept = result.report["relations"]
-    assert kept["in_on_kept"] == 1.0 and kept["near_kept"] == 1.0
+    kept = result.report.relations
+    assert kept.in_on_kept == 1.0 and kept.near_kept == 1.0
     assert 0 < result.max_displacement_cm < 10
 
 
@@ -194,14 +199,14 @@ def test_batched_equals_one_by_one(engine):
 def test_noisy_scenes_are_repaired(engine):
     scenes = noisy_scenes(20, 10, seed=11)
     results = repair(scenes, TTOConfig(), engine)
-    free = [not any(not p["frozen"] for p in r.report["residual_collisions"]) for r in results]
-    before = [r.report["max_depth_before_cm"] > 0.1 for r in results]
+    free = [not any(not p.frozen for p in r.report.residual_collisions) for r in results]
+    before = [r.report.max_depth_before_cm > 0.1 for r in results]
     assert sum(before) >= 10  # the noise really collides
     assert np.mean(free) >= 0.95
-    edges = sum(r.report["relations"]["in_on_edges"] for r in results)
-    assert edges > 20 and all(r.report["relations"]["in_on_kept"] == 1.0 for r in results)
-    near = [r.report["relations"] for r in results]
-    kept = sum(k["near_kept"] * k["near_relations"] for k in near) / sum(k["near_relations"] for k in near)
+    edges = sum(r.report.relations.in_on_edges for r in results)
+    assert edges > 20 and all(r.report.relations.in_on_kept == 1.0 for r in results)
+    near = [r.report.relations for r in results]
+    kept = sum(k.near_kept * k.near_relations for k in near) / sum(k.near_relations for k in near)
     assert kept >= 0.95
     assert all(r.energy_after <= r.energy_before for r in results)
 
@@ -218,11 +223,19 @@ def test_degenerate_inputs_finish_and_report(engine):
         _obj("book_1", "book", (20, 15, 9), (10, 8, 2)),
     ))
     results = repair([empty, single, huge, over_sink], TTOConfig(steps=40), engine)
-    assert results[0].scene == empty and results[0].report["n_objects"] == 0
+    assert results[0].scene == empty and results[0].report.n_objects == 0
+    assert list(results[0].report.as_dict()) == [  # the JSON key order of physcene repair's report
+        "n_objects", "energy_before", "energy_after", "max_depth_before_cm", "max_depth_after_cm",
+        "collision_free", "residual_collisions", "max_displacement_cm", "steps", "kept_input", "relations",
+        "unsatisfied"]
+    assert list(results[2].report.as_dict()) == [
+        "n_objects", "max_depth_before_cm", "max_depth_after_cm", "collision_free", "residual_collisions",
+        "relations", "unsatisfied", "reattached", "energy_before", "energy_after", "max_displacement_cm",
+        "mean_displacement_cm", "steps", "kept_input"]
     assert results[1].energy_after == 0.0 and results[1].max_displacement_cm < 1e-6
-    assert any("larger than the placement zone" in u for u in results[2].report["unsatisfied"])
+    assert any("larger than the placement zone" in u for u in results[2].report.unsatisfied)
     assert results[2].scene.get("cup_1").zmin == pytest.approx(2.0, abs=1e-4)  # still on the board
-    unsat = results[3].report["unsatisfied"]
+    unsat = results[3].report.unsatisfied
     assert any("box_0 overlaps restricted zone 0" in u for u in unsat)
     after = results[3].scene
     assert after.get("book_1").zmin == pytest.approx(after.get("box_0").zmax, abs=1e-4)
@@ -240,7 +253,7 @@ def test_restricted_zone_pushes_a_stack_out_whole(engine):
     [result] = repair([scene], TTOConfig(), engine)
     box = result.scene.get("box_0").aabb()
     assert box[1] <= sink.xmin + 0.1  # out of the sink
-    assert not result.report["unsatisfied"]
+    assert not result.report.unsatisfied
     assert result.scene.get("book_1").zmin == pytest.approx(result.scene.get("box_0").zmax, abs=1e-4)
 
 
@@ -253,12 +266,12 @@ def test_object_sunk_into_a_support_is_put_back_on_it(engine):
         _obj("mug_2", "mug", (60, 30, 5), (9, 8, 10)),
     ))
     [result] = repair([scene], TTOConfig(), engine)
-    assert result.report["reattached"] == [{"object": "banana_1", "on": "board_0"}]
+    assert result.report.reattached == (("banana_1", "board_0"),)
     after = result.scene
     assert after.get("banana_1").zmin == pytest.approx(after.get("board_0").zmax, abs=1e-4)
-    assert result.report["collision_free"] and result.energy_after < result.energy_before
+    assert result.report.collision_free and result.energy_after < result.energy_before
     off = repair([scene], TTOConfig(reattach_gap_cm=0.0), engine)[0]
-    assert off.report["reattached"] == [] and off.scene.get("banana_1").zmin == pytest.approx(0.0, abs=1e-4)
+    assert off.report.reattached == () and off.scene.get("banana_1").zmin == pytest.approx(0.0, abs=1e-4)
 
 
 def test_relation_preservation_measure():
@@ -296,4 +309,4 @@ def test_cuda_matches_cpu(engine):
     for a, b in zip(cpu, gpu):
         assert b.energy_after <= b.energy_before
         assert a.energy_before == pytest.approx(b.energy_before, rel=1e-3, abs=1e-3)
-    assert sum(r.report["collision_free"] for r in gpu) >= sum(r.report["collision_free"] for r in cpu) - 1
+    assert sum(r.report.collision_free for r in gpu) >= sum(r.report.collision_free for r in cpu) - 1

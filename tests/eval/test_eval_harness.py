@@ -17,6 +17,8 @@ from physcene.eval.harness import (
 )
 
 from physcene.cli import main
+from physcene.commands.eval import model_generators
+from physcene.config import load_config
 from physcene.ctrc import ParseError
 
 
@@ -98,7 +100,10 @@ def test_model_generator_feeds_ctrc_prompts_and_parses_completions(items, monkey
         return [completions[p] for p in prompts[:-1]] + ["not a layout"]
 
     monkeypatch.setattr(train_generate, "generate", fake_generate)
-    outs = generate(items, "model:runs/tiny", progress=False)
+    with pytest.raises(EvalError, match="no model generator"):  # the harness never loads a checkpoint itself
+        generate(items, "model:runs/tiny", progress=False)
+    spec = load_config("eval", ["generator=reference,model:runs/tiny"])
+    outs = generate(items, "model:runs/tiny", progress=False, generators=model_generators(spec))
     assert seen["path"] == "runs/tiny" and seen["prompts"] == [it.prompt for it in items]
     for it, out in zip(items[:-1], outs[:-1]):
         assert sorted(o.instance_id for o in out.objects) == sorted(it.reference.ids())
