@@ -8,6 +8,7 @@ from types import SimpleNamespace
 import pytest
 import torch
 from datasets import Dataset
+from physcene.train.constrained_rollouts import mask_overruled
 from physcene.train.models import build_scratch_model, count_parameters
 from physcene.train.pada import (
     AdaptiveKLCallback,
@@ -382,7 +383,7 @@ def test_tokens_the_constraint_chose_leave_the_policy_loss(tokenizer, tmp_path):
     model = trainer.model.eval()
     batch = _controlled_batch(tokenizer)
     batch["ref_per_token_logps"] = -torch.rand(4, 5, generator=torch.Generator().manual_seed(2))
-    trainer._mask_overruled(batch, [[1, 3], [], [0, 9], [4]])  # 9: past the completion, ignored
+    mask_overruled(trainer, batch, [[1, 3], [], [0, 9], [4]])  # 9: past the completion, ignored
     expected = torch.ones(4, 5, dtype=torch.long)
     expected[0, 1] = expected[0, 3] = expected[2, 0] = expected[3, 4] = 0
     assert torch.equal(batch["tool_mask"], expected)
