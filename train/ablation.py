@@ -35,7 +35,7 @@ DEFAULT_SHARES = {"sft": 0.45, "anchors": 0.10, "grpo": 0.10, "pada_star": 0.10,
 def _figures(summary: dict) -> dict:
     """SCR/ACR at 0 cm, QPR at τ = 7, judge average and parse rate of one eval-harness summary, and the
     share of floating objects where it has one (a collision-only reward pays for lifting objects out of
-    collisions: docs/results.md, "Session 18 run")."""
+    collisions: docs/results.md)."""
     collision = summary["collision"].get(0.0, summary["collision"].get("0.0", {}))
     qpr = summary["QPR"].get(7.0, summary["QPR"].get("7.0"))
     n = int(summary["n"])

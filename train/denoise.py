@@ -43,7 +43,7 @@ from physcene.train.targets import object_line_spans, padded_targets, tokenize_t
 
 from physcene.ctrc import encode, parse, usual_decimals
 from physcene.scene import TABLE, ZONE_TOLERANCE_CM, Scene, SceneError, zone_overshoot
-from physcene.tto import TTOConfig
+from physcene.tto import TTOConfig, repair
 
 __all__ = ["Denoise", "DenoiseTarget", "denoise_targets", "rewrite_boxes"]
 
@@ -206,11 +206,9 @@ def denoise_targets(texts: Sequence[str], charges: Sequence, *, config=None, eng
     :func:`physcene.tto.repair` (``config``: a :class:`~physcene.tto.TTOConfig` on ``engine``'s device),
     every other object held. The rewritten numbers are written at ``decimals`` digits (the training
     data's ``record.decimals``); None: at each text's :func:`~physcene.ctrc.usual_decimals`. Never at
-    the most any of its numbers has: session 15's targets took a rollout's one stray eight-decimal
-    number for its precision, taught eight-decimal numbers, and the rollouts wrote more of them.
+    the most any of its numbers has: targets that took a rollout's one stray eight-decimal number
+    for its precision taught eight-decimal numbers, and the rollouts wrote more of them.
     """
-    from physcene.tto import repair
-
     if len(texts) != len(charges):
         raise ValueError(f"{len(texts)} completions but {len(charges)} charges")
     if engine is None:

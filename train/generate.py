@@ -26,8 +26,9 @@ from collections.abc import Sequence
 from pathlib import Path
 
 import torch
+from physcene.train.constrained import CTRCConstraint, sampling_warpers
 from physcene.train.models import TrainingSetupError, load_model, load_tokenizer, read_run_info, torch_dtype
-from transformers import PreTrainedModel, PreTrainedTokenizerBase
+from transformers import CompileConfig, LogitsProcessorList, PreTrainedModel, PreTrainedTokenizerBase
 
 __all__ = ["CACHE_MODES", "cache_generate_kwargs", "check_cache", "generate", "generate_token_ids",
            "generate_with", "load_for_generation", "longest_prompt_tokens", "set_trainer_cache"]
@@ -57,8 +58,6 @@ def cache_generate_kwargs(cache: str, device: str | torch.device = "cpu",
     if cache == "static":
         kwargs["disable_compile"] = True  # transformers compiles a static-cache decode on CUDA by default
         return kwargs
-    from transformers import CompileConfig
-
     config = CompileConfig()
     if torch.device(device).type != "cuda":
         # transformers compiles on CUDA/XPU only unless told; honour an explicit request elsewhere
@@ -158,8 +157,6 @@ def generate_token_ids(model: PreTrainedModel, tokenizer: PreTrainedTokenizerBas
         kwargs["min_new_tokens"] = int(min_new_tokens)
     warpers = None
     if constrained and do_sample:  # the warpers generate applies after the constraint, for its draws
-        from physcene.train.constrained import sampling_warpers
-
         config = copy.deepcopy(model.generation_config)
         config.update(do_sample=True, temperature=temperature)
         warpers = sampling_warpers(config)
@@ -167,9 +164,6 @@ def generate_token_ids(model: PreTrainedModel, tokenizer: PreTrainedTokenizerBas
         idx = order[k * batch_size:(k + 1) * batch_size]
         enc = enc.to(device)
         if constrained:
-            from physcene.train.constrained import CTRCConstraint
-            from transformers import LogitsProcessorList
-
             kwargs["logits_processor"] = LogitsProcessorList([CTRCConstraint(
                 tokenizer, [prompts[i] for i in idx], greedy=not do_sample, warpers=warpers)])
         ids = model.generate(**enc, **kwargs)[:, enc["input_ids"].shape[1]:]

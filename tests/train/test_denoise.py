@@ -172,7 +172,7 @@ def test_rewrite_boxes_keeps_numbers_within_their_last_decimal(texts):
 
 def test_targets_keep_the_rollouts_usual_precision_not_its_longest_number(texts, reward):
     """One stray long number in a rollout (here in an object the reward does not blame) must not set
-    the precision of the rewritten ones: session 15's targets did, and taught eight-decimal numbers."""
+    the precision of the rewritten ones: targets made that way taught eight-decimal numbers."""
     _, moved = texts
     first = re.search(r'"relative_bbox": \[(-?\d+\.\d+)', moved)
     stray = moved[:first.end(1)] + "3141" + moved[first.end(1):]

@@ -123,7 +123,7 @@ def test_pada_lowers_the_advantage_of_the_charged_tokens_only(texts, reward):
 def test_the_numbers_scope_charges_only_the_charged_objects_geometry_numbers(texts, reward):
     """``pada.object_credit_scope: numbers``: of a charged object only the numbers of its box and
     rotation lose advantage, each by the object's depth; its id, category, relation, description and
-    plan step keep the layout's advantage (session 15: with the whole line charged, 36-41 % of the
+    plan step keep the layout's advantage (with the whole line charged, 36-41 % of the
     rollout tokens, the greedy outputs began writing numbers into descriptions)."""
     _, moved = texts
     tokenizer = build_tokenizer([moved], vocab_size=320)

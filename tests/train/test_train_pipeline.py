@@ -332,11 +332,11 @@ def test_pada_with_object_credit_trains_on_per_token_advantages(tmp_path, one_th
 
 
 def test_a_snapshot_of_a_running_pada_job_resumes_elsewhere(tmp_path, one_thread, step_counter):
-    """docs/results/device/snapshot.sh, as poll.sh runs it while a lent machine trains: it packs the
+    """docs/results/device/snapshot.sh, as poll.sh runs it while a GPU machine trains: it packs the
     newest checkpoint the Trainer finished (a checkpoint without its trainer_state.json is being
     written) and its log history; unpacked into another machine's tree, the same PADA command goes
     on from that checkpoint's step."""
-    script = Path(__file__).resolve().parents[1] / "docs" / "results" / "device" / "snapshot.sh"
+    script = Path(__file__).resolve().parents[2] / "docs" / "results" / "device" / "snapshot.sh"
     train = _records(8, seed=2)
     write_records(train, tmp_path / "train.jsonl")
     machine, home = tmp_path / "machine", tmp_path / "home"
