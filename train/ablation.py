@@ -21,9 +21,14 @@ import sys
 import time
 from pathlib import Path
 
+import torch
+from accelerate import PartialState
+from accelerate.utils import gather_object
 from omegaconf import DictConfig, OmegaConf
+from physcene.train.anchors import run_anchors
 from physcene.train.models import RUN_INFO, TrainingSetupError, read_run_info
-from physcene.train.sft import TimeBudget
+from physcene.train.pada import NoAnchorsError, run_pada
+from physcene.train.sft import TimeBudget, run_sft
 
 __all__ = ["ROW_NAMES", "TimeBudget", "ablation_row", "checkpoint_models", "level_table", "markdown_table",
            "run_ablation"]
@@ -78,8 +83,6 @@ def checkpoint_models(models: dict[str, Path]) -> dict[str, Path]:
 
 
 def _gpu() -> str:
-    import torch
-
     if not torch.cuda.is_available():
         return "cpu"
     return f"{torch.cuda.device_count()} x {torch.cuda.get_device_name(0)}"
@@ -94,8 +97,6 @@ def _evaluate(cfg: DictConfig, models: dict[str, Path], budget_s: float) -> list
     part) and gathered in input order; the main process scores, repairs and reports, the others
     return no rows.
     """
-    from accelerate import PartialState
-    from accelerate.utils import gather_object
     from physcene.eval.harness import (
         generate,
         load_benchmark,
@@ -177,10 +178,6 @@ def level_table(rows: list[dict]) -> str:
 
 def run_ablation(cfg: DictConfig, budget_min: float | None = None) -> dict:
     """Run the whole ablation per ``cfg`` (see the module docstring); returns the ablation.json dict."""
-    from physcene.train.anchors import run_anchors
-    from physcene.train.pada import NoAnchorsError, run_pada
-    from physcene.train.sft import run_sft
-
     a = cfg.ablation
     budget_s = 60.0 * float(budget_min if budget_min is not None else a.budget_min)
     shares = {**DEFAULT_SHARES, **(OmegaConf.to_container(a.shares) if a.get("shares") else {})}
@@ -244,8 +241,6 @@ def run_ablation(cfg: DictConfig, budget_min: float | None = None) -> dict:
                      "pada": "constrained" if cfg.pada.get("constrained", False) else "sampled",
                      "cache": str(cfg.eval.get("cache", "dynamic"))},
     }
-    from accelerate import PartialState
-
     if PartialState().is_main_process:
         out = Path(str(a.output))
         out.parent.mkdir(parents=True, exist_ok=True)
