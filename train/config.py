@@ -27,7 +27,7 @@ __all__ = ["VARIANTS", "PADAConfig", "pada_arguments"]
 VARIANTS = {"pada": ("anchor", False), "pada_star": ("anchor_raw", True), "grpo": (None, False)}
 
 
-@dataclass
+@dataclass(kw_only=True)
 class PADAConfig(GRPOConfig):
     """``GRPOConfig`` plus the anchor term. Defaults are the paper's (α = 0.1, β = 0.04, G = 4); the
     extension fields (after ``num_generations``) default to off."""

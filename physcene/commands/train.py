@@ -34,7 +34,8 @@ def training_config(name: str, overrides=()):
     """``configs/train/<name>.yaml`` over ``configs/train/base.yaml`` (or a YAML path, or a config name
     such as ``train_tiny``) with ``key=value`` overrides."""
     path_like = name.endswith((".yaml", ".yml")) or "/" in name or name.startswith("train_")
-    return load_config(name if path_like else f"train/{name}", list(overrides))
+    # train_<name> is configs/train/<name>.yaml (physcene.config.config_path); unknown, it is named so
+    return load_config(name if path_like else f"train_{name}", list(overrides))
 
 
 def _main_process() -> bool:
