@@ -1,8 +1,13 @@
 """One config system: omegaconf YAML files under ``configs/`` overridden by ``key=value`` pairs.
 
 ``load_config("tto", ["steps=50", "lambda_sdf=20"])`` reads ``configs/tto.yaml`` (installed as the
-package ``physcene.configs``) and merges the dotlist over it. A name that ends in ``.yaml`` or
-contains a path separator is read as a file path instead.
+package ``physcene.configs``) and merges the dotlist over it. ``train/tiny`` reads
+``configs/train/tiny.yaml`` (``train_tiny`` too: ``<folder>_<name>`` finds ``<folder>/<name>.yaml``);
+any other name that ends in ``.yaml`` or contains a path separator is read as a file path.
+
+A file may list other files of its folder in a ``defaults`` key (``defaults: [base]``): they are
+merged first, in order, then the file itself, then the overrides (the training configs: one
+``configs/train/base.yaml`` and a small file per model).
 """
 
 from __future__ import annotations
@@ -23,23 +28,29 @@ class ConfigError(ValueError):
 
 def config_path(name: str) -> Path:
     """Where the config ``name`` lives (a file path is returned as given)."""
+    base = resources.files("physcene.configs")
+    if not name.endswith((".yaml", ".yml")):
+        folder, _, rest = name.partition("_")
+        for candidate in (name, f"{folder}/{rest}" if rest else None):  # train_tiny -> train/tiny
+            for suffix in (".yaml", ".yml") if candidate else ():
+                entry = base / f"{candidate}{suffix}"
+                if entry.is_file():
+                    return Path(str(entry))
     if name.endswith((".yaml", ".yml")) or "/" in name:
         path = Path(name)
         if not path.is_file():
             raise ConfigError(f"config file {name!r} does not exist")
         return path
-    base = resources.files("physcene.configs")
-    for candidate in (f"{name}.yaml", f"{name}.yml"):
-        entry = base / candidate
-        if entry.is_file():
-            return Path(str(entry))
     known = sorted(p.name.rsplit(".", 1)[0] for p in base.iterdir() if p.name.endswith(".yaml"))
+    known += sorted(f"{d.name}/{p.name.rsplit('.', 1)[0]}" for d in base.iterdir() if d.is_dir()
+                    for p in d.iterdir() if p.name.endswith(".yaml") and d.name != "accelerate")
     raise ConfigError(f"unknown config {name!r}; known: {', '.join(known)}")
 
 
 def load_config(name: str, overrides: Sequence[str] = ()) -> DictConfig:
-    """The config ``name`` with ``key=value`` overrides merged over it."""
-    cfg = OmegaConf.load(config_path(name))
+    """The config ``name`` (over the files its ``defaults`` key names), with ``key=value`` overrides
+    merged over it."""
+    cfg = _composed(config_path(name))
     bad = [o for o in overrides if "=" not in o]
     if bad:
         raise ConfigError(f"overrides must be key=value, got {bad}")
@@ -47,6 +58,24 @@ def load_config(name: str, overrides: Sequence[str] = ()) -> DictConfig:
         return OmegaConf.merge(cfg, OmegaConf.from_dotlist(list(overrides)))
     except Exception as exc:  # omegaconf raises several types for malformed overrides
         raise ConfigError(f"bad override in {list(overrides)}: {exc}") from exc
+
+
+def _composed(path: Path, seen: tuple[Path, ...] = ()) -> DictConfig:
+    """The YAML file ``path`` merged over the files of its folder that its ``defaults`` key names."""
+    if path in seen:
+        raise ConfigError(f"{path}: defaults loop through {[str(p) for p in seen]}")
+    cfg = OmegaConf.load(path)
+    names = cfg.pop("defaults", None)
+    if names is None:
+        return cfg
+    names = [names] if isinstance(names, str) else list(names)
+    parts = []
+    for default in names:
+        file = path.parent / f"{default}.yaml"
+        if not file.is_file():
+            raise ConfigError(f"{path}: defaults names {default!r}, but {file} does not exist")
+        parts.append(_composed(file, (*seen, path)))
+    return OmegaConf.merge(*parts, cfg)
 
 
 def split_overrides(args: Sequence[str]) -> tuple[list[str], list[str]]:

@@ -97,7 +97,6 @@ def test_pada_denoising_targets_are_built_from_the_placement_charges(scenes, mon
     from types import SimpleNamespace
 
     import physcene.train.denoise as denoise
-    from physcene.train.pada import PADATrainer
     from physcene.train.tokenizer import build_tokenizer
 
     texts = [completion_text(s, decimals=2) for s in scenes[1:3]]  # colliding; colliding and flattened
@@ -109,10 +108,8 @@ def test_pada_denoising_targets_are_built_from_the_placement_charges(scenes, mon
                         lambda t, charges, **kw: seen.append(charges) or [None] * len(t))
     tokenizer = build_tokenizer(texts, vocab_size=320)
     output = generated(tokenizer, texts)
-    trainer = SimpleNamespace(_credit_reward=reward, _tokenizer=tokenizer, _denoise_tto=None,
-                              args=SimpleNamespace(denoise_margin_cm=1.0, denoise_decimals=2),
-                              max_completion_length=10_000, _log_value=lambda k, v: None)
-    PADATrainer._denoise_rollouts(trainer, output)
+    trainer = SimpleNamespace(_tokenizer=tokenizer, max_completion_length=10_000, log_value=lambda k, v: None)
+    denoise.Denoise(reward, 1.0, tto=None, margin_cm=1.0, decimals=2).after_scoring(trainer, [], output)
     assert seen and seen[0] is reward.last_placement_depths
 
 

@@ -22,10 +22,15 @@ import time
 from functools import partial
 from pathlib import Path
 
+import torch
+from accelerate import PartialState
+from accelerate.utils import gather_object
 from omegaconf import DictConfig, OmegaConf
+from physcene.train.anchors import run_anchors
 from physcene.train.generate import generate as checkpoint_generate
 from physcene.train.models import RUN_INFO, TrainingSetupError, read_run_info
-from physcene.train.sft import TimeBudget
+from physcene.train.pada import NoAnchorsError, run_pada
+from physcene.train.sft import TimeBudget, run_sft
 
 __all__ = ["ROW_NAMES", "TimeBudget", "ablation_row", "checkpoint_models", "level_table", "markdown_table",
            "run_ablation"]
@@ -37,7 +42,7 @@ DEFAULT_SHARES = {"sft": 0.45, "anchors": 0.10, "grpo": 0.10, "pada_star": 0.10,
 def _figures(summary: dict) -> dict:
     """SCR/ACR at 0 cm, QPR at τ = 7, judge average and parse rate of one eval-harness summary, and the
     share of floating objects where it has one (a collision-only reward pays for lifting objects out of
-    collisions: docs/results.md, "Session 18 run")."""
+    collisions: docs/results.md)."""
     collision = summary["collision"].get(0.0, summary["collision"].get("0.0", {}))
     qpr = summary["QPR"].get(7.0, summary["QPR"].get("7.0"))
     n = int(summary["n"])
@@ -85,8 +90,6 @@ def _completions(path: Path, items, **options) -> list[str]:
 
 
 def _gpu() -> str:
-    import torch
-
     if not torch.cuda.is_available():
         return "cpu"
     return f"{torch.cuda.device_count()} x {torch.cuda.get_device_name(0)}"
@@ -101,8 +104,6 @@ def _evaluate(cfg: DictConfig, models: dict[str, Path], budget_s: float) -> list
     part) and gathered in input order; the main process scores, repairs and reports, the others
     return no rows.
     """
-    from accelerate import PartialState
-    from accelerate.utils import gather_object
     from physcene.eval.harness import (
         generate,
         load_benchmark,
@@ -185,10 +186,6 @@ def level_table(rows: list[dict]) -> str:
 
 def run_ablation(cfg: DictConfig, budget_min: float | None = None) -> dict:
     """Run the whole ablation per ``cfg`` (see the module docstring); returns the ablation.json dict."""
-    from physcene.train.anchors import run_anchors
-    from physcene.train.pada import NoAnchorsError, run_pada
-    from physcene.train.sft import run_sft
-
     a = cfg.ablation
     budget_s = 60.0 * float(budget_min if budget_min is not None else a.budget_min)
     shares = {**DEFAULT_SHARES, **(OmegaConf.to_container(a.shares) if a.get("shares") else {})}
@@ -252,8 +249,6 @@ def run_ablation(cfg: DictConfig, budget_min: float | None = None) -> dict:
                      "pada": "constrained" if cfg.pada.get("constrained", False) else "sampled",
                      "cache": str(cfg.eval.get("cache", "dynamic"))},
     }
-    from accelerate import PartialState
-
     if PartialState().is_main_process:
         out = Path(str(a.output))
         out.parent.mkdir(parents=True, exist_ok=True)

@@ -22,8 +22,16 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+from accelerate import PartialState
+from accelerate.utils import gather_object
 from omegaconf import DictConfig
+from physcene.train.generate import generate_token_ids, load_for_generation
 from physcene.train.records import load_records, write_records
+
+from physcene.ctrc import ParseError, completion_text, parse
+from physcene.layout import load_layout
+from physcene.scene import SceneError
+from physcene.tto import TTOConfig, repair
 
 __all__ = ["anchor_prompts", "anchor_records", "anchor_summary", "completion_length", "run_anchors"]
 
@@ -33,8 +41,6 @@ def _record_zone(record: dict):
     layout = record.get("layout")
     if not isinstance(layout, dict) or "item_placement_zone" not in layout:
         return None
-    from physcene.layout import load_layout
-
     try:
         return load_layout(layout, source=str(record.get("id", "<record>"))).zone
     except ValueError:
@@ -48,10 +54,6 @@ def anchor_records(records: list[dict], completions: list[str], *, tto_config=No
     All parsed layouts are repaired in one batched TTO call. ``lengths``: (tokens, truncated) per
     completion, from the generator, written as ``sft_tokens``/``sft_truncated``.
     """
-    from physcene.ctrc import ParseError, completion_text, parse
-    from physcene.scene import SceneError
-    from physcene.tto import repair
-
     if len(records) != len(completions):
         raise ValueError(f"{len(records)} records but {len(completions)} completions")
     if lengths is not None and len(lengths) != len(completions):
@@ -138,12 +140,7 @@ def run_anchors(cfg: DictConfig) -> Path:
     Writes ``cfg.anchors.output`` (JSONL) and ``<output>.summary.json``. An existing complete output is
     kept (rerun with ``anchors.overwrite=true`` to rebuild).
     """
-    from accelerate import PartialState
-    from accelerate.utils import gather_object
-    from physcene.train.generate import generate_token_ids, load_for_generation
-
-    from physcene.physics import PhysicsEngine
-    from physcene.tto import TTOConfig
+    from physcene.physics import PhysicsEngine  # Warp: only when anchors are made
 
     a = cfg.anchors
     out = Path(str(a.output))

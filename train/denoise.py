@@ -20,21 +20,32 @@ other object held; an object left past the zone (further than the out-of-zone me
 keeps its text. TTO trades the zone term against penetration, so the configs weigh the zone ten times
 the default for this repair (``pada.denoise_tto: [lambda_zone=100.0]``: a toaster written into its
 neighbour lands 6 cm off the table at the default weight, inside and collision-free at 100).
+
+In PADA (:class:`Denoise`, a :class:`~physcene.train.extension.PADAExtension`) the targets travel with
+the rollouts as ``denoise_ids`` / ``denoise_attention_mask`` / ``denoise_loss_mask`` and add
+``denoise`` × their NLL over TRL's token count to the loss. Logged: ``denoise/rows_frac``,
+``denoise/token_frac``, ``denoise/depth_before_cm``, ``denoise/depth_after_cm``,
+``denoise/collision_free_frac``, ``denoise/nll`` and ``time/denoise_s``.
 """
 
 from __future__ import annotations
 
 import json
 import re
+import time
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
+import torch
+from physcene.train.extension import PADAExtension
+from physcene.train.targets import object_line_spans, padded_targets, tokenize_target
 
 from physcene.ctrc import encode, parse, usual_decimals
 from physcene.scene import TABLE, ZONE_TOLERANCE_CM, Scene, SceneError, zone_overshoot
+from physcene.tto import TTOConfig, repair
 
-__all__ = ["DenoiseTarget", "denoise_targets", "rewrite_boxes"]
+__all__ = ["Denoise", "DenoiseTarget", "denoise_targets", "rewrite_boxes"]
 
 _NUMBER = re.compile(r"-?\d+(?:\.\d+)?(?:[eE][-+]?\d+)?")
 _VALUE = {key: re.compile(rf'"{key}"\s*:\s*(\[[^\]]*\]|[-+0-9.eE]+)')
@@ -67,8 +78,6 @@ def rewrite_boxes(text: str, scene: Scene, ids: set[str], decimals: int) -> tupl
     within half a unit of the last decimal of its new value is left as written. An object line whose
     values cannot be found is left as written. Returns ``(text, [])`` when nothing changed.
     """
-    from physcene.train.pada import object_line_spans
-
     lines = object_line_spans(text)
     if len(lines) != len(scene.objects):
         raise ValueError(f"{len(lines)} object lines in the text, {len(scene.objects)} objects in the scene")
@@ -197,11 +206,9 @@ def denoise_targets(texts: Sequence[str], charges: Sequence, *, config=None, eng
     :func:`physcene.tto.repair` (``config``: a :class:`~physcene.tto.TTOConfig` on ``engine``'s device),
     every other object held. The rewritten numbers are written at ``decimals`` digits (the training
     data's ``record.decimals``); None: at each text's :func:`~physcene.ctrc.usual_decimals`. Never at
-    the most any of its numbers has: session 15's targets took a rollout's one stray eight-decimal
-    number for its precision, taught eight-decimal numbers, and the rollouts wrote more of them.
+    the most any of its numbers has: targets that took a rollout's one stray eight-decimal number
+    for its precision taught eight-decimal numbers, and the rollouts wrote more of them.
     """
-    from physcene.tto import repair
-
     if len(texts) != len(charges):
         raise ValueError(f"{len(texts)} completions but {len(charges)} charges")
     if engine is None:
@@ -249,3 +256,67 @@ def denoise_targets(texts: Sequence[str], charges: Sequence, *, config=None, eng
         if spans:
             out[row] = DenoiseTarget(text, spans, sorted(moved), depth[k], depth[len(jobs) + k])
     return out
+
+
+class Denoise(PADAExtension):
+    """On-policy denoising targets and their cross-entropy (module docstring).
+
+    ``reward``: the physics reward that scored the round, charging each object
+    (:func:`physcene.train.object_credit.credit_reward`); ``weight``: ``pada.denoise``; ``tto``: the
+    repair's configuration (:meth:`tto_config` of ``pada.denoise_tto``); ``margin_cm`` /
+    ``decimals``: ``pada.denoise_margin_cm`` / ``denoise_decimals``.
+    """
+
+    def __init__(self, reward, weight: float, tto: TTOConfig | None, margin_cm: float = 1.0,
+                 decimals: int | None = None):
+        self._credit_reward, self.weight, self.tto = reward, float(weight), tto
+        self.margin_cm, self.decimals = float(margin_cm), decimals
+
+    @staticmethod
+    def tto_config(overrides, reward) -> TTOConfig:
+        """``configs/tto.yaml`` with ``overrides`` (key=value), on the device of ``reward``'s engine."""
+        return replace(TTOConfig.load(list(overrides)), device=str(reward.engine.device))
+
+    def after_scoring(self, trainer, inputs: list[dict], output: dict) -> None:
+        """Each rollout the reward blamed objects in, with those objects moved (free spot or TTO), as
+        ``denoise_ids`` / ``denoise_attention_mask`` / ``denoise_loss_mask`` (right padded, like the
+        anchor's), supervised on the numbers the repair rewrote. Rows without a target are all 0."""
+        start = time.perf_counter()
+        tokenizer = trainer._tokenizer
+        completion_ids, completion_mask = output["completion_ids"], output["completion_mask"]
+        lengths = completion_mask.sum(dim=1).tolist()
+        texts = [tokenizer.decode(row[:int(n)], skip_special_tokens=True)
+                 for row, n in zip(completion_ids.tolist(), lengths)]
+        charges = self._credit_reward.last_placement_depths  # a target moves objects, it does not resize
+        if len(charges) != len(texts):
+            raise ValueError(f"object charges for {len(charges)} completions, {len(texts)} generated")
+        targets = denoise_targets(texts, charges, config=self.tto, engine=self._credit_reward.engine,
+                                  margin_cm=self.margin_cm, decimals=self.decimals)
+        rows = [tokenize_target(tokenizer, t.text, t.spans, max_length=trainer.max_completion_length)
+                if t is not None else ([], []) for t in targets]
+        output.update(padded_targets("denoise", rows, tokenizer.pad_token_id, completion_ids.device))
+        found = [t for t in targets if t is not None]
+        trainer.log_value("denoise/rows_frac", len(found) / max(len(targets), 1))
+        trainer.log_value("denoise/token_frac", sum(sum(m) for _, m in rows) / max(sum(lengths), 1))
+        if found:
+            trainer.log_value("denoise/depth_before_cm", float(np.mean([t.depth_before for t in found])))
+            trainer.log_value("denoise/depth_after_cm", float(np.mean([t.depth_after for t in found])))
+            free = float(np.mean([t.depth_after == 0 for t in found]))
+            trainer.log_value("denoise/collision_free_frac", free)
+        trainer.log_value("time/denoise_s", time.perf_counter() - start)
+
+    def extra_loss(self, trainer, model, inputs: dict):
+        if "denoise_ids" not in inputs or inputs["denoise_loss_mask"].sum() == 0:
+            return None
+        return self.weight * self.loss(trainer, model, inputs)
+
+    def loss(self, trainer, model, inputs: dict) -> torch.Tensor:
+        """The targets' summed NLL over TRL's dapo normaliser (the completion tokens of one
+        accumulation window on this rank): a rewritten token pulls like a sampled token of advantage 1."""
+        nll, count = trainer.target_nll(model, inputs, "denoise")
+        normalizer = inputs["num_items_in_batch"].clamp(min=1.0) / trainer.accelerator.num_processes
+        if trainer.model.training:
+            normalizer = normalizer * trainer.current_gradient_accumulation_steps
+            normalizer = normalizer / trainer.args.steps_per_generation
+        trainer.log_value("denoise/nll", (nll.detach() / count.clamp(min=1.0)).item())
+        return nll / normalizer

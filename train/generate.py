@@ -26,11 +26,12 @@ from collections.abc import Sequence
 from pathlib import Path
 
 import torch
+from physcene.train.constrained import CTRCConstraint, sampling_warpers
 from physcene.train.models import TrainingSetupError, load_model, load_tokenizer, read_run_info, torch_dtype
-from transformers import PreTrainedModel, PreTrainedTokenizerBase
+from transformers import CompileConfig, LogitsProcessorList, PreTrainedModel, PreTrainedTokenizerBase
 
 __all__ = ["CACHE_MODES", "cache_generate_kwargs", "check_cache", "generate", "generate_token_ids",
-           "generate_with", "load_for_generation"]
+           "generate_with", "load_for_generation", "longest_prompt_tokens", "set_trainer_cache"]
 
 CACHE_MODES = ("dynamic", "static", "static_compile")
 
@@ -57,8 +58,6 @@ def cache_generate_kwargs(cache: str, device: str | torch.device = "cpu",
     if cache == "static":
         kwargs["disable_compile"] = True  # transformers compiles a static-cache decode on CUDA by default
         return kwargs
-    from transformers import CompileConfig
-
     config = CompileConfig()
     if torch.device(device).type != "cuda":
         # transformers compiles on CUDA/XPU only unless told; honour an explicit request elsewhere
@@ -66,6 +65,30 @@ def cache_generate_kwargs(cache: str, device: str | torch.device = "cpu",
     kwargs["compile_config"] = config
     kwargs["disable_compile"] = False
     return kwargs
+
+
+def longest_prompt_tokens(tokenizer: PreTrainedTokenizerBase, prompts) -> int:
+    """Tokens of the longest prompt as TRL feeds it (a conversational prompt through the chat template)."""
+    texts = [p if isinstance(p, str) else
+             tokenizer.apply_chat_template(p, tokenize=False, add_generation_prompt=True) for p in prompts]
+    return max((len(ids) for ids in tokenizer(texts, add_special_tokens=False)["input_ids"]), default=0)
+
+
+def set_trainer_cache(generation_config, *, static: bool, compiled: bool, tokenizer: PreTrainedTokenizerBase,
+                      prompts, max_new_tokens: int, device: str | torch.device) -> None:
+    """Fit a trainer's ``GenerationConfig`` to the :data:`CACHE_MODES` entry TRL was given.
+
+    ``static``: one static cache size for the whole run (longest of ``prompts`` + ``max_new_tokens``):
+    HF sizes it per call otherwise, and each longer batch would recompile the compiled decoding
+    forward. ``compiled``: TRL builds its GenerationConfig with ``disable_compile=True``;
+    ``static_compile`` turns HF's compiled static-cache decoding back on (the same CompileConfig as
+    :func:`generate_token_ids`).
+    """
+    if static:
+        generation_config.max_cache_len = longest_prompt_tokens(tokenizer, prompts) + max_new_tokens
+    if compiled:
+        generation_config.disable_compile = False
+        generation_config.compile_config = cache_generate_kwargs("static_compile", device)["compile_config"]
 
 
 def load_for_generation(model_path: str | Path, device: str | torch.device | None = None,
@@ -134,8 +157,6 @@ def generate_token_ids(model: PreTrainedModel, tokenizer: PreTrainedTokenizerBas
         kwargs["min_new_tokens"] = int(min_new_tokens)
     warpers = None
     if constrained and do_sample:  # the warpers generate applies after the constraint, for its draws
-        from physcene.train.constrained import sampling_warpers
-
         config = copy.deepcopy(model.generation_config)
         config.update(do_sample=True, temperature=temperature)
         warpers = sampling_warpers(config)
@@ -143,9 +164,6 @@ def generate_token_ids(model: PreTrainedModel, tokenizer: PreTrainedTokenizerBas
         idx = order[k * batch_size:(k + 1) * batch_size]
         enc = enc.to(device)
         if constrained:
-            from physcene.train.constrained import CTRCConstraint
-            from transformers import LogitsProcessorList
-
             kwargs["logits_processor"] = LogitsProcessorList([CTRCConstraint(
                 tokenizer, [prompts[i] for i in idx], greedy=not do_sample, warpers=warpers)])
         ids = model.generate(**enc, **kwargs)[:, enc["input_ids"].shape[1]:]

@@ -17,7 +17,7 @@ from pathlib import Path
 
 import torch
 from omegaconf import DictConfig, OmegaConf
-from physcene.train.tokenizer import train_tokenizer
+from physcene.train.tokenizer import build_tokenizer, train_tokenizer
 from transformers import (
     AutoConfig,
     AutoModelForCausalLM,
@@ -183,7 +183,6 @@ def prepare_model_and_tokenizer(cfg: DictConfig, texts: Iterable[str] | None = N
             train_tokenizer(texts, tok_dir, vocab_size=int(m.tokenizer.vocab_size))
             tokenizer = load_tokenizer(tok_dir)
         else:
-            from physcene.train.tokenizer import build_tokenizer
             tokenizer = build_tokenizer(texts, vocab_size=int(m.tokenizer.vocab_size))
         # Train from scratch in fp32 (bf16 autocast on GPU); model.dtype is the dtype it is saved in.
         model = build_scratch_model(m.arch, tokenizer, seed=int(cfg.seed), dtype="float32")

@@ -10,13 +10,16 @@ output directory.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 import math
+import os
 import time
 from pathlib import Path
 
 import torch
+import torch.distributed as dist
 from omegaconf import DictConfig, OmegaConf
 from peft import LoraConfig
 from physcene.train.models import (
@@ -63,8 +66,6 @@ class TimeBudget(TrainerCallback):
     def _agreed(stop: bool, args) -> bool:
         """Under DDP every rank must stop at the same step (a rank that goes on would wait forever
         in the next all-reduce), so the ranks' clocks are OR-ed: one small all-reduce per step."""
-        import torch.distributed as dist
-
         if not (dist.is_available() and dist.is_initialized()) or dist.get_world_size() == 1:
             return stop
         flag = torch.tensor([1.0 if stop else 0.0], device=args.device)
@@ -124,8 +125,6 @@ def time_budget_callbacks(stage_cfg) -> list[TimeBudget]:
 
 def world_size() -> int:
     """Processes of this run (accelerate/torchrun set WORLD_SIZE; 1 otherwise)."""
-    import os
-
     return int(os.environ.get("WORLD_SIZE", "1"))
 
 
@@ -149,8 +148,6 @@ def lora_config(lora: DictConfig | None) -> LoraConfig | None:
 
 
 def _precision(cfg: DictConfig) -> dict:
-    import torch
-
     # Mixed precision only where the hardware does it; CPU tests train in fp32.
     if not torch.cuda.is_available():
         return {"bf16": False, "fp16": False, "use_cpu": True}
@@ -203,8 +200,6 @@ def _length_grouping(enabled: bool) -> dict:
     """
     if not enabled:
         return {}
-    import dataclasses
-
     fields = {f.name for f in dataclasses.fields(SFTConfig)}
     if "train_sampling_strategy" in fields:
         return {"train_sampling_strategy": "group_by_length"}

@@ -1,8 +1,9 @@
 """``physcene train sft|anchors|pada|ablation --config NAME [key=value ...]`` (docs/training.md).
 
-``--config tiny`` reads ``configs/train_tiny.yaml`` (``small``, ``qwen3_vl_8b`` likewise; a YAML path
-is read as given). Every stage resumes: SFT and PADA from the last ``checkpoint-*`` in their output
-directory, anchors by keeping a complete anchor file. Multi-GPU: prefix with
+``--config tiny`` reads ``configs/train/tiny.yaml`` over ``configs/train/base.yaml`` (``small``,
+``qwen3_vl_8b`` likewise; the older names ``train_tiny`` ... too; a YAML path is read as given).
+Every stage resumes: SFT and PADA from the last ``checkpoint-*`` in their output directory, anchors
+by keeping a complete anchor file. Multi-GPU: prefix with
 ``accelerate launch --config_file configs/accelerate/multi_gpu.yaml -m physcene.cli``.
 """
 
@@ -21,7 +22,8 @@ STAGES = ("sft", "anchors", "pada", "ablation")
 def add_arguments(parser) -> None:
     parser.add_argument("stage", choices=STAGES, help="which stage to run")
     parser.add_argument("--config", default="tiny",
-                        help="tiny, small, qwen3_vl_8b (configs/train_<name>.yaml) or a YAML path")
+                        help="tiny, small, qwen3_vl_8b (configs/train/<name>.yaml over base.yaml) "
+                             "or a YAML path")
     parser.add_argument("--variant", choices=("pada", "pada_star", "grpo"),
                         help="pada stage: which objective (default: the config's pada.variant)")
     parser.add_argument("--budget-min", type=float, default=None,
@@ -29,8 +31,10 @@ def add_arguments(parser) -> None:
 
 
 def training_config(name: str, overrides=()):
-    """``configs/train_<name>.yaml`` (or a YAML path) with ``key=value`` overrides."""
-    path_like = name.endswith((".yaml", ".yml")) or "/" in name
+    """``configs/train/<name>.yaml`` over ``configs/train/base.yaml`` (or a YAML path, or a config name
+    such as ``train_tiny``) with ``key=value`` overrides."""
+    path_like = name.endswith((".yaml", ".yml")) or "/" in name or name.startswith("train_")
+    # train_<name> is configs/train/<name>.yaml (physcene.config.config_path); unknown, it is named so
     return load_config(name if path_like else f"train_{name}", list(overrides))
 
 

@@ -307,18 +307,18 @@ def test_nonfinite_probe_names_the_loss_term_and_rows_that_broke(tmp_path, one_t
 def test_pada_with_object_credit_trains_on_per_token_advantages(tmp_path, one_thread, monkeypatch):
     """``pada.object_credit`` (not in the paper) through TRL: the advantages become (B, T), the steps run
     and the credit's figures are logged; a negative weight is refused."""
-    from physcene.train.pada import PADATrainer
+    from physcene.train.object_credit import ObjectCredit
 
     cfg = _sft_for_pada(tmp_path, 4, 4, "pada.max_steps=2", "pada.object_credit=1.0",
                         "pada.object_credit_penetration=pairs", "pada.object_credit_terms=[penetration,size]")
     seen = []
-    original = PADATrainer._credit_objects
+    original = ObjectCredit.after_scoring
 
-    def spy(self, output):
-        original(self, output)
+    def spy(self, trainer, inputs, output):
+        original(self, trainer, inputs, output)
         seen.append(tuple(output["advantages"].shape))
 
-    monkeypatch.setattr(PADATrainer, "_credit_objects", spy)
+    monkeypatch.setattr(ObjectCredit, "after_scoring", spy)
     reward = PhysicsReward(RewardConfig(device="cpu"))
     out = run_pada(cfg, variant="pada", reward=reward)
     assert reward.penetration_charge == "pairs" and reward.object_terms == ("penetration", "size")
@@ -336,7 +336,7 @@ def test_a_snapshot_of_a_running_pada_job_resumes_elsewhere(tmp_path, one_thread
     newest checkpoint the Trainer finished (a checkpoint without its trainer_state.json is being
     written) and its log history; unpacked into another machine's tree, the same PADA command goes
     on from that checkpoint's step."""
-    script = Path(__file__).resolve().parents[1] / "train" / "scripts" / "snapshot.sh"
+    script = Path(__file__).resolve().parents[2] / "train" / "scripts" / "snapshot.sh"
     train = _records(8, seed=2)
     write_records(train, tmp_path / "train.jsonl")
     machine, home = tmp_path / "machine", tmp_path / "home"

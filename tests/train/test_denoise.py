@@ -11,8 +11,8 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 import torch
-from physcene.train.denoise import _place_table_level, denoise_targets, free_spot, rewrite_boxes
-from physcene.train.pada import PADATrainer, object_line_spans, tokenize_target
+from physcene.train.denoise import Denoise, _place_table_level, denoise_targets, free_spot, rewrite_boxes
+from physcene.train.targets import object_line_spans, tokenize_target
 from physcene.train.tokenizer import build_tokenizer
 from shapely.geometry import Polygon
 
@@ -172,7 +172,7 @@ def test_rewrite_boxes_keeps_numbers_within_their_last_decimal(texts):
 
 def test_targets_keep_the_rollouts_usual_precision_not_its_longest_number(texts, reward):
     """One stray long number in a rollout (here in an object the reward does not blame) must not set
-    the precision of the rewritten ones: session 15's targets did, and taught eight-decimal numbers."""
+    the precision of the rewritten ones: targets made that way taught eight-decimal numbers."""
     _, moved = texts
     first = re.search(r'"relative_bbox": \[(-?\d+\.\d+)', moved)
     stray = moved[:first.end(1)] + "3141" + moved[first.end(1):]
@@ -199,11 +199,9 @@ def test_pada_builds_denoise_rows_aligned_with_the_rollouts(texts, reward, gener
     output = generated(tokenizer, [moved, clean])
     reward.score_texts([moved, clean])
     logged = {}
-    trainer = SimpleNamespace(_credit_reward=reward, _tokenizer=tokenizer, _denoise_tto=TTO,
-                              args=SimpleNamespace(denoise_margin_cm=1.0, denoise_decimals=2),
-                              max_completion_length=10_000,
-                              _log_value=lambda k, v: logged.__setitem__(k, v))
-    PADATrainer._denoise_rollouts(trainer, output)
+    trainer = SimpleNamespace(_tokenizer=tokenizer, max_completion_length=10_000,
+                              log_value=lambda k, v: logged.__setitem__(k, v))
+    Denoise(reward, 1.0, tto=TTO, margin_cm=1.0, decimals=2).after_scoring(trainer, [], output)
     assert output["denoise_ids"].shape[0] == 2
     assert output["denoise_loss_mask"][0].sum() > 0 and output["denoise_loss_mask"][1].sum() == 0
     assert output["denoise_attention_mask"][1].sum() == 0  # no target: an empty row
@@ -236,15 +234,15 @@ def test_pada_with_denoise_trains_and_logs_it(tmp_path, monkeypatch):
 
     monkeypatch.setattr(denoise, "denoise_targets", stand_in)
     losses = []
-    original = PADATrainer.denoise_loss
+    original = Denoise.loss
 
-    def spy(self, model, inputs):
-        loss = original(self, model, inputs)
+    def spy(self, trainer, model, inputs):
+        loss = original(self, trainer, model, inputs)
         assert loss.requires_grad
         losses.append(float(loss.detach()))
         return loss
 
-    monkeypatch.setattr(PADATrainer, "denoise_loss", spy)
+    monkeypatch.setattr(Denoise, "loss", spy)
     out = run_pada(cfg, variant="pada", reward=PhysicsReward(RewardConfig(device="cpu")))
     assert losses and all(np.isfinite(x) and x > 0 for x in losses)
     log = json.loads((out / "train_log.json").read_text())

@@ -123,7 +123,7 @@ def test_the_cache_knob_reaches_model_generate(model, tokenizer, records, monkey
 
 
 def test_anchors_cache_reaches_generate_with(tmp_path, monkeypatch, model, tokenizer):
-    import physcene.train.generate as train_generate
+    import physcene.train.anchors as anchors
     from physcene.train.anchors import run_anchors
 
     seen = []
@@ -133,9 +133,8 @@ def test_anchors_cache_reaches_generate_with(tmp_path, monkeypatch, model, token
         return [tokenizer("not a layout", add_special_tokens=False)["input_ids"] + [tokenizer.eos_token_id]
                 for _ in prompts]
 
-    monkeypatch.setattr(train_generate, "load_for_generation",
-                        lambda path, device=None: (model, tokenizer, {}))
-    monkeypatch.setattr(train_generate, "generate_token_ids", fake_generate_token_ids)
+    monkeypatch.setattr(anchors, "load_for_generation", lambda path, device=None: (model, tokenizer, {}))
+    monkeypatch.setattr(anchors, "generate_token_ids", fake_generate_token_ids)
     cfg = load_config("train_tiny", [f"output_dir={tmp_path}", "anchors.n_records=2",
                                      "anchors.cache=static_compile", "anchors.constrained=true",
                                      "data.train=synth:train:2"])

@@ -8,6 +8,7 @@ from types import SimpleNamespace
 import pytest
 import torch
 from datasets import Dataset
+from physcene.train.constrained_rollouts import mask_overruled
 from physcene.train.models import build_scratch_model, count_parameters
 from physcene.train.pada import (
     AdaptiveKLCallback,
@@ -382,7 +383,7 @@ def test_tokens_the_constraint_chose_leave_the_policy_loss(tokenizer, tmp_path):
     model = trainer.model.eval()
     batch = _controlled_batch(tokenizer)
     batch["ref_per_token_logps"] = -torch.rand(4, 5, generator=torch.Generator().manual_seed(2))
-    trainer._mask_overruled(batch, [[1, 3], [], [0, 9], [4]])  # 9: past the completion, ignored
+    mask_overruled(trainer, batch, [[1, 3], [], [0, 9], [4]])  # 9: past the completion, ignored
     expected = torch.ones(4, 5, dtype=torch.long)
     expected[0, 1] = expected[0, 3] = expected[2, 0] = expected[3, 4] = 0
     assert torch.equal(batch["tool_mask"], expected)
@@ -538,3 +539,57 @@ def test_attention_gradient_over_left_padded_rows_is_finite_with_the_training_ke
     out = F.scaled_dot_product_attention(q, k, v, attn_mask=mask)
     (out.float() * keep[:, None, :, None]).sum().backward()  # the loss reads real tokens only
     assert all(bool(torch.isfinite(t.grad).all()) for t in (q, k, v))
+
+
+def test_pada_config_checks_its_extension_fields_itself(tmp_path):
+    """The checks live in PADAConfig.__post_init__, not only in the YAML mapping."""
+    base = dict(output_dir=str(tmp_path), use_cpu=True, report_to="none")
+    assert PADAConfig(**base).object_credit_terms == ["penetration"]
+    bad = [("object_credit", -1.0, "pada.object_credit must be >= 0"),
+           ("object_credit_scope", "box", "pada.object_credit_scope: object credit scope"),
+           ("object_credit_terms", ["float"], "pada.object_credit_terms: object terms"),
+           ("denoise_decimals", 9, "pada.denoise_decimals must be null or an integer"),
+           ("num_iterations", 0, "pada.num_iterations must be a positive integer")]
+    for field, value, message in bad:
+        with pytest.raises(ValueError, match=message):
+            PADAConfig(**base, **{field: value})
+
+
+def test_an_extensions_logits_processor_reaches_generate_unpatched(tokenizer, tmp_path):
+    """The CTRC constraint's way into TRL's generation: an extension's logits processor is passed to
+    ``generate`` (``model.generate`` is never replaced), and the completions are TRL's own for the
+    same seed when the processor leaves the scores as they are."""
+    from physcene.train.extension import PADAExtension
+    from transformers import LogitsProcessor
+
+    class Identity(LogitsProcessor):
+        calls = 0
+
+        def __call__(self, input_ids, scores):
+            Identity.calls += 1
+            return scores
+
+    class Recording(PADAExtension):
+        prompts, generated = None, 0
+
+        def logits_processors(self, trainer, prompts):
+            self.prompts = prompts
+            return [Identity()]
+
+        def after_generation(self, trainer):
+            self.generated += 1
+            assert "generate" not in vars(trainer.accelerator.unwrap_model(trainer.model_wrapped))
+
+    trainer = _trainer(tokenizer, tmp_path, alpha=0.0)
+    prompt_ids = [tokenizer("Instruction: place a pen.", add_special_tokens=False)["input_ids"],
+                  tokenizer("Layout:", add_special_tokens=False)["input_ids"]]
+    torch.manual_seed(3)
+    plain, _ = trainer._generate_single_turn(prompt_ids, None, {}, 1)
+    assert Identity.calls == 0  # no extension: TRL's own call
+    trainer.extensions = [Recording()]
+    trainer._round_prompts = ["Instruction: place a pen.", "Layout:"]
+    torch.manual_seed(3)
+    processed, _ = trainer._generate_single_turn(prompt_ids, None, {}, 1)
+    assert Identity.calls > 0 and trainer.extensions[0].generated == 1
+    assert trainer.extensions[0].prompts == trainer._round_prompts
+    assert processed == plain and all(1 <= len(c) <= 16 for c in processed)

@@ -9,13 +9,8 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 import torch
-from physcene.train.pada import (
-    PADATrainer,
-    numeric_spans,
-    object_line_spans,
-    object_text_spans,
-    object_token_depths,
-)
+from physcene.train.object_credit import ObjectCredit, object_token_depths
+from physcene.train.targets import numeric_spans, object_line_spans, object_text_spans
 from physcene.train.tokenizer import build_tokenizer
 
 from physcene.ctrc import completion_text, parse
@@ -112,23 +107,23 @@ def test_pada_lowers_the_advantage_of_the_charged_tokens_only(texts, reward):
     output = {"completion_ids": torch.tensor([row, row]), "completion_mask": torch.ones(2, len(row)),
               "advantages": torch.tensor([0.5, -0.5])}
     logged = {}
-    trainer = SimpleNamespace(_credit_reward=reward, _tokenizer=tokenizer, object_credit=2.0,
-                              object_credit_scope="line", _log_value=lambda k, v: logged.__setitem__(k, v))
-    PADATrainer._credit_objects(trainer, output)
+    trainer = SimpleNamespace(_tokenizer=tokenizer, log_value=lambda k, v: logged.__setitem__(k, v))
+    credit = ObjectCredit(reward, 2.0, "line")
+    credit.after_scoring(trainer, [], output)
     charged, _ = object_token_depths(tokenizer, output["completion_ids"], output["completion_mask"],
                                      reward.last_object_depths)
     assert output["advantages"].shape == (2, len(row))
     assert torch.allclose(output["advantages"], torch.tensor([[0.5], [-0.5]]) - 2.0 * charged)
     assert 0 < logged["object_credit/charged_token_frac"] < 1 and logged["object_credit/rows_left_out"] == 0
     with pytest.raises(ValueError, match="object depths for 2 completions, 1 generated"):
-        PADATrainer._credit_objects(trainer, {k: v[:1] for k, v in output.items()})
+        credit.after_scoring(trainer, [], {k: v[:1] for k, v in output.items()})
 
 
 
 def test_the_numbers_scope_charges_only_the_charged_objects_geometry_numbers(texts, reward):
     """``pada.object_credit_scope: numbers``: of a charged object only the numbers of its box and
     rotation lose advantage, each by the object's depth; its id, category, relation, description and
-    plan step keep the layout's advantage (session 15: with the whole line charged, 36-41 % of the
+    plan step keep the layout's advantage (with the whole line charged, 36-41 % of the
     rollout tokens, the greedy outputs began writing numbers into descriptions)."""
     _, moved = texts
     tokenizer = build_tokenizer([moved], vocab_size=320)

@@ -1,0 +1,192 @@
+"""PADA's configuration: :class:`PADAConfig` (TRL's ``GRPOConfig`` plus the anchor term and the
+extensions' settings, every check in ``__post_init__``) and :func:`pada_arguments`, which maps a
+training YAML's ``pada:`` section onto it.
+
+The paper's fields come first (α, the anchor column, the PADA* mask, β, G); the fields after them
+configure the extensions, which are not in the paper and are off by default (one module each:
+:mod:`physcene.train.constrained_rollouts`, :mod:`physcene.train.object_credit`,
+:mod:`physcene.train.denoise`, :mod:`physcene.train.diagnostics`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+from omegaconf import OmegaConf
+from physcene.train.generate import check_cache
+from physcene.train.sft import _precision, accumulation_steps, world_size
+from physcene.train.targets import GEOMETRY_KEYS, object_credit_scope_checked
+from trl import GRPOConfig
+
+from physcene.ctrc import MAX_DECIMALS
+from physcene.reward import object_terms_checked, penetration_charge_checked
+
+__all__ = ["VARIANTS", "PADAConfig", "pada_arguments"]
+
+# variant -> (anchor column, numeric tokens masked out of the CE); grpo has no anchor (α = 0)
+VARIANTS = {"pada": ("anchor", False), "pada_star": ("anchor_raw", True), "grpo": (None, False)}
+
+
+@dataclass(kw_only=True)
+class PADAConfig(GRPOConfig):
+    """``GRPOConfig`` plus the anchor term. Defaults are the paper's (α = 0.1, β = 0.04, G = 4); the
+    extension fields (after ``num_generations``) default to off."""
+
+    # --- the paper (Sec. 3.3): GRPO + α · CE(anchor) ---
+    anchor_alpha: float = field(default=0.1, metadata={"help": "Weight α of the anchor CE; 0 = GRPO."})
+    anchor_column: str = field(default="anchor", metadata={"help": "Dataset column holding the anchor text."})
+    anchor_numeric_mask: bool = field(
+        default=False, metadata={"help": "PADA*: leave geometry numbers out of the anchor CE."})
+    anchor_geometry_keys: list[str] = field(
+        default_factory=lambda: list(GEOMETRY_KEYS),
+        metadata={"help": "JSON keys whose numeric values the PADA* mask removes from the CE."})
+    beta: float = field(default=0.04, metadata={"help": "Initial KL coefficient (AdaptiveKLCallback)."})
+    num_generations: int | None = field(default=4, metadata={"help": "Group size G."})
+
+    # --- generation (how the groups are sampled; the objective is unchanged) ---
+    generation_compile: bool = field(
+        default=False, metadata={"help": "Compile the decoding forward of a static-cache generation "
+                                         "(pada.cache=static_compile); TRL itself always disables it."})
+    constrained_decoding: bool = field(
+        default=False, metadata={"help": "Sample the groups under the CTRC constraint, passed to generate "
+                                         "as a logits processor (physcene.train.constrained_rollouts; HF "
+                                         "generate only, not vLLM)."})
+
+    # --- extensions: not in the paper, each off by default ---
+    mask_overruled: bool = field(
+        default=True, metadata={"help": "Leave the tokens the CTRC constraint chose instead of the "
+                                        "policy's draw out of the GRPO loss and KL (like tool output); "
+                                        "acts only under constrained_decoding."})
+    nonfinite_probe: int = field(
+        default=0, metadata={"help": "Micro-batches whose backward leaves a non-finite gradient to take "
+                                     "apart (physcene.train.diagnostics): which loss term, which rows, "
+                                     "which attention kernel; 0 = off."})
+    object_credit: float = field(
+        default=0.0, metadata={"help": "Lower the advantage of the tokens of each object's plan step and "
+                                       "layout line by this much per cm charged to it "
+                                       "(physcene.train.object_credit); 0 = off."})
+    object_credit_terms: list[str] = field(
+        default_factory=lambda: ["penetration"],
+        metadata={"help": "What object_credit charges each object with (cm), of "
+                          "physcene.reward.OBJECT_TERMS: penetration (the paper's reward term), "
+                          "floating (its support gap), out_of_zone (how far its footprint leaves the zone), "
+                          "size (how far its size lies outside its category's band; reward.size_tolerance)."})
+    object_credit_penetration: str = field(
+        default="depth", metadata={"help": "How a penetrating pair charges its later-written object: depth "
+                                           "(its depth, cm) or pairs (1 per pair: does not fall when the "
+                                           "objects are written thinner)."})
+    object_credit_scope: str = field(
+        default="line", metadata={"help": "Which tokens of a charged object object_credit lowers: line (its "
+                                          "plan step and layout line) or numbers (only the numbers of its "
+                                          "relative_bbox and relative_rotation_deg)."})
+    denoise: float = field(
+        default=0.0, metadata={"help": "Weight of the cross-entropy toward each rollout's on-policy repair "
+                                       "(physcene.train.denoise); a rewritten token weighs like a GRPO "
+                                       "token of advantage `denoise`; 0 = off."})
+    denoise_margin_cm: float = field(
+        default=1.0, metadata={"help": "Clearance (cm) the denoising repair keeps around a blamed "
+                                       "table-level object."})
+    denoise_decimals: int | None = field(
+        default=None, metadata={"help": "Digits after the point of the denoising targets' rewritten numbers "
+                                        "(the training data's record.decimals); None: each rollout's usual "
+                                        "precision (physcene.ctrc.usual_decimals)."})
+    denoise_tto: list[str] = field(
+        default_factory=lambda: ["lambda_zone=100.0"],
+        metadata={"help": "configs/tto.yaml overrides for the denoising repair (key=value; the zone "
+                          "weighed 10x, train/denoise.py); its device is the reward engine's."})
+
+    def __post_init__(self):
+        # The messages name the YAML key (pada.<field>): the fields are the pada: section's keys.
+        if self.num_iterations < 1:
+            raise ValueError(f"pada.num_iterations must be a positive integer, got {self.num_iterations}")
+        if self.object_credit < 0:
+            raise ValueError(f"pada.object_credit must be >= 0 (advantage per cm of penetration), "
+                             f"got {self.object_credit}")
+        if self.denoise < 0 or self.denoise_margin_cm < 0:
+            raise ValueError(f"pada.denoise and pada.denoise_margin_cm must be >= 0, got {self.denoise}, "
+                             f"{self.denoise_margin_cm}")
+        decimals = self.denoise_decimals
+        whole = isinstance(decimals, int) and not isinstance(decimals, bool)
+        if decimals is not None and not (whole and 0 <= decimals <= MAX_DECIMALS):
+            raise ValueError(f"pada.denoise_decimals must be null or an integer from 0 to {MAX_DECIMALS}, "
+                             f"got {decimals!r}")
+        if self.nonfinite_probe < 0:
+            raise ValueError(f"pada.nonfinite_probe must be >= 0, got {self.nonfinite_probe}")
+        for key, check in (("object_credit_scope", object_credit_scope_checked),
+                           ("object_credit_penetration", penetration_charge_checked)):
+            try:
+                check(getattr(self, key))
+            except ValueError as exc:
+                raise ValueError(f"pada.{key}: {exc}") from None
+        try:
+            self.object_credit_terms = list(object_terms_checked(self.object_credit_terms))
+        except ValueError as exc:
+            raise ValueError(f"pada.object_credit_terms: {exc}") from None
+        self.denoise_tto = [str(x) for x in self.denoise_tto or []]
+        super().__post_init__()
+
+
+def _listed(value) -> list:
+    """A YAML list (an omegaconf ListConfig) or a Python one as a plain list."""
+    return OmegaConf.to_container(value) if OmegaConf.is_config(value) else value
+
+
+def pada_arguments(cfg, variant: str) -> PADAConfig:
+    """The :class:`PADAConfig` of ``cfg.pada`` for ``variant`` (paper stage 2 defaults in the configs)."""
+    if variant not in VARIANTS:
+        raise ValueError(f"unknown PADA variant {variant!r}; use one of {sorted(VARIANTS)}")
+    p = cfg.pada
+    column, numeric_mask = VARIANTS[variant]
+    cache = check_cache(str(p.get("cache", "dynamic")))
+    deepspeed = OmegaConf.to_container(p.deepspeed, resolve=True) if p.deepspeed is not None else None
+    accumulation = accumulation_steps(int(p.global_batch_size), int(p.per_device_batch_size), world_size())
+    generation_batches = int(p.get("generation_batches", 1))
+    if generation_batches < 1:  # a YAML key only: it becomes TRL's steps_per_generation
+        raise ValueError(f"pada.generation_batches must be a positive integer, got {generation_batches}")
+    return PADAConfig(
+        output_dir=str(p.output_dir),
+        anchor_alpha=0.0 if column is None else float(p.alpha),
+        anchor_column=column or "anchor",
+        anchor_numeric_mask=numeric_mask,
+        beta=float(p.beta),
+        num_generations=int(p.num_generations),
+        max_completion_length=int(p.max_completion_length),
+        temperature=float(p.temperature),
+        # TRL passes it to GenerationConfig (HF generate, use_vllm=False); None = HF's dynamic cache
+        cache_implementation=None if cache == "dynamic" else "static",
+        generation_compile=cache == "static_compile",
+        constrained_decoding=bool(p.get("constrained", False)),
+        mask_overruled=bool(p.get("mask_overruled", True)),
+        nonfinite_probe=int(p.get("nonfinite_probe", 0) or 0),
+        object_credit=float(p.get("object_credit", 0.0) or 0.0),
+        object_credit_terms=_listed(p.get("object_credit_terms", ["penetration"])),
+        object_credit_scope=str(p.get("object_credit_scope", "line")),
+        object_credit_penetration=str(p.get("object_credit_penetration", "depth")),
+        denoise=float(p.get("denoise", 0.0) or 0.0),
+        denoise_margin_cm=float(p.get("denoise_margin_cm", 1.0)),
+        denoise_tto=_listed(p.get("denoise_tto", ["lambda_zone=100.0"])) or [],
+        denoise_decimals=p.get("denoise_decimals"),
+        learning_rate=float(p.learning_rate),
+        lr_scheduler_type=str(p.lr_scheduler_type),
+        num_train_epochs=float(p.epochs),
+        max_steps=int(p.max_steps),
+        per_device_train_batch_size=int(p.per_device_batch_size),
+        gradient_accumulation_steps=accumulation,
+        # TRL counts steps_per_generation in micro-batches: one generation round feeds
+        # `generation_batches` optimizer steps of global_batch_size completions each.
+        steps_per_generation=accumulation * generation_batches,
+        num_iterations=int(p.get("num_iterations", 1)),
+        save_steps=int(p.save_steps),
+        save_total_limit=None if p.get("save_total_limit", 2) is None else int(p.save_total_limit),
+        logging_steps=int(p.logging_steps),
+        report_to="none",
+        seed=int(cfg.seed),
+        deepspeed=deepspeed,
+        dataloader_num_workers=0,
+        # TRL turns it on by default; the tiny/small models have memory to spare and run faster without.
+        gradient_checkpointing=bool(p.get("gradient_checkpointing", False)),
+        # Two forwards (GRPO, anchor) feed one backward; every trainable (LoRA) weight is used by
+        # both, so DDP needs no unused-parameter search, which would trip over the second forward.
+        ddp_find_unused_parameters=False,
+        **_precision(cfg),
+    )
