@@ -223,18 +223,16 @@ def _relations(words: list[str], mentions: list[Mention]) -> list[Relation]:
         if not all(w in _LINKERS for w in rest):
             continue
         if head in _IN_WORDS | _ON_WORDS:
-            child, parent, stated = k, k + 1, "in" if head in _IN_WORDS else "on"
+            child, parent = k, k + 1
         elif head == "of" and not rest and CATEGORY_PRIORS[a.categories[0]].role == "container":
-            child, parent, stated = k + 1, k, "in"  # "a bowl of fruit", "a cup of pens"
-        elif head == "with" and rest[-2:] in (["in"], ["on"]):
-            continue
+            child, parent = k + 1, k  # "a bowl of fruit", "a cup of pens"
         else:
             continue
+        # the parent's shape decides the word the scene model uses: a cavity holds (in), a flat
+        # top carries (on); nothing goes in or on an ordinary object (a lamp): read as nearby
         role = CATEGORY_PRIORS[mentions[parent].categories[0]].role
-        relation = "in" if role == "container" else "on"
-        if stated == "in" and role == "object" or stated == "on" and role == "object":
-            continue  # nothing goes in or on a lamp: read as nearby
-        out.append(Relation(child, parent, relation))
+        if role != "object":
+            out.append(Relation(child, parent, "in" if role == "container" else "on"))
     return out
 
 
@@ -283,7 +281,8 @@ def read_instruction(text: str, scene_type: str | None = None) -> Instruction:
         and w not in _SCENE_WORDS and w not in _TYPE_WORDS))
     resolved = stated or _infer_scene_type([m.categories for m in mentions] or [("mug",)])
     return Instruction(text=text, scene_type=resolved, scene_type_stated=stated is not None,
-                       words=tuple(words), mentions=tuple(mentions), relations=tuple(_relations(words, mentions)),
+                       words=tuple(words), mentions=tuple(mentions),
+                       relations=tuple(_relations(words, mentions)),
                        diners=diners, unknown=unknown, only=bool({"only", "just"} & set(words)))
 
 

@@ -61,18 +61,21 @@ class Request:
         return out
 
 
-def _count(mention, instruction: Instruction, rng: np.random.Generator, child: bool) -> int:
+def _count(mention, instruction: Instruction, rng: np.random.Generator, child: bool, shrink: int) -> int:
     if mention.count is not None:
         return mention.count
     if mention.plural or len(mention.categories) > 1:
         if instruction.diners and not child:
             return instruction.diners
-        return int(rng.integers(2, 4)) if child else 2
+        # contents with no number: two or three, fewer after draws that could not seat them all
+        return max(1, int(rng.integers(2, 4)) - shrink) if child else 2
     return 1
 
 
-def plan_request(instruction: Instruction, rng: np.random.Generator, fill: int | None = None) -> Request:
-    """Concrete categories for the instruction's mentions (a choice such as fruit drawn here)."""
+def plan_request(instruction: Instruction, rng: np.random.Generator, fill: int | None = None,
+                 shrink: int = 0) -> Request:
+    """Concrete categories for the instruction's mentions (a choice such as fruit drawn here);
+    ``shrink`` lowers the number of contents the instruction left open."""
     children_of: dict[int, list] = {}
     is_child = set()
     for r in instruction.relations:
@@ -84,13 +87,13 @@ def plan_request(instruction: Instruction, rng: np.random.Generator, fill: int |
         if k in is_child:
             continue
         draw = [m.categories[int(rng.integers(len(m.categories)))] for _ in
-                range(_count(m, instruction, rng, child=False))]
+                range(_count(m, instruction, rng, child=False, shrink=shrink))]
         if k in children_of:
             parent, kids = draw.pop(0), []
             for r in children_of[k]:
                 cm = instruction.mentions[r.child]
                 kids += [(r.relation, cm.categories[int(rng.integers(len(cm.categories)))])
-                         for _ in range(_count(cm, instruction, rng, child=True))]
+                         for _ in range(_count(cm, instruction, rng, child=True, shrink=shrink))]
             groups.append((parent, tuple(kids)))
         singles += draw
     named = len(singles) + sum(1 + len(c) for _, c in groups)
@@ -134,8 +137,8 @@ def procedural_scene(instruction: Instruction, rng: np.random.Generator, *, fill
     """A clean layout holding every object and relation ``instruction`` names (see the module
     docstring); raises :class:`GenerationError` naming what did not fit after ``tries`` draws."""
     last: list[str] = []
-    for _ in range(tries):
-        request = plan_request(instruction, rng, fill)
+    for attempt in range(tries):
+        request = plan_request(instruction, rng, fill, shrink=3 * attempt // tries)
         spec = _spec(instruction, request)
         try:
             scene = synthesize_layout(spec, request.n_objects, level_of(request.n_objects), rng)
