@@ -38,6 +38,8 @@ def add_arguments(parser) -> None:
                         help="also write simulator files in this format (repeatable)")
     parser.add_argument("--scene-type", help="table type, when the instruction does not name it")
     parser.add_argument("--endpoint-model", default="default", help="model name sent to an endpoint")
+    parser.add_argument("--max-new-tokens", type=int, default=4096,
+                        help="model:PATH: the longest completion, in tokens (default 4096)")
     parser.add_argument("--device", default="cpu", help="physics/TTO/model device: cpu (default), cuda")
     parser.add_argument("--no-render", action="store_true", help="skip the PNG renders")
     parser.add_argument("--json", action="store_true", help="print generate.json's content")
@@ -65,7 +67,7 @@ def run(args) -> int:
     result = generate(args.instruction, generator=args.generator, n=args.n, seed=args.seed,
                       repair=args.repair, out=args.output, export=args.export, render=not args.no_render,
                       scene_type=args.scene_type, device=args.device, endpoint_model=args.endpoint_model,
-                      progress=not args.quiet)
+                      max_new_tokens=args.max_new_tokens, progress=not args.quiet)
     reading = result.instruction
     if args.json:
         print(json.dumps(result.summary(), indent=1))

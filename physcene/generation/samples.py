@@ -107,7 +107,8 @@ def _check_generator(generator: str) -> str:
 
 
 def _layouts(instruction: Instruction, plans: list[Scene], generator: str, *, seed: int, progress: bool,
-             endpoint_model: str, device: str | None) -> list[tuple[Scene | ParseError, str | None]]:
+             endpoint_model: str, device: str | None,
+             max_new_tokens: int) -> list[tuple[Scene | ParseError, str | None]]:
     """(layout or ParseError, the generator's own text) per plan."""
     if generator == "procedural":
         return [(p, None) for p in plans]
@@ -117,7 +118,8 @@ def _layouts(instruction: Instruction, plans: list[Scene], generator: str, *, se
     else:
         prompts = [build_prompt(instruction.text, instruction.scene_type, p.zone, p.objects,
                                 restricted_zones=p.restricted_zones) for p in plans]
-        texts = model_completions(generator[6:], prompts, seed=seed, device=device, progress=progress)
+        texts = model_completions(generator[6:], prompts, seed=seed, device=device, progress=progress,
+                                  max_new_tokens=max_new_tokens)
     out = []
     for plan, text in zip(plans, texts):
         scene = parse(text, zone=plan.zone, scene_type=instruction.scene_type, instruction=instruction.text)
@@ -159,14 +161,15 @@ def _write_sample(sample: Sample, folder: Path, export: Sequence[str], render: b
 def generate(instruction: str, *, generator: str = "procedural", n: int = 1, seed: int = 0,
              repair: bool = False, out=None, export: Sequence[str] | str = (), render: bool = True,
              scene_type: str | None = None, device: str = "cpu", endpoint_model: str = "default",
-             progress: bool = False) -> Generation:
+             max_new_tokens: int = 4096, progress: bool = False) -> Generation:
     """``n`` layouts for ``instruction`` (see the module docstring), checked by the physics engine,
     repaired by TTO with ``repair``; files are written under ``out`` when it is given (renders with
     ``render``, simulator files for each format of ``export``: mjcf, urdf, glb).
 
     ``generator``: ``procedural`` (offline), ``endpoint:URL`` (OpenAI-compatible chat server,
     key in ``$PHYSCENE_GENERATOR_API_KEY``, model name ``endpoint_model``) or ``model:PATH``.
-    ``scene_type`` overrides the one the instruction names. Raises :class:`GenerationError` (a
+    ``max_new_tokens`` bounds a model's completion; ``scene_type`` overrides the one the instruction
+    names. Raises :class:`GenerationError` (a
     ``ValueError``) when the generator cannot run or nothing could be fitted.
     """
     if isinstance(n, bool) or not isinstance(n, int) or n < 1:
@@ -181,7 +184,8 @@ def generate(instruction: str, *, generator: str = "procedural", n: int = 1, see
     plans = [procedural_scene(reading, np.random.default_rng([seed, k])) for k in range(n)]
     samples = []
     for k, (layout, text) in enumerate(_layouts(reading, plans, generator, seed=seed, progress=progress,
-                                                 endpoint_model=endpoint_model, device=device)):
+                                                 endpoint_model=endpoint_model, device=device,
+                                                 max_new_tokens=max_new_tokens)):
         if isinstance(layout, ParseError):
             error = f"the {generator} output did not parse: {layout.reason}"
             samples.append(Sample(k, None, reply=text, error=error))
