@@ -42,7 +42,8 @@ def test_counts(text, word, count):
 ])
 def test_stated_relations(text, child, relation, parent):
     reading = read_instruction(text)
-    got = [(reading.mentions[r.child].word, r.relation, reading.mentions[r.parent].word) for r in reading.relations]
+    got = [(reading.mentions[r.child].word, r.relation, reading.mentions[r.parent].word)
+           for r in reading.relations]
     assert got == [(child, relation, parent)]
 
 
