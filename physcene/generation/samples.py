@@ -79,10 +79,15 @@ class Generation:
     """What :func:`generate` returns: the reading of the instruction and the samples (iterable)."""
 
     instruction: Instruction
+    """The reading of the instruction (scene type, objects, relations, words not understood)."""
     generator: str
+    """``procedural``, ``endpoint:URL`` or ``model:PATH``."""
     seed: int
+    """The seed sample ``k`` drew its plan from (``numpy`` generator seeded ``[seed, k]``)."""
     samples: list[Sample]
+    """One per requested sample, in order."""
     out: Path | None = None
+    """Where the files went (None: nothing written)."""
 
     def __iter__(self):
         return iter(self.samples)

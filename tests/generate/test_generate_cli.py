@@ -58,7 +58,7 @@ def test_the_dining_layouts_hold_what_was_asked_and_are_collision_free(dining):
 
 def test_json_prints_the_summary(tmp_path, capsys):
     code = main(["generate", "a lamp and a clock on a nightstand, shiny", "-o", str(tmp_path), "--json",
-                 "--no-render", "--quiet", "--seed", "3"])
+                 "--no-render", "--quiet", "--seed", "3", "--export", "glb"])
     captured = capsys.readouterr()
     summary = json.loads(captured.out)
     assert code == 0 and summary["reading"]["scene_type"] == "nightstand" and summary["seed"] == 3
@@ -66,6 +66,8 @@ def test_json_prints_the_summary(tmp_path, capsys):
     objects = summary["samples"][0]["objects"]
     assert any("_lamp_" in i for i in objects) and any("_clock_" in i for i in objects)
     assert not (tmp_path / "sample_0" / "front.png").exists()
+    assert (tmp_path / "sample_0" / "export" / "glb" / "scene.glb").read_bytes()[:4] == b"glTF"
+    assert summary["samples"][0]["files"]["export_glb"].endswith("scene.glb")
 
 
 @pytest.mark.parametrize("argv, message", [
