@@ -11,7 +11,7 @@ from physcene.eval.render import _category_color, render_image, render_views
 from physcene.layout import read_layout
 from physcene.scene import Scene, SceneObject, Zone
 
-EXAMPLE = Path(__file__).resolve().parents[1] / "examples" / "office_table.layout.json"
+EXAMPLE = Path(__file__).resolve().parents[2] / "examples" / "office_table.layout.json"
 
 
 def _two_boxes(front_first: bool = True) -> Scene:
