@@ -182,7 +182,7 @@ class SceneViewer:
         cx, cy = (CM * v for v in zone.center)
         span = CM * max(zone.width, zone.depth)
         self.server.initial_camera.look_at = (cx, cy, 0.0)
-        self.server.initial_camera.position = (cx, cy - 0.9 * span, 0.6 * span)
+        self.server.initial_camera.position = (cx, cy - 1.1 * span, 0.75 * span)
 
     @staticmethod
     def _markdown(label: str, variant: str, found: SceneFindings) -> str:
