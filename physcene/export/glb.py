@@ -8,10 +8,10 @@ import trimesh
 
 from physcene.export.models import (
     ExportConfig,
-    _color,
     _pose_matrix,
     _write_atomic,
     build_models,
+    category_color,
     table_box,
 )
 from physcene.scene import Scene
@@ -30,7 +30,7 @@ def glb_scene(scene: Scene, *, library=None, config: ExportConfig | None = None)
                      transform=trimesh.transformations.translation_matrix(centre))
     for model in build_models(scene, library=library, config=config):
         mesh = model.visual.copy()
-        mesh.visual.face_colors = _color(model.category)
+        mesh.visual.face_colors = category_color(model.category)
         mesh.metadata["category"] = model.category
         out.add_geometry(mesh, node_name=model.instance_id, geom_name=model.name,
                          transform=_pose_matrix(model))

@@ -9,11 +9,11 @@ from pathlib import Path
 from physcene.export.models import (
     ExportConfig,
     ObjectModel,
-    _color,
     _fmt,
     _obj_bytes,
     _write_atomic,
     build_models,
+    category_color,
     table_box,
 )
 from physcene.scene import Scene
@@ -64,7 +64,7 @@ def mjcf_document(scene: Scene, *, library=None, config: ExportConfig | None = N
         i = model.inertia
         ET.SubElement(body, "inertial", pos=_fmt(model.center_of_mass), mass=_fmt([model.mass]),
                       fullinertia=_fmt([i[0, 0], i[1, 1], i[2, 2], i[0, 1], i[0, 2], i[1, 2]]))
-        r, g, b, _ = _color(model.category)
+        r, g, b, _ = category_color(model.category)
         ET.SubElement(body, "geom", {"class": "visual", "type": "mesh", "mesh": f"{model.name}_visual",
                                      "rgba": _fmt([r / 255, g / 255, b / 255, 1.0])})
         for k, shape in enumerate(model.collision):

@@ -22,8 +22,8 @@ from physcene.config import ConfigError, load_config
 from physcene.export.decompose import convex_parts
 from physcene.scene import Scene, SceneObject
 
-__all__ = ["CM", "CollisionShape", "ExportConfig", "ExportError", "ObjectModel", "build_models", "table_box",
-           "visual_meshes"]
+__all__ = ["CM", "CollisionShape", "ExportConfig", "ExportError", "ObjectModel", "build_models",
+           "category_color", "table_box", "visual_meshes"]
 
 CM = 0.01  # metres per centimetre
 
@@ -242,7 +242,8 @@ def _pose_matrix(model: ObjectModel) -> np.ndarray:
     return m
 
 
-def _color(category: str) -> list[int]:
+def category_color(category: str) -> list[int]:
+    """A fixed RGBA colour (0-255) per category: the same in every export and in the viewer."""
     h = int(hashlib.md5(category.encode()).hexdigest()[:6], 16)
     return [80 + (h & 0x7F), 80 + ((h >> 8) & 0x7F), 80 + ((h >> 16) & 0x7F), 255]
 

@@ -14,11 +14,11 @@ from physcene.export.models import (
     CollisionShape,
     ExportConfig,
     ExportError,
-    _color,
     _fmt,
     _obj_bytes,
     _write_atomic,
     build_models,
+    category_color,
     table_box,
 )
 from physcene.scene import Scene
@@ -96,7 +96,7 @@ def export_urdf(scene: Scene, out_dir, *, library=None, config: ExportConfig | N
             else:
                 _write_atomic(folder / f"collision_{k}.obj", _obj_bytes(shape.mesh))
                 shapes.append((shape, f"collision_{k}.obj"))
-        rgba = [c / 255 for c in _color(model.category)]
+        rgba = [c / 255 for c in category_color(model.category)]
         urdf = _urdf_robot(model.name, model.name, model.mass, model.center_of_mass, model.inertia,
                            "visual.obj", shapes, rgba)
         _write_atomic(folder / f"{model.name}.urdf", urdf.encode())

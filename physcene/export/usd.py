@@ -20,7 +20,14 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
-from physcene.export.models import ExportConfig, ExportError, ObjectModel, _color, build_models, table_box
+from physcene.export.models import (
+    ExportConfig,
+    ExportError,
+    ObjectModel,
+    build_models,
+    category_color,
+    table_box,
+)
 from physcene.scene import Scene
 
 __all__ = ["export_usd", "usd_stage"]
@@ -96,7 +103,7 @@ def usd_stage(scene: Scene, *, library=None, config: ExportConfig | None = None,
         mass.CreateDiagonalInertiaAttr(Gf.Vec3f(*map(float, moments)))
         mass.CreatePrincipalAxesAttr(Gf.Quatf(*map(float, axes)))
         visual = _mesh(UsdGeom, Vt, Gf, stage, f"{root}/visual", model.visual)
-        r, g, b, _ = _color(model.category)
+        r, g, b, _ = category_color(model.category)
         visual.CreateDisplayColorAttr([Gf.Vec3f(r / 255, g / 255, b / 255)])
         UsdGeom.Scope.Define(stage, f"{root}/collision")
         for k, shape in enumerate(model.collision):

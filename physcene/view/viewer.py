@@ -14,7 +14,7 @@ from collections.abc import Sequence
 import numpy as np
 import viser
 
-from physcene.export.models import CM, ExportConfig, _color, table_box, visual_meshes
+from physcene.export.models import CM, ExportConfig, category_color, table_box, visual_meshes
 from physcene.scene import Scene
 from physcene.view.findings import RELATIONS, SceneFindings, find
 from physcene.view.sources import ViewItem
@@ -143,7 +143,7 @@ class SceneViewer:
         floating = set(found.floating)
         centres = {}
         for obj, name, _, mesh in visual_meshes(scene, library=self.library):
-            colour = tuple(_color(obj.category)[:3])
+            colour = tuple(category_color(obj.category)[:3])
             if obj.instance_id in in_pair:
                 colour = PAIR_RGB
             elif obj.instance_id in floating:
