@@ -366,5 +366,6 @@ def run_evaluation(cfg, *, command: str = "", title: str = "physcene evaluation"
                                       "generators": specs, "repair": bool(cfg.repair),
                                       "methods": methods})
     tables = {k: {kk: vv for kk, vv in v.items() if kk != "scenes"} for k, v in methods.items()}
-    path = write_report(out, tables, title=title, command=command, renders=renders)
+    path = write_report(out, tables, title=title, command=command, renders=renders,
+                        labels=bool(cfg.get("render_labels", False)))
     return tables, path

@@ -21,6 +21,7 @@ import hashlib
 import io
 import math
 import warnings
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 
 import numpy as np
@@ -28,7 +29,7 @@ import trimesh
 
 from physcene.scene import Scene
 
-__all__ = ["VIEWS", "png_bytes", "render_image", "render_views", "scene_meshes"]
+__all__ = ["VIEWS", "png_bytes", "render_comparison", "render_image", "render_views", "scene_meshes"]
 
 VIEWS = {"front": (0.0, -1.0, 0.6), "perspective": (-0.7, -0.7, 0.7), "top": (0.0, -0.05, 1.0)}
 _FOV_DEG = 40.0
@@ -225,9 +226,13 @@ def _shadow_mask(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray, li
 
 
 def render_image(scene: Scene, view: str | tuple = "perspective", size: tuple[int, int] = (640, 480),
-                 library=None, shadows: bool = True, supersample: int = 2) -> np.ndarray:
+                 library=None, shadows: bool = True, supersample: int = 2, labels: bool = False,
+                 pairs: Sequence[tuple[str, str, float]] = ()) -> np.ndarray:
     """One view of ``scene`` as an (H, W, 3) uint8 image. ``view`` is a name of :data:`VIEWS` or a
-    direction (x, y, z) from the scene toward the camera; ``size`` is (width, height) px."""
+    direction (x, y, z) from the scene toward the camera; ``size`` is (width, height) px.
+
+    ``labels`` writes each object's instance id above it; ``pairs`` (id a, id b, depth cm), e.g. the
+    engine's ``Score.pairs``, are drawn as red lines between the two objects with the depth on them."""
     if isinstance(view, str) and view not in VIEWS:
         raise ValueError(f"unknown view {view!r}; known: {sorted(VIEWS)}")
     direction = VIEWS[view] if isinstance(view, str) else view
@@ -277,7 +282,95 @@ def render_image(scene: Scene, view: str | tuple = "perspective", size: tuple[in
     if supersample > 1:
         img = img.reshape(height // supersample, supersample, width // supersample, supersample, 3)
         img = img.mean(axis=(1, 3)).round().astype(np.uint8)
+    if labels or pairs:
+        def project(points: np.ndarray) -> np.ndarray:  # world cm -> output pixels
+            rel = np.atleast_2d(points) - eye
+            c = np.stack([rel @ right, rel @ up, np.maximum(rel @ forward, 1e-6)], axis=1)
+            px = np.stack([0.5 * width + fpx * c[:, 0] / c[:, 2], 0.5 * height - fpx * c[:, 1] / c[:, 2]], 1)
+            return px / supersample
+
+        img = _annotate(img, scene, project, labels, pairs)
     return img
+
+
+def _font(size: int):
+    from PIL import ImageFont
+
+    return ImageFont.load_default(size=size)
+
+
+def _annotate(img: np.ndarray, scene: Scene, project, labels: bool, pairs) -> np.ndarray:
+    """Object ids above the objects and penetrating pairs with their depth, drawn with PIL."""
+    from PIL import Image, ImageDraw
+
+    out = Image.fromarray(img).convert("RGBA")
+    layer = Image.new("RGBA", out.size, (0, 0, 0, 0))
+    draw = ImageDraw.Draw(layer)
+    font = _font(max(11, img.shape[0] // 40))
+    by_id = scene.by_id()
+    centre = {o.instance_id: np.asarray(o.center, dtype=np.float64) for o in scene.objects}
+
+    def tag(xy, text: str, fill, ink) -> None:
+        box = draw.textbbox((0, 0), text, font=font)
+        w, h = box[2] - box[0], box[3] - box[1]
+        x, y = float(xy[0]) - w / 2, float(xy[1]) - h - 4
+        draw.rounded_rectangle((x - 3, y - 2, x + w + 3, y + h + 4), radius=3, fill=fill)
+        draw.text((x - box[0], y - box[1]), text, font=font, fill=ink)
+
+    # labels first: a pair's depth is drawn over any label it meets
+    if labels:
+        for oid, o in by_id.items():
+            top = centre[oid] + np.array([0.0, 0.0, 0.5 * o.size[2]])
+            tag(project(top)[0], oid, (255, 255, 255, 200), (20, 20, 20, 255))
+    for a, b, depth in pairs:
+        if a not in centre or b not in centre:
+            continue
+        ends = project(np.stack([centre[a], centre[b]]))
+        width = max(2, img.shape[0] // 240)
+        draw.line([tuple(ends[0]), tuple(ends[1])], fill=(220, 30, 30, 255), width=width)
+        text = f"{depth:.2f} cm" if depth >= 0.005 else "< 0.01 cm"
+        tag(ends.mean(0), text, (220, 30, 30, 230), (255, 255, 255, 255))
+    return np.asarray(Image.alpha_composite(out, layer).convert("RGB"))
+
+
+def render_comparison(scenes: Mapping[str, Scene], view: str | tuple = "perspective",
+                      size: tuple[int, int] = (800, 600), labels: bool = False,
+                      pairs: Mapping[str, Sequence[tuple[str, str, float]]] | None = None,
+                      library=None) -> np.ndarray:
+    """Variants of one scene side by side (reference vs TTO, generator A vs B): one ``size`` panel
+    per entry of ``scenes``, titled with its name, its penetrating pairs and the deepest one, the
+    pairs drawn with their depth. ``pairs`` per name; scored with a CPU engine when not given."""
+    from PIL import Image, ImageDraw
+
+    if not scenes:
+        raise ValueError("render_comparison needs at least one scene")
+    if pairs is None:
+        from physcene.physics import PhysicsEngine  # Warp: loaded only when depths are asked for
+
+        score = PhysicsEngine(device="cpu").score(list(scenes.values()))
+        pairs = {}
+        for k, (name, scene) in enumerate(scenes.items()):
+            ids = scene.ids()
+            pairs[name] = [(ids[i], ids[j], float(d)) for i, j, d in score.pairs[k]]
+    font_px = max(14, size[1] // 28)
+    font = _font(font_px)
+    title_h, gap = 2 * font_px + 16, 8
+    sheet = Image.new("RGB", (len(scenes) * size[0] + (len(scenes) - 1) * gap, size[1] + title_h), "white")
+    for k, (name, scene) in enumerate(scenes.items()):
+        found = sorted(pairs.get(name, ()), key=lambda p: -p[2])
+        panel = render_image(scene, view, size=size, library=library, labels=labels, pairs=found)
+        x = k * (size[0] + gap)
+        sheet.paste(Image.fromarray(panel), (x, title_h))
+        # each title on its own strip: a long one is cut at its panel's edge, never runs into the next
+        title = Image.new("RGB", (size[0], title_h), "white")
+        draw = ImageDraw.Draw(title)
+        plural = "s" if len(found) > 1 else ""
+        verdict = (f"{len(found)} penetrating pair{plural}, deepest {found[0][2]:.2f} cm" if found
+                   else "no penetrating pair")
+        draw.text((8, 4), name, font=font, fill=(20, 20, 20))
+        draw.text((8, 8 + font_px), verdict, font=font, fill=(200, 30, 30) if found else (30, 130, 60))
+        sheet.paste(title, (x, 0))
+    return np.asarray(sheet)
 
 
 def png_bytes(image: np.ndarray) -> bytes:
@@ -290,13 +383,14 @@ def png_bytes(image: np.ndarray) -> bytes:
 
 
 def render_views(scene: Scene, out_dir, views=("front", "perspective"), size: tuple[int, int] = (640, 480),
-                 prefix: str = "", library=None) -> dict[str, Path]:
-    """Write ``<prefix><view>.png`` for each view into ``out_dir``; returns view -> path."""
+                 prefix: str = "", library=None, labels: bool = False) -> dict[str, Path]:
+    """Write ``<prefix><view>.png`` for each view into ``out_dir`` (object ids written on them with
+    ``labels``); returns view -> path."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     paths = {}
     for view in views:
         path = out / f"{prefix}{view}.png"
-        path.write_bytes(png_bytes(render_image(scene, view, size=size, library=library)))
+        path.write_bytes(png_bytes(render_image(scene, view, size=size, library=library, labels=labels)))
         paths[view] = path
     return paths

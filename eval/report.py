@@ -9,13 +9,16 @@ robustness, diversity), plots (QPR vs difficulty level, per-type radar) and the 
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 
 from physcene.eval.metrics import CRITERIA, DIFFICULTY_LEVELS, QPR_TAUS, THRESHOLDS_CM
+from physcene.eval.render import png_bytes, render_comparison
 
-__all__ = ["diversity_table", "level_table", "main_table", "plot_qpr_by_level", "plot_type_radar",
-           "threshold_table", "type_table", "write_report"]
+from physcene.layout import read_layout
+
+__all__ = ["diversity_table", "level_table", "main_table", "method_slug", "plot_qpr_by_level",
+           "plot_type_radar", "threshold_table", "type_table", "write_comparisons", "write_report"]
 
 
 def _pct(x, digits: int = 1) -> str:
@@ -162,9 +165,38 @@ def plot_type_radar(methods: Mapping[str, Mapping], path: Path) -> Path:
     return path
 
 
+def method_slug(name: str) -> str:
+    """The folder name of a method's layouts and renders (``Reference + TTO`` -> ``reference_tto``)."""
+    return name.lower().replace(" + ", "_").replace(" ", "_").replace("(", "").replace(")", "")
+
+
+def write_comparisons(out_dir, scene_ids: Sequence[str], method_names: Sequence[str], *, labels: bool = False,
+                      size: tuple[int, int] = (800, 600), view: str = "perspective") -> dict[str, str]:
+    """``renders/compare/<id>.png``: the methods' layouts of each scene side by side with their
+    penetrating pairs' depths (:func:`physcene.eval.render.render_comparison`), read from
+    ``layouts/<method>/<id>.json`` (``save_layouts``). Returns id -> path relative to ``out_dir``;
+    scenes without saved layouts are left out."""
+    out = Path(out_dir)
+    sheets = {}
+    for scene_id in scene_ids:
+        found = {name: out / "layouts" / method_slug(name) / f"{scene_id}.json" for name in method_names}
+        scenes = {name: read_layout(p) for name, p in found.items() if p.is_file()}
+        if not scenes:
+            continue
+        path = out / "renders" / "compare" / f"{scene_id}.png"
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_bytes(png_bytes(render_comparison(scenes, view, size=size, labels=labels)))
+        sheets[scene_id] = str(path.relative_to(out))
+    return sheets
+
+
 def write_report(out_dir, methods: Mapping[str, Mapping], *, title: str, command: str = "",
-                 renders: Mapping[str, Mapping[str, str]] | None = None) -> Path:
-    """report.md (all tables, plots, renders) + qpr_by_level.png + qpr_by_type_radar.png."""
+                 renders: Mapping[str, Mapping[str, str]] | None = None, labels: bool = False,
+                 comparison_size: tuple[int, int] = (800, 600)) -> Path:
+    """report.md (all tables, plots, renders) + qpr_by_level.png + qpr_by_type_radar.png.
+
+    With ``renders`` and the methods' saved layouts, each rendered scene also gets a comparison
+    sheet (:func:`write_comparisons`, panels of ``comparison_size`` px, object ids with ``labels``)."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     plot_qpr_by_level(methods, out / "qpr_by_level.png")
@@ -183,8 +215,14 @@ def write_report(out_dir, methods: Mapping[str, Mapping], *, title: str, command
               "## Diversity", "", diversity_table(methods), ""]
     if renders:
         parts += ["## Renders", ""]
+        sheets = write_comparisons(out, list(renders), list(methods), labels=labels, size=comparison_size)
+        if sheets:
+            parts += ["Each method's layout of a scene side by side; red: penetrating pairs with their "
+                      "depth (cm).", ""]
         for scene_id, views in renders.items():
             parts.append(f"**{scene_id}**  ")
+            if scene_id in sheets:
+                parts += [f"![{scene_id}: methods side by side]({sheets[scene_id]})", ""]
             parts.append(" ".join(f"![{label}]({p})" for label, p in views.items()))
             parts.append("")
     path = out / "report.md"

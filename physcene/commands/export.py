@@ -3,7 +3,9 @@
     physcene export scene/layout.json --format mjcf -o out/      # out/scene.xml + out/meshes/*.obj
     physcene export scene/layout.json --format urdf -o out/      # out/scene.json + one URDF per object
     physcene export scene/layout.json --format glb -o out/       # out/scene.glb (with the table)
-    physcene export data.jsonl:3 --format all -o out/            # record 3 (1-based line) of a JSONL file
+    physcene export scene/layout.json --format sceneeval -o out/ # out/scene_state.json + out/assets/*.glb
+    physcene export scene/layout.json --format usd -o out/       # out/scene.usda (needs the [usd] extra)
+    physcene export data.jsonl:3 --format all -o out/            # record 3 (1-based line): glb, mjcf, urdf
 
 ``key=value`` overrides go to ``configs/export.yaml`` (densities, decomposition, solver settings).
 """
@@ -12,17 +14,18 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from physcene.export import FORMATS, ExportConfig, ExportError, export
+from physcene.export import FORMATS, SIMULATOR_FORMATS, ExportConfig, ExportError, export
 
 NAME = "export"
-HELP = "Export a layout to GLB, MJCF (MuJoCo) or URDF + scene.json (SAPIEN/ManiSkill), in metres"
+HELP = ("Export a layout to GLB, MJCF (MuJoCo), URDF + scene.json (SAPIEN/ManiSkill), SceneEval's scene "
+        "state or USD (Isaac Sim), in metres")
 
 
 def add_arguments(parser) -> None:
     parser.add_argument("layout", help="a MesaTask layout.json, or FILE.jsonl:LINE for one record "
                                        "of a dataset")
     parser.add_argument("--format", dest="formats", required=True, choices=[*FORMATS, "all"],
-                        action="append", help="output format (repeatable; 'all' for every one)")
+                        action="append", help="output format (repeatable; 'all' for glb, mjcf and urdf)")
     parser.add_argument("-o", "--output", required=True, metavar="DIR", help="output folder")
 
 
@@ -37,7 +40,7 @@ def run(args) -> int:
     if error is not None:
         raise ExportError(error)
     config = ExportConfig.load(args.overrides)
-    formats = FORMATS if "all" in args.formats else tuple(dict.fromkeys(args.formats))
+    formats = SIMULATOR_FORMATS if "all" in args.formats else tuple(dict.fromkeys(args.formats))
     out = Path(args.output)
     for fmt in formats:
         # Each format in its own folder when several are asked for: their mesh files differ.

@@ -11,7 +11,7 @@ from physcene.eval.render import _category_color, render_image, render_views
 from physcene.layout import read_layout
 from physcene.scene import Scene, SceneObject, Zone
 
-EXAMPLE = Path(__file__).resolve().parents[1] / "examples" / "office_table.layout.json"
+EXAMPLE = Path(__file__).resolve().parents[2] / "examples" / "office_table.layout.json"
 
 
 def _two_boxes(front_first: bool = True) -> Scene:
@@ -77,3 +77,47 @@ def test_heuristic_placer_packs_without_overlap_or_semantics():
     # A zone too small for everything: objects that do not fit are dropped, never overlapped.
     tiny = ref.__class__(Zone(0, 40, 0, 30), ref.objects, ref.scene_type)
     assert 0 < len(heuristic_place(tiny)) < len(ref)
+
+
+def test_labels_and_pair_depths_are_written_on_the_render():
+    scene = read_layout(EXAMPLE)
+    plain = render_image(scene, "perspective", size=(320, 240), shadows=False)
+    labelled = render_image(scene, "perspective", size=(320, 240), shadows=False, labels=True)
+    assert labelled.shape == plain.shape
+    changed = np.abs(labelled.astype(int) - plain.astype(int)).sum(axis=2) > 60
+    assert 0.005 < changed.mean() < 0.5  # the id tags cover some of the image, not all of it
+    pair = render_image(scene, "perspective", size=(320, 240), shadows=False,
+                        pairs=[("4_pen_holder_0", "9_desk_lamp_0", 1.5)])
+    red = (pair[..., 0].astype(int) - pair[..., 1] > 120) & (pair[..., 0] > 180)
+    plain_red = (plain[..., 0].astype(int) - plain[..., 1] > 120) & (plain[..., 0] > 180)
+    assert red.sum() > 50 and not plain_red.any()
+
+
+def test_the_comparison_sheet_sets_variants_side_by_side_with_their_depths():
+    from physcene.eval.render import render_comparison
+
+    scene = read_layout(EXAMPLE)
+    pairs = {"reference": [("4_pen_holder_0", "5_pen_0", 0.4)], "reference + TTO": []}
+    sheet = render_comparison({"reference": scene, "reference + TTO": scene}, size=(200, 150), pairs=pairs)
+    assert sheet.shape[1] == 2 * 200 + 8 and sheet.shape[0] > 150
+    title_h = sheet.shape[0] - 150
+    left, right = sheet[title_h:, :200], sheet[title_h:, 208:]
+    assert np.abs(left.astype(int) - right.astype(int)).sum() > 0  # only the left one draws a pair
+    # the titles: red for the variant with a pair, green for the clean one
+    is_red = lambda t: ((t[..., 0].astype(int) - t[..., 1]) > 100).any()  # noqa: E731
+    assert is_red(sheet[:title_h, :200]) and not is_red(sheet[:title_h, 208:])
+
+
+def test_the_report_shows_a_comparison_sheet_per_rendered_scene(tmp_path):
+    from physcene.eval.report import method_slug, write_comparisons
+
+    from physcene.layout import write_layout
+
+    scene = read_layout(EXAMPLE)
+    for name in ("Reference", "Reference + TTO"):
+        write_layout(scene, tmp_path / "layouts" / method_slug(name) / "s1.json")
+    assert method_slug("Reference + TTO") == "reference_tto"
+    sheets = write_comparisons(tmp_path, ["s1", "s2"], ["Reference", "Reference + TTO"], size=(160, 120))
+    assert list(sheets) == ["s1"]  # s2 has no saved layout
+    png = tmp_path / sheets["s1"]
+    assert png.read_bytes()[:4] == b"\x89PNG"

@@ -96,7 +96,7 @@ def test_collision_parts_keep_the_cavity_hollow(models):
 def test_decomposition_is_cached_on_disk(export_config, monkeypatch):
     import coacd
 
-    import physcene.export as export_module
+    import physcene.export.decompose as export_module
 
     mesh = default_library().resolve("cup").asset.mesh
     first = convex_parts(mesh, export_config.decomposition)
@@ -198,7 +198,7 @@ def test_bad_input_is_named():
 
 def test_a_crashing_decomposition_does_not_kill_the_export(tmp_path, monkeypatch):
     """CoACD aborts the process on some meshes; the export survives and falls back to the hull."""
-    import physcene.export as export_module
+    import physcene.export.decompose as export_module
 
     # the child aborts, as CoACD's C++ std::logic_error does to its process
     monkeypatch.setattr(export_module, "_COACD_CHILD", "import os; os.abort()")
