@@ -102,7 +102,7 @@ def repair(scenes: Scene | Sequence[Scene], *, device: str | None = None, overri
 
     one = isinstance(scenes, Scene)
     batch = [scenes] if one else list(scenes)
-    config = TTOConfig.from_config([*overrides, *([f"device={device}"] if device else [])])
+    config = TTOConfig.load([*overrides, *([f"device={device}"] if device else [])])
     results = tto_repair(batch, config, engine if engine is not None else _engine(config.device))
     out = [(r.scene, _plain(r.report)) for r in results]
     return out[0] if one else out

@@ -14,7 +14,7 @@ from collections.abc import Sequence
 
 from tqdm.auto import tqdm
 
-from physcene.eval.judges import post_chat, reply_text
+from physcene.eval.endpoint import post_chat, reply_text
 from physcene.generation.procedural import GenerationError
 
 __all__ = ["API_KEY_ENV", "chat_url", "endpoint_replies"]
