@@ -29,7 +29,7 @@ so the whole sequence can be captured as a graph: ``launch_penetration(graph=Tru
    fixed-order loop over the scene's pairs.
 
 The maths (scale rule for non-uniform sizes, gradient formulas) is in docs/physics.md; the
-float64 torch oracle is physcene/physics_reference.py and must stay the same maths.
+float64 torch oracle is physcene/physics/reference.py and must stay the same maths.
 """
 
 # Warp needs typed constructors (float(0.0), int(0)) for variables a loop modifies.

@@ -140,12 +140,13 @@ def test_tiny_pipeline_end_to_end(tmp_path, one_thread, monkeypatch):
     test = _records(4, seed=1)
     texts = generate(outs["pada"], [r["prompt"] for r in test], max_new_tokens=32, batch_size=4)
     assert len(texts) == 4 and all(isinstance(t, str) for t in texts)
-    rewards = reward([r["prompt"] for r in test], texts)
+    scored = reward.score(texts)
+    rewards = scored.rewards.tolist()
     assert all(r == -100.0 or r == 50.0 or -50.0 <= r < 0.0 for r in rewards)
-    assert 0.0 <= reward.last_metrics["parse_failure_rate"] <= 1.0
+    assert 0.0 <= scored.metrics["parse_failure_rate"] <= 1.0
     # The reference completions score through the same path, and all parse.
-    rewards = reward([r["prompt"] for r in test], [r["completion"] for r in test])
-    assert reward.last_metrics["parse_failure_rate"] == 0.0 and -100.0 not in rewards
+    scored = reward.score([r["completion"] for r in test])
+    assert scored.metrics["parse_failure_rate"] == 0.0 and -100.0 not in scored.rewards.tolist()
 
 
 def test_train_cli_reports_bad_config_in_one_line(capsys):

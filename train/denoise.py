@@ -191,7 +191,7 @@ def denoise_targets(texts: Sequence[str], charges: Sequence, *, config=None, eng
     """Per completion text, its :class:`DenoiseTarget` or None (nothing blamed, not parsed, nothing moved).
 
     ``charges[k]``: the (n_objects,) cm the reward charged each object of ``texts[k]``
-    (:attr:`physcene.reward.PhysicsReward.last_object_depths`), None when it did not parse. Blamed
+    (:attr:`physcene.reward.RewardBatch.placement_charges`), None when it did not parse. Blamed
     table-level objects go to their :func:`free_spot` (in the order written); the blamed objects left
     (``on`` / ``in`` children, table-level ones with no free spot) are repaired in one batched
     :func:`physcene.tto.repair` (``config``: a :class:`~physcene.tto.TTOConfig` on ``engine``'s device),

@@ -28,6 +28,7 @@ SFT output did not parse) contribute no CE.
 
 from __future__ import annotations
 
+import functools
 import json
 import logging
 import re
@@ -42,6 +43,7 @@ from transformers import PreTrainedTokenizerBase, TrainerCallback
 from trl import GRPOConfig, GRPOTrainer
 
 from physcene.ctrc import LAYOUT_HEADER, MAX_DECIMALS
+from physcene.reward.trl import PhysicsRewardFunction
 
 __all__ = [
     "VARIANTS",
@@ -49,7 +51,6 @@ __all__ = [
     "AdaptiveKLCallback",
     "PADAConfig",
     "PADATrainer",
-    "PhysicsRewardFunction",
     "numeric_spans",
     "pada_arguments",
     "padded_targets",
@@ -263,7 +264,7 @@ def object_token_depths(tokenizer: PreTrainedTokenizerBase, completion_ids: torc
     """((B, T) cm charged to each completion token, rows left out).
 
     ``depths[b]``: the (n_objects,) penetration charged to each object of completion b
-    (:attr:`physcene.reward.PhysicsReward.last_object_depths`), None when it did not parse. Every
+    (:attr:`physcene.reward.RewardBatch.object_charges`), None when it did not parse. Every
     token that overlaps the text placing object k (per ``scope``: its plan step and layout line, or
     its geometry numbers; :func:`object_text_spans`) carries ``depths[b][k]`` (a token across two
     objects' text: the larger). A row is left out (all 0) when its tokens decoded one by one do not
@@ -322,20 +323,21 @@ class PADATrainer(GRPOTrainer):
         self.object_credit_scope = str(args.object_credit_scope)
         self.denoise = float(args.denoise)
         self._credit_reward = None
+        self._reward_batch = None  # the RewardBatch of this step's physics reward call (object charges)
         if self.object_credit or self.denoise:
-            from physcene.reward import PhysicsReward, object_terms_checked, penetration_charge_checked
+            from physcene.reward import ChargeConfig, PhysicsReward
 
-            rewards = (getattr(f, "reward", f) for f in self.reward_funcs)
-            found = [r for r in rewards if isinstance(r, PhysicsReward)]
+            rewards = [getattr(f, "reward", f) for f in self.reward_funcs]
+            found = [k for k, r in enumerate(rewards) if isinstance(r, PhysicsReward)]
             if not found:
                 raise ValueError("pada.object_credit and pada.denoise need the physics reward (physcene."
                                  "reward.PhysicsReward) among the reward functions: it charges each "
                                  "object its penetration")
-            self._credit_reward = found[0]
-            self._credit_reward.object_depths = True
-            self._credit_reward.object_terms = object_terms_checked(args.object_credit_terms)
-            charge = penetration_charge_checked(args.object_credit_penetration)
-            self._credit_reward.penetration_charge = charge
+            self._credit_reward = rewards[found[0]]
+            charges = ChargeConfig(terms=args.object_credit_terms, penetration=args.object_credit_penetration)
+            # TRL calls the reward with its own arguments: bind the charges and keep the call's batch
+            self.reward_funcs[found[0]] = functools.partial(self.reward_funcs[found[0]], charges=charges,
+                                                            on_batch=self._keep_reward_batch)
         self._denoise_tto = None
         if self.denoise:
             from dataclasses import replace
@@ -444,6 +446,9 @@ class PADATrainer(GRPOTrainer):
         output.update(padded_targets("anchor", rows, self._tokenizer.pad_token_id, device))
         return output
 
+    def _keep_reward_batch(self, batch) -> None:
+        self._reward_batch = batch
+
     def _credit_objects(self, output: dict) -> None:
         """Per-token advantages (``pada.object_credit``, not in the paper): each token of an object's
         plan step and layout line (``pada.object_credit_scope: line``; ``numbers``: only its geometry
@@ -452,9 +457,9 @@ class PADATrainer(GRPOTrainer):
 
         The sequence reward says a layout collides, not which placement did it; this points the
         gradient at the objects written into occupied space. TRL's loss takes (B, T) advantages
-        from a subclass. The reward's last call scored this rank's completions in this order.
+        from a subclass. The reward batch of this step's call scored this rank's completions in order.
         """
-        depths = self._credit_reward.last_object_depths
+        depths = self._reward_batch.object_charges
         completion_ids = output["completion_ids"]
         if len(depths) != completion_ids.size(0):
             raise ValueError(f"object depths for {len(depths)} completions, "
@@ -485,7 +490,7 @@ class PADATrainer(GRPOTrainer):
         lengths = completion_mask.sum(dim=1).tolist()
         texts = [self._tokenizer.decode(row[:int(n)], skip_special_tokens=True)
                  for row, n in zip(completion_ids.tolist(), lengths)]
-        charges = self._credit_reward.last_placement_depths  # a target moves objects, it does not resize
+        charges = self._reward_batch.placement_charges  # a target moves objects, it does not resize
         if len(charges) != len(texts):
             raise ValueError(f"object charges for {len(charges)} completions, {len(texts)} generated")
         targets = denoise_targets(texts, charges, config=self._denoise_tto, engine=self._credit_reward.engine,
@@ -700,49 +705,6 @@ class AdaptiveKLCallback(TrainerCallback):
             # the entry the Trainer has just appended for these logs
             if state.log_history and state.log_history[-1].get("step") == state.global_step:
                 state.log_history[-1]["beta"] = self.trainer.beta
-
-
-class PhysicsRewardFunction:
-    """TRL reward function: ``physcene.reward.PhysicsReward`` with its engine on this rank's device.
-
-    Each rank scores only its own completions (TRL gathers the rewards afterwards), so on N GPUs the
-    engine runs N-way parallel. After each batch it logs, through the trainer's ``log_metric``:
-    ``time/reward_s`` (this rank's seconds), ``parse_rate``, and over the parsed layouts
-    ``penetration_mm`` (mean E_pen, mm), ``max_depth_mm`` and ``collision_free_rate``; with the
-    reward's size guard ``size_outside_cm``, with its ``valid_terms`` ``invalid_rate`` and
-    ``floating_objects`` / ``shrunk_objects`` (mean per layout).
-    """
-
-    __name__ = "physics"
-
-    def __init__(self, device: str | torch.device = "cpu", reward=None, overrides=()):
-        if reward is None:
-            from dataclasses import replace
-
-            from physcene.reward import PhysicsReward, RewardConfig
-
-            reward = PhysicsReward(replace(RewardConfig.load(list(overrides)), device=str(device)))
-        self.reward = reward
-
-    def __call__(self, prompts, completions, log_metric=None, **columns) -> list[float]:
-        start = time.perf_counter()
-        rewards = self.reward(prompts, completions)
-        seconds = time.perf_counter() - start
-        m = self.reward.last_metrics
-        if log_metric is not None:
-            log_metric("time/reward_s", seconds)
-            log_metric("parse_rate", 1.0 - m["parse_failure_rate"])
-            if m["parse_failure_rate"] < 1.0:  # energy figures exist only for parsed layouts
-                log_metric("penetration_mm", m["mean_energy_mm"])
-                log_metric("max_depth_mm", m["mean_max_depth_mm"])
-                log_metric("collision_free_rate", m["collision_free_rate"])
-                if "mean_size_outside_cm" in m:
-                    log_metric("size_outside_cm", m["mean_size_outside_cm"])
-                if "invalid_rate" in m:  # reward.valid_terms: the share paid `invalid`, objects per term
-                    log_metric("invalid_rate", m["invalid_rate"])
-                    for term in self.reward.config.valid_terms:
-                        log_metric(f"{term}_objects", m[f"mean_{term}_objects"])
-        return rewards
 
 
 def pada_arguments(cfg, variant: str) -> PADAConfig:

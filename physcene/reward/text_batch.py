@@ -1,6 +1,7 @@
 """Completion texts -> the engine's :class:`~physcene.physics.SceneBatch` without Python per object.
 
-The reward's fast path (``PhysicsEngine.pack_texts``). Per call, on the host: one join + encode
+The reward's fast path (:class:`TextPacker`, one per engine: ``TextPacker(engine).pack(texts)``).
+The engine knows nothing of text; this module reads text for it. Per call, on the host: one join + encode
 of all texts, one offsets array, one copy into a staging buffer (pinned on CUDA) and one upload;
 on the device: the compiled CTRC reader of :mod:`physcene.kernels.ctrc_scan` (prescan + scan);
 one device -> host copy of the per-text status; then one small upload (row sources, counts, CSR
@@ -23,6 +24,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from physcene.ctrc import ParseError, parse
 from physcene.kernels.ctrc_scan import (
     CHUNK,
     MAX_ENTRIES,
@@ -33,6 +35,8 @@ from physcene.kernels.ctrc_scan import (
     launch_scan,
     scan_buffers,
 )
+from physcene.physics import PhysicsEngine, SceneBatch
+from physcene.scene import Scene
 
 __all__ = ["STATUS", "TextPack", "TextPacker"]
 
@@ -43,7 +47,7 @@ _UNKNOWN_CATEGORY = -9
 
 @dataclass
 class TextPack:
-    """The result of ``PhysicsEngine.pack_texts(texts)``."""
+    """The result of :meth:`TextPacker.pack`."""
 
     batch: object | None
     """SceneBatch of every completion that parsed (rows in input order), None if none did."""
@@ -94,7 +98,7 @@ class _LazyIds(Sequence):
 class TextPacker:
     """Per-engine state of the fast path: staging/scan buffers and the category table."""
 
-    def __init__(self, engine):
+    def __init__(self, engine: PhysicsEngine):
         self.engine = engine
         self.device = engine.device
         words, starts = keyword_table()
@@ -160,7 +164,7 @@ class TextPacker:
             if key in self._categories:
                 continue  # a 64-bit hash collision with another name: those texts use Python
             name = raw.decode("utf-8", "surrogatepass")
-            slot = self.engine._resolve(name, None)[0]
+            slot = self.engine.resolve(name, None)[0]
             self._categories[key] = (check, slot, name)
             grew = True
         if grew:
@@ -215,11 +219,13 @@ class TextPacker:
         return status.copy(), data
 
     def pack(self, texts: Sequence[str], fallback: Callable | None = None) -> TextPack:
-        """Scan ``texts``; parse the rest with ``fallback`` (default ``ctrc.parse``); one batch."""
-        from physcene.ctrc import ParseError, parse
-        from physcene.physics import SceneBatch
-        from physcene.scene import Scene
+        """Completion texts → a :class:`TextPack` (batch, row per text, errors).
 
+        Canonical CTRC (what ``ctrc.completion_text`` writes, keys in any order) is read by the
+        compiled scanner straight into the batch; every other text goes to ``fallback`` (default
+        :func:`physcene.ctrc.parse`), whose Scenes are packed into the same batch and whose
+        ParseErrors are the texts that do not parse. Rows follow the input order.
+        """
         fallback = fallback or parse
         engine, device = self.engine, self.device
         n = len(texts)
