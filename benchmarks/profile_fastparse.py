@@ -16,7 +16,7 @@ import statistics
 import time
 
 import torch
-from physcene.kernels.ctrc_scan import launch_scan
+from physcene.kernels.ctrc_reader import launch_scan
 from profile_engine import kernel_times
 
 from physcene.assets import AssetLibrary
@@ -24,6 +24,7 @@ from physcene.commands.bench import bench_scenes
 from physcene.ctrc import completion_text
 from physcene.physics import PhysicsEngine
 from physcene.reward import PhysicsReward, RewardConfig, TextPacker
+from physcene.reward.text_batch import READER_LIMITS
 
 
 def wall_ms(fn, device: torch.device, repeat: int) -> float:
@@ -65,7 +66,8 @@ def main() -> None:
 
     def kernels_only():
         launch_scan(text=text_t, offsets=header_t[:n + 1], chunk_start=header_t[n + 1:], n_text=n,
-                    n_chunks=n_chunks, words=packer._words, table=packer._table, buffers=buffers)
+                    n_chunks=n_chunks, words=packer._words, table=packer._table, limits=READER_LIMITS,
+                    buffers=buffers)
 
     reward = PhysicsReward(RewardConfig(device=str(device)), engine=engine)
     batch = pack.batch

@@ -31,11 +31,23 @@ Here, with the same maths and the same per-point code:
 from __future__ import annotations
 
 import warp as wp
-from physcene.kernels.penetration import BUCKETS, boxes_meet, bucket_of, decode_pair, rotate_z, world_phi
+from physcene.kernels.boxes import boxes_meet, rotate_z
+from physcene.kernels.broadphase import decode_pair
+from physcene.kernels.sdf_field import world_phi
 
 wp.set_module_options({"enable_backward": False})
 
-__all__ = ["broadphase_items", "narrowphase_items"]
+__all__ = ["BUCKETS", "broadphase_items", "bucket_of", "narrowphase_buckets", "narrowphase_items"]
+
+# Surface points are sorted into BUCKETS^3 cells of the normalised cube (physics.pack_assets), so
+# the narrowphase reads only the cells that meet the other object's box.
+BUCKETS = wp.constant(4)
+
+
+@wp.func
+def bucket_of(x: float):
+    """The point-bucket index (0..BUCKETS-1) of a normalised coordinate, clamped."""
+    return wp.clamp(int(wp.floor((x + 1.0) * 0.5 * float(BUCKETS))), 0, BUCKETS - 1)
 
 
 @wp.kernel
@@ -177,3 +189,101 @@ def narrowphase_items(
         if with_grad != 0:
             part_gu_out[out] = sum_gu
             part_yaw_out[out] = wp.vec2(yaw_owner, yaw_field)
+
+
+@wp.kernel
+def narrowphase_buckets(
+    pair_a: wp.array(dtype=wp.int32),
+    pair_b: wp.array(dtype=wp.int32),
+    pair_hit: wp.array(dtype=wp.int32),
+    poses: wp.array(dtype=wp.vec4),
+    sizes: wp.array(dtype=wp.vec3),
+    obj_asset: wp.array(dtype=wp.int32),  # (S*N,)
+    sdf: wp.array(dtype=float),  # all grids, flat
+    rays: wp.array(dtype=float),  # (3 * len(sdf),) axis ray distances, 3 per node, interleaved
+    sdf_start: wp.array(dtype=wp.int32),  # (A,)
+    sdf_res: wp.array(dtype=wp.int32),  # (A,)
+    points: wp.array(dtype=wp.vec3),  # all surface points, normalised frames, bucket-sorted
+    pt_bucket: wp.array(dtype=wp.int32),  # (A * (BUCKETS^3 + 1),) first point of each bucket
+    with_grad: int,
+    lanes: int,
+    part_energy_out: wp.array(dtype=float),  # (T*2*lanes,) Σ ReLU(−φ) cm
+    part_depth_out: wp.array(dtype=float),  # (T*2*lanes,) max ReLU(−φ) cm
+    part_gu_out: wp.array(dtype=wp.vec3),  # (T*2*lanes,) Σ ∂φ/∂u, field frame (cm/cm)
+    part_yaw_out: wp.array(dtype=wp.vec2),  # (T*2*lanes,) Σ ∂φ/∂yaw of (owner, field)
+):
+    tid = wp.tid()
+    pair = tid // (2 * lanes)
+    if pair_hit[pair] == 0:
+        return
+    rem = tid - pair * 2 * lanes
+    direction = rem // lanes
+    lane = rem - direction * lanes
+    owner = pair_a[pair]
+    field = pair_b[pair]
+    if direction == 1:
+        owner = pair_b[pair]
+        field = pair_a[pair]
+    po = poses[owner]
+    pf = poses[field]
+    ho = sizes[owner] * 0.5
+    hf = sizes[field] * 0.5
+    ao = obj_asset[owner]
+    af = obj_asset[field]
+    grid0 = sdf_start[af]
+    res = sdf_res[af]
+    # owner-local cm -> field-local cm: u = R(θo − θf) v + R(θf)ᵀ (t_o − t_f)
+    cr = wp.cos(po[3] - pf[3])
+    sr = wp.sin(po[3] - pf[3])
+    cf = wp.cos(pf[3])
+    sf = wp.sin(pf[3])
+    dt = wp.vec3(po[0] - pf[0], po[1] - pf[1], po[2] - pf[2])
+    t_rel = rotate_z(cf, -sf, dt)
+    energy = float(0.0)
+    depth = float(0.0)
+    sum_gu = wp.vec3(0.0, 0.0, 0.0)
+    yaw_owner = float(0.0)
+    yaw_field = float(0.0)
+    # the field's box seen from the owner's normalised frame: only the owner's point buckets that
+    # meet it are read (every point of the other buckets is outside the field's box)
+    co = wp.cos(po[3])
+    so = wp.sin(po[3])
+    d = rotate_z(co, -so, -dt)  # field centre, owner-local cm
+    ca = wp.abs(cr)
+    sa = wp.abs(sr)
+    reach = wp.vec3(ca * hf[0] + sa * hf[1], sa * hf[0] + ca * hf[1], hf[2])
+    lo = wp.cw_div(d - reach, ho)
+    hi = wp.cw_div(d + reach, ho)
+    kx0 = bucket_of(lo[0] - 1.0e-4)
+    kx1 = bucket_of(hi[0] + 1.0e-4)
+    ky0 = bucket_of(lo[1] - 1.0e-4)
+    ky1 = bucket_of(hi[1] + 1.0e-4)
+    kz0 = bucket_of(lo[2] - 1.0e-4)
+    kz1 = bucket_of(hi[2] + 1.0e-4)
+    b0 = ao * (BUCKETS * BUCKETS * BUCKETS + 1)
+    for kx in range(kx0, kx1 + 1):
+        for ky in range(ky0, ky1 + 1):
+            for kz in range(kz0, kz1 + 1):
+                b = b0 + (kx * BUCKETS + ky) * BUCKETS + kz
+                for p in range(pt_bucket[b] + lane, pt_bucket[b + 1], lanes):
+                    pl = points[p]
+                    v = rotate_z(cr, sr, wp.cw_mul(pl, ho))  # owner point, field frame, from owner
+                    u = v + t_rel  # field-local cm
+                    q = wp.cw_div(u, hf)
+                    # a point outside the field's box cannot be inside its shape: no grid read
+                    if wp.max(wp.abs(q[0]), wp.max(wp.abs(q[1]), wp.abs(q[2]))) > 1.0:
+                        continue
+                    phi, gq = world_phi(sdf, rays, grid0, res, q, hf)
+                    if phi < 0.0:
+                        energy += -phi
+                        depth = wp.max(depth, -phi)
+                        if with_grad != 0:
+                            gu = wp.cw_div(gq, hf)  # ∂φ/∂u, field-local cm
+                            sum_gu += gu
+                            yaw_owner += gu[1] * v[0] - gu[0] * v[1]
+                            yaw_field += gu[0] * u[1] - gu[1] * u[0]
+    part_energy_out[tid] = energy
+    part_depth_out[tid] = depth
+    if with_grad != 0:
+        part_gu_out[tid] = sum_gu
+        part_yaw_out[tid] = wp.vec2(yaw_owner, yaw_field)

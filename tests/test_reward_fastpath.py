@@ -1,4 +1,4 @@
-"""The compiled CTRC reader (kernels/ctrc_scan.py, reward.text_batch.TextPacker) against the Python parser.
+"""The compiled CTRC reader (kernels/ctrc_reader/, reward.text_batch.TextPacker) against the Python parser.
 
 The fast path must give the batch ``pack([parse(t)])`` gives and the rewards, metrics and parse
 errors of the pure-Python reward, on real completions, on the fuzz corpus of test_ctrc_fuzz.py
@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 import torch
 from hypothesis import HealthCheck, given, settings
-from physcene.kernels.ctrc_scan import MAX_ENTRIES, category_hash
+from physcene.kernels.ctrc_reader import MAX_ENTRIES, category_hash
 from test_ctrc import layouts
 from test_ctrc_fuzz import ALPHABET, _base_completions, _mutate, _random_json, _split
 

@@ -3,7 +3,7 @@
 The reward's fast path (:class:`TextPacker`, one per engine: ``TextPacker(engine).pack(texts)``).
 The engine knows nothing of text; this module reads text for it. Per call, on the host: one join + encode
 of all texts, one offsets array, one copy into a staging buffer (pinned on CUDA) and one upload;
-on the device: the compiled CTRC reader of :mod:`physcene.kernels.ctrc_scan` (prescan + scan);
+on the device: the compiled CTRC reader of :mod:`physcene.kernels.ctrc_reader` (prescan + scan);
 one device -> host copy of the per-text status; then one small upload (row sources, counts, CSR
 pair offsets) and one gather kernel into the padded batch.
 
@@ -24,11 +24,12 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from physcene.ctrc import ParseError, parse
-from physcene.kernels.ctrc_scan import (
+from physcene.ctrc import MAX_ABS_CM, ON_CONTACT_GAP_CM, ParseError, parse
+from physcene.kernels.ctrc_reader import (
     CHUNK,
     MAX_ENTRIES,
     STATUS,
+    ReaderLimits,
     category_hash,
     keyword_table,
     launch_gather,
@@ -39,6 +40,19 @@ from physcene.physics import PhysicsEngine, SceneBatch
 from physcene.scene import Scene
 
 __all__ = ["STATUS", "TextPack", "TextPacker"]
+
+# The words the compiled reader compares against, in its role order (kernels.ctrc_reader: ENTRY_ROLES,
+# TOP_ROLES, WORD_ROLES), and the limits it applies: the grammar's, given to the reader here.
+# from physcene.ctrc.grammar after the merge
+ENTRY_KEYS = ("layer", "instance_id", "category", "parent_id", "relation_type", "description",
+              "relative_bbox", "relative_rotation_deg", "type", "bbox", "z_rotation")
+# from physcene.ctrc.grammar after the merge
+TOP_KEYS = ("objects", "item_placement_zone")
+# from physcene.ctrc.grammar after the merge (the relations in the reader's order: in, on, near)
+RELATIONS = ("in", "on", "near")
+# the root zone's parent id and the zone entry's type
+ZONE_WORDS = ("root_zone", "zone")
+READER_LIMITS = ReaderLimits(max_abs_cm=MAX_ABS_CM, on_contact_gap_cm=ON_CONTACT_GAP_CM)
 
 # Offsets are int32 (Warp indexes with int): larger batches are read by the Python parser.
 _MAX_BYTES = 2**31 - 1
@@ -101,7 +115,7 @@ class TextPacker:
     def __init__(self, engine: PhysicsEngine):
         self.engine = engine
         self.device = engine.device
-        words, starts = keyword_table()
+        words, starts = keyword_table(ENTRY_KEYS, TOP_KEYS, (*ZONE_WORDS, *RELATIONS))
         self._words = {"bytes": torch.from_numpy(words).to(self.device),
                        "start": torch.from_numpy(starts).to(self.device)}
         self._categories: dict[int, tuple[int, int, str]] = {}  # FNV hash -> (check, slot, name)
@@ -208,7 +222,8 @@ class TextPacker:
         text_t, header_t = self._stage(data, header)
         for attempt in range(2):
             launch_scan(text=text_t, offsets=header_t[:n + 1], chunk_start=header_t[n + 1:], n_text=n,
-                        n_chunks=n_chunks, words=self._words, table=self._table, buffers=buffers)
+                        n_chunks=n_chunks, words=self._words, table=self._table, limits=READER_LIMITS,
+                        buffers=buffers)
             both = torch.cat([buffers["status"][:n], buffers["n_read"][:n]]).cpu().numpy()  # one sync
             status, n_read = both[:n], both[n:]
             unknown = np.nonzero(status == _UNKNOWN_CATEGORY)[0]
