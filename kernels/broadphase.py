@@ -1,7 +1,11 @@
 """The broadphase: per CSR pair, decode (i, j) and test the slightly inflated yawed boxes.
 
 Pairs are enumerated per scene as CSR: scene s owns pair indices [pair_start[s], pair_start[s+1])
-= its count*(count-1)/2 pairs (i < j) in row-major order.
+= its count*(count-1)/2 pairs (i < j) in row-major order. A pair that passes appends its two
+(pair, direction) items to the narrowphase's dense work list with one ``atomic_add`` on a device
+counter (zeroed by ``table_contact``, launched just before). The list's order is arbitrary on
+CUDA; every item's sums land in the pair's slots (``pair_item[pair]``: the position of its
+direction-0 item), so results do not depend on it.
 """
 
 # Warp needs typed constructors (float(0.0), int(0)) for variables a loop modifies.
@@ -14,7 +18,7 @@ from physcene.kernels.boxes import boxes_meet
 
 wp.set_module_options({"enable_backward": False})
 
-__all__ = ["broadphase", "decode_pair", "find_scene"]
+__all__ = ["broadphase_items", "decode_pair", "find_scene"]
 
 
 @wp.func
@@ -51,7 +55,7 @@ def decode_pair(pair_start: wp.array(dtype=wp.int32), count: wp.array(dtype=wp.i
 
 
 @wp.kernel
-def broadphase(
+def broadphase_items(
     pair_start: wp.array(dtype=wp.int32),  # (S+1,)
     count: wp.array(dtype=wp.int32),  # (S,)
     n_slot: int,
@@ -61,9 +65,18 @@ def broadphase(
     pair_a_out: wp.array(dtype=wp.int32),  # (T,) slot of the lower-index object
     pair_b_out: wp.array(dtype=wp.int32),  # (T,)
     pair_hit_out: wp.array(dtype=wp.int32),  # (T,) 1 if the inflated boxes overlap
+    pair_item_out: wp.array(dtype=wp.int32),  # (T,) position of the pair's first item (hit pairs)
+    n_item: wp.array(dtype=wp.int32),  # (1,) items appended so far; 0 on entry
+    items_out: wp.array(dtype=wp.int32),  # (2T,) pair * 2 + direction, the first n_item[0] valid
 ):
     k = wp.tid()
     a, b = decode_pair(pair_start, count, n_slot, k)
     pair_a_out[k] = a
     pair_b_out[k] = b
-    pair_hit_out[k] = boxes_meet(poses[a], sizes[a] * 0.5, poses[b], sizes[b] * 0.5, margin)
+    hit = boxes_meet(poses[a], sizes[a] * 0.5, poses[b], sizes[b] * 0.5, margin)
+    pair_hit_out[k] = hit
+    if hit != 0:
+        first = wp.atomic_add(n_item, 0, 2)
+        items_out[first] = 2 * k
+        items_out[first + 1] = 2 * k + 1
+        pair_item_out[k] = first

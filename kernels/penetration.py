@@ -8,21 +8,14 @@ Pairs are enumerated per scene as CSR: scene s owns pair indices [pair_start[s],
 = its count*(count-1)/2 pairs (i < j) in row-major order. Stages (one launch each, no host sync,
 so the whole sequence can be captured as a graph: ``launch_penetration(graph=True)``):
 
-0. ``table_contact``: per object, the surface points below the table top z = 0.
-1. ``broadphase``: per pair, decode (i, j), test the slightly inflated yawed boxes (z interval +
-   2-D separating axes of the two footprints) and write ``pair_hit``.
-2. the narrowphase, one of two (``narrowphase=`` of :func:`launch_penetration`, same maths, same
-   results up to float summation order):
-
-   - ``worklist`` (default; kernels/narrowphase.py): the broadphase appends the (pair, direction)
-     items of the pairs that pass to a dense list, and ``lanes`` threads per *item* stride over
-     the owner's points in the buckets that meet the other object's box;
-   - ``buckets`` (``narrowphase_buckets`` below): ``lanes`` threads for *every* (pair,
-     direction), most exiting at once when the pair failed the broadphase.
-
-   Either way the lanes query the other object's field and each writes its partial sums. No
-   atomics on values: the partials are reduced in a fixed order, so results are bit-for-bit
-   repeatable.
+0. ``table_contact`` (support.py): per object, the surface points below the table top z = 0.
+1. ``broadphase_items`` (broadphase.py): per pair, decode (i, j), test the slightly inflated
+   yawed boxes (z interval + 2-D separating axes of the two footprints), write ``pair_hit`` and
+   append the (pair, direction) items of the pairs that pass to a dense work list.
+2. ``narrowphase_items`` (narrowphase.py): ``lanes`` threads per item stride over the owner's
+   points in the buckets that meet the other object's box, query the other object's field
+   (sdf_field.py) and each write their partial sums. No atomics on values: the partials are
+   reduced in a fixed order, so results are bit-for-bit repeatable.
 3. ``reduce_pairs``: per pair energy Σ ReLU(−φ), depth max(−φ), and the pose gradient of both
    objects (4-vectors), from the partials of step 2.
 4. ``reduce_scenes`` / ``reduce_objects``: per scene energy and depths, per object gradient, each a
@@ -31,10 +24,10 @@ so the whole sequence can be captured as a graph: ``launch_penetration(graph=Tru
 The maths (scale rule for non-uniform sizes, gradient formulas) is in docs/physics.md; the
 float64 torch oracle is physcene/physics/reference.py and must stay the same maths.
 
-The stages live in their own modules (one launch each): ``support`` (table contact),
-``broadphase``, ``narrowphase``, ``reduce``; the SDF maths in ``sdf_field`` and ``boxes``; the
-zero-copy views and recorded launches in ``launch``. This module only dispatches to them and
-captures the whole sequence as a graph (:func:`launch_penetration`).
+This module only dispatches to the stage modules (zero-copy views and recorded launches:
+launch.py) and captures the whole sequence as a graph (:func:`launch_penetration`). A variant
+narrowphase that launched threads for every pair (``buckets``) lost to the work list and lives
+in benchmarks/narrowphase_buckets.py for A/B runs.
 """
 
 from __future__ import annotations
@@ -44,17 +37,16 @@ from collections import OrderedDict
 
 import torch
 import warp as wp
-from physcene.kernels.broadphase import broadphase
+from physcene.kernels.broadphase import broadphase_items
 from physcene.kernels.launch import Launcher, torch_view, warp_array
-from physcene.kernels.narrowphase import BUCKETS, broadphase_items, narrowphase_buckets, narrowphase_items
+from physcene.kernels.narrowphase import BUCKETS, narrowphase_items
 from physcene.kernels.reduce import reduce_objects, reduce_pairs, reduce_scenes
 from physcene.kernels.support import launch_support, table_contact
 
-__all__ = ["BUCKETS", "DEFAULT_LANES", "NARROWPHASES", "launch_penetration", "launch_support"]
+__all__ = ["BUCKETS", "DEFAULT_LANES", "launch_penetration", "launch_support"]
 
 # Threads sharing one (pair, direction), per device type (see the module docstring).
 DEFAULT_LANES = {"cpu": 1, "cuda": 32}
-NARROWPHASES = ("buckets", "worklist")
 
 _WORKLIST_WAVES = 4
 
@@ -85,7 +77,6 @@ def launch_penetration(
     tolerance: float,
     with_grad: bool,
     lanes: int | None = None,
-    narrowphase: str = "worklist",
     graph: bool = False,
     block_dim: int | None = None,
 ) -> dict[str, torch.Tensor]:
@@ -99,10 +90,8 @@ def launch_penetration(
     (T,) slots; ``pair_hit`` (T,); ``pair_energy``, ``pair_depth`` (T,); ``table_depth``,
     ``table_energy``, ``table_below`` (S, N); ``grad`` (S, N, 4) when ``with_grad``.
     ``lanes``: threads per (pair, direction), default ``DEFAULT_LANES`` of the device type.
-    ``narrowphase``: ``"worklist"`` (kernels/narrowphase.py: threads only for pairs that pass the
-    broadphase) or ``"buckets"`` (every pair's threads launched); same results up to float
-    summation order. No host synchronisation: every launch size is known from the arguments (the
-    work list's length stays on the device).
+    No host synchronisation: every launch size is known from the arguments (the work list's
+    length stays on the device).
     ``graph``: capture the launches of a batch layout (the same arrays, sizes and settings) the
     second time it is run (a CUDA graph; a Warp CPU graph on the CPU) and replay them from the
     third: the poses are copied into the graph's own buffer and the outputs cloned out of it,
@@ -114,8 +103,6 @@ def launch_penetration(
     lanes = DEFAULT_LANES[device.type] if lanes is None else int(lanes)
     if lanes < 1:
         raise ValueError(f"lanes must be >= 1, got {lanes}")
-    if narrowphase not in NARROWPHASES:
-        raise ValueError(f"narrowphase {narrowphase!r}: expected one of {', '.join(NARROWPHASES)}")
     if device.type != "cuda":
         block_dim = None
     elif block_dim is not None and not 1 <= int(block_dim) <= 1024:
@@ -123,7 +110,7 @@ def launch_penetration(
     launcher = Launcher(device)
     args = dict(pair_start=pair_start, count=count, n_pairs=n_pairs, sizes=sizes, obj_asset=obj_asset,
                 assets=assets, margin=float(margin), tolerance=float(tolerance), with_grad=bool(with_grad),
-                lanes=lanes, worklist=narrowphase == "worklist",
+                lanes=lanes,
                 block_dim=None if block_dim is None else int(block_dim))
     if not graph or n_pairs == 0:
         return _penetration(launcher, torch_view, poses=poses, buffers=_allocate(poses, **args), **args)
@@ -148,12 +135,12 @@ def launch_penetration(
 
 
 def _partials(n_pairs: int, lanes: int) -> int:
-    """Partial-sum slots of the narrowphase: 2 directions x lanes per pair (work list: upper bound)."""
+    """Partial-sum slots of the narrowphase: 2 directions x lanes per pair (an upper bound)."""
     return 2 * n_pairs * lanes
 
 
 
-def _allocate(poses: torch.Tensor, *, n_pairs: int, with_grad: bool, lanes: int, worklist: bool,
+def _allocate(poses: torch.Tensor, *, n_pairs: int, with_grad: bool, lanes: int,
               **_) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """(floats, ints, part): one allocation per kind for every output and scratch array of a call."""
     device = poses.device
@@ -161,8 +148,8 @@ def _allocate(poses: torch.Tensor, *, n_pairs: int, with_grad: bool, lanes: int,
     # one allocation for the float outputs, one for the int ones: views are cheap, allocations not
     floats = torch.empty(3 * n_scene + 2 * n_pairs + 3 * n_obj + (4 * n_obj if with_grad else 0),
                          dtype=torch.float32, device=device)
-    # pair_a, pair_b, pair_hit, then (work list) pair_item, items (2T), the item counter
-    ints = torch.empty(3 * n_pairs + (3 * n_pairs + 1 if worklist else 1), dtype=torch.int32, device=device)
+    # pair_a, pair_b, pair_hit, then the work list's pair_item, items (2T) and item counter
+    ints = torch.empty(6 * n_pairs + 1, dtype=torch.int32, device=device)
     n_part = _partials(n_pairs, lanes)
     # the gradient partials are never touched without with_grad: 8 spare floats stand in for them
     part = torch.empty((7 * n_part + 8 * n_pairs if with_grad else 2 * n_part + 8) if n_pairs else 0,
@@ -188,7 +175,7 @@ def _outputs(floats: torch.Tensor, ints: torch.Tensor, n_scene: int, n_slot: int
 
 
 def _penetration(launch, view, *, pair_start, count, n_pairs, poses, sizes, obj_asset, assets, margin,
-                 tolerance, with_grad, lanes, worklist, block_dim, buffers) -> dict[str, torch.Tensor]:
+                 tolerance, with_grad, lanes, block_dim, buffers) -> dict[str, torch.Tensor]:
     """Issue every launch of one call through ``launch(kernel, dim, inputs)`` with array arguments
     made by ``view(tensor, dtype=None)``, writing into ``buffers`` (see :func:`_allocate`)."""
     device = poses.device
@@ -214,22 +201,16 @@ def _penetration(launch, view, *, pair_start, count, n_pairs, poses, sizes, obj_
             out["grad"].zero_()
         return out
     w_pair_a, w_pair_b, w_hit = view(out["pair_a"]), view(out["pair_b"]), view(out["pair_hit"])
-    w_pair_item = w_hit
     n_part = _partials(n_pairs, lanes)
-    if worklist:
-        pair_item, items = ints[3 * n_pairs:4 * n_pairs], ints[4 * n_pairs:6 * n_pairs]
-        w_pair_item, w_items = view(pair_item), view(items)
-        launch(broadphase_items, n_pairs, [w_pair_start, w_count, n_slot, w_poses, w_sizes, margin,
-                                           w_pair_a, w_pair_b, w_hit, w_pair_item, w_n_item, w_items])
-        # the count stays on the device: each group of lanes threads loops over items (grid-stride)
-        if device.type == "cuda":  # a few waves of resident threads
-            n_thread = min(2 * n_pairs, max(1, _WORKLIST_WAVES * _resident_threads(device) // lanes)) * lanes
-        else:  # the CPU runs threads one after another: one group of lanes does every item
-            n_thread = lanes
-    else:
-        launch(broadphase, n_pairs, [w_pair_start, w_count, n_slot, w_poses, w_sizes, margin,
-                                     w_pair_a, w_pair_b, w_hit])
-        n_thread = n_part
+    pair_item, items = ints[3 * n_pairs:4 * n_pairs], ints[4 * n_pairs:6 * n_pairs]
+    w_pair_item, w_items = view(pair_item), view(items)
+    launch(broadphase_items, n_pairs, [w_pair_start, w_count, n_slot, w_poses, w_sizes, margin,
+                                       w_pair_a, w_pair_b, w_hit, w_pair_item, w_n_item, w_items])
+    # the count stays on the device: each group of lanes threads loops over items (grid-stride)
+    if device.type == "cuda":  # a few waves of resident threads
+        n_thread = min(2 * n_pairs, max(1, _WORKLIST_WAVES * _resident_threads(device) // lanes)) * lanes
+    else:  # the CPU runs threads one after another: one group of lanes does every item
+        n_thread = lanes
     if with_grad:
         pe, pd, pg, py, pair_grad = torch.split(part, [n_part, n_part, 3 * n_part, 2 * n_part, 8 * n_pairs])
         pg, py, pair_grad = pg.view(n_part, 3), py.view(n_part, 2), pair_grad.view(n_pairs, 2, 4)
@@ -241,14 +222,10 @@ def _penetration(launch, view, *, pair_start, count, n_pairs, poses, sizes, obj_
     w_fields = [w_poses, w_sizes, w_asset, view(assets["sdf"]), view(assets["rays"]),
                 view(assets["sdf_start"]), view(assets["sdf_res"]), w_points, view(assets["pt_bucket"]),
                 int(with_grad)]
-    if worklist:
-        launch(narrowphase_items, n_thread, [w_items, w_n_item, n_thread, lanes, w_pair_a, w_pair_b,
-                                             *w_fields, *w_part], block_dim)
-    else:
-        launch(narrowphase_buckets, n_thread, [w_pair_a, w_pair_b, w_hit, *w_fields, lanes, *w_part],
-               block_dim)
+    launch(narrowphase_items, n_thread, [w_items, w_n_item, n_thread, lanes, w_pair_a, w_pair_b,
+                                         *w_fields, *w_part], block_dim)
     w_pair_energy, w_pair_depth = view(out["pair_energy"]), view(out["pair_depth"])
-    launch(reduce_pairs, n_pairs, [w_pair_a, w_pair_b, w_hit, w_poses, *w_part, w_pair_item, int(worklist),
+    launch(reduce_pairs, n_pairs, [w_pair_a, w_pair_b, w_hit, w_poses, *w_part, w_pair_item, 1,
                                    int(with_grad), lanes, w_pair_energy, w_pair_depth, w_pair_grad])
     launch(reduce_scenes, n_scene, [w_pair_start, w_pair_energy, w_pair_depth, tolerance,
                                     view(out["energy"]), view(out["max_depth"]), view(out["depth_sum"])])
@@ -306,8 +283,7 @@ class _Plan:
         # per thread: a replay writes the plan's buffers, so two threads must not share one
         return (launcher.device.alias, id(launcher.stream), threading.get_ident(), tuple(poses.shape),
                 poses.dtype, tuple((t.data_ptr(), t.numel()) for t in arrays),
-                *(args[k] for k in ("n_pairs", "margin", "tolerance", "with_grad", "lanes", "worklist",
-                                    "block_dim")))
+                *(args[k] for k in ("n_pairs", "margin", "tolerance", "with_grad", "lanes", "block_dim")))
 
     def replay(self, poses: torch.Tensor, launcher: Launcher) -> dict[str, torch.Tensor]:
         self.poses.copy_(poses)

@@ -27,7 +27,8 @@ def reduce_pairs(
     part_gu: wp.array(dtype=wp.vec3),
     part_yaw: wp.array(dtype=wp.vec2),
     pair_item: wp.array(dtype=wp.int32),  # (T,) worklist: first of the pair's two items; else unused
-    compact: int,  # 1: partials of item k at k*lanes (worklist), 0: of pair p at p*2*lanes (buckets)
+    compact: int,  # 1: partials of item k at k*lanes (the work list), 0: of pair p at p*2*lanes
+    # (benchmarks/narrowphase_buckets.py, the variant that launches threads for every pair)
     with_grad: int,
     lanes: int,
     pair_energy_out: wp.array(dtype=float),  # (T,) cm

@@ -25,7 +25,7 @@ import numpy as np
 import torch
 
 from physcene.config import ConfigError, load_dataclass
-from physcene.kernels.penetration import NARROWPHASES, launch_penetration, launch_support
+from physcene.kernels.penetration import launch_penetration, launch_support
 from physcene.physics.batch import SceneBatch, Score, pack_assets
 from physcene.scene import Scene
 
@@ -46,14 +46,9 @@ class PhysicsConfig:
     """Narrowphase threads per (pair, direction) on the CPU (run one after another: 1 is fastest)."""
     lanes_cuda: int = 64
     """Narrowphase threads per (pair, direction) on CUDA (more lanes fill the GPU)."""
-    narrowphase: str = "worklist"
-    """``worklist``: threads only for the (pair, direction) items that pass the broadphase
-    (kernels/narrowphase.py); ``buckets``: threads for every pair, most exiting at once. Same
-    results up to float summation order (docs/physics.md)."""
-
     narrowphase_block_dim: int = 128
-    """CUDA threads per block of the narrowphase launch (worklist: with fewer, a block whose items
-    are done frees its SM slot sooner; a multiple of the lanes keeps an item in one block)."""
+    """CUDA threads per block of the narrowphase launch (with fewer, a block whose items are done
+    frees its SM slot sooner; a multiple of the lanes keeps an item in one block)."""
     graph: bool = True
     """Capture the kernel launches once per batch layout (CUDA graph; Warp CPU graph on the CPU)
     and replay them when the same batch is scored again (TTO steps, benchmarks): host launch
@@ -63,9 +58,6 @@ class PhysicsConfig:
         if not 1 <= self.narrowphase_block_dim <= 1024:
             raise ConfigError(f"configs/physics.yaml: narrowphase_block_dim={self.narrowphase_block_dim}: "
                               "expected 1..1024")
-        if self.narrowphase not in NARROWPHASES:
-            raise ConfigError(f"configs/physics.yaml: narrowphase={self.narrowphase!r}: expected one of "
-                              f"{', '.join(NARROWPHASES)}")
 
     @classmethod
     def load(cls, overrides: Sequence[str] = ()) -> PhysicsConfig:
@@ -182,7 +174,7 @@ class PhysicsEngine:
             pair_start=batch.pair_start, count=batch.count, n_pairs=batch.n_pairs,
             poses=self._poses(batch, poses), sizes=batch.sizes, obj_asset=batch.asset_index,
             assets=self.packed_assets(), margin=self.config.margin_cm, tolerance=tolerance,
-            with_grad=with_grad, narrowphase=self.config.narrowphase, graph=self.config.graph,
+            with_grad=with_grad, graph=self.config.graph,
             block_dim=self.config.narrowphase_block_dim,
             lanes=self.config.lanes_cuda if self.device.type == "cuda" else self.config.lanes_cpu)
 

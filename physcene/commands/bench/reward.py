@@ -2,7 +2,10 @@
 
     physcene bench reward --device cuda                      # 512 scenes x 16 objects x 1024 points
     physcene bench reward --device cpu --scenes 256 --objects 12 --json
-    physcene bench reward --device cuda --narrowphase buckets worklist   # A/B in one process
+    physcene bench reward --device cuda --lanes 16 32 --graph off on    # A/B in one process
+
+The narrowphase variant that lost (``buckets``) is timed against the product's by
+benchmarks/ab_narrowphase.py.
 """
 
 from __future__ import annotations
@@ -15,13 +18,15 @@ import torch
 from physcene.assets import AssetLibrary
 from physcene.commands.bench.timing import BenchTarget, Timing, device_name, timed
 from physcene.ctrc import completion_text
-from physcene.kernels.penetration import NARROWPHASES
 from physcene.physics import PhysicsConfig, PhysicsEngine
 from physcene.physics.reference import reference_penetration
 from physcene.reward import PhysicsReward, RewardConfig, TextPacker
 from physcene.scene import Scene, SceneObject, Zone
 
 __all__ = ["TARGET", "bench_reward", "bench_scenes"]
+
+# The engine's one narrowphase, as the figures name it (each variant's label and "narrowphase").
+NARROWPHASE = "worklist"
 
 
 def bench_scenes(n_scene: int, n_obj: int, seed: int = 0):
@@ -53,9 +58,6 @@ def _reward_arguments(parser) -> None:
     parser.add_argument("--points", type=int, default=1024, help="surface points per asset")
     parser.add_argument("--resolution", type=int, default=64, help="SDF grid nodes per axis")
     parser.add_argument("--no-reference", action="store_true", help="skip the torch reference")
-    parser.add_argument("--narrowphase", nargs="+", default=None, metavar="NAME",
-                        help="narrowphase variant(s) to time, each in this process: worklist, buckets "
-                             "(default: configs/physics.yaml's; key=value overrides apply to the engine)")
     parser.add_argument("--lanes", type=int, nargs="+", default=None,
                         help="narrowphase threads per (pair, direction) to time (default: the config's)")
     parser.add_argument("--graph", nargs="+", choices=("off", "on"), default=None,
@@ -68,7 +70,7 @@ def bench_reward(args) -> dict:
     library = AssetLibrary(resolution=args.resolution, n_points=args.points)
     library.add_primitives()
     config = PhysicsConfig.load(getattr(args, "overrides", []))
-    variants = _variants(config, device, args.narrowphase, args.lanes, args.graph)
+    variants = _variants(config, device, args.lanes, args.graph)
     engine = PhysicsEngine(library, device, variants[0][1])
     scenes = bench_scenes(args.scenes, args.objects)
     batch = engine.pack(scenes)
@@ -99,7 +101,7 @@ def bench_reward(args) -> dict:
     for name, variant in variants:  # the first is the engine's config, used for the reward below
         engine.config = variant
         row = result["variants"][name] = {
-            "narrowphase": variant.narrowphase, "graph": variant.graph,
+            "narrowphase": NARROWPHASE, "graph": variant.graph,
             "lanes": variant.lanes_cuda if device.type == "cuda" else variant.lanes_cpu,
             "warp_forward": figures(timed(lambda: engine.evaluate(batch), device, repeat)),
             "warp_grad": figures(timed(lambda: engine.evaluate(batch, with_grad=True), device, repeat))}
@@ -150,21 +152,17 @@ def _rel_diff(a: torch.Tensor, b: torch.Tensor) -> float:
     return float((a - b).abs().max() / b.abs().max().clamp_min(1e-12)) if b.numel() else 0.0
 
 
-def _variants(config, device: torch.device, narrowphases, lanes, graphs=None) -> list:
-    """[(name, PhysicsConfig)] for every narrowphase x lanes x graph asked (the config's when not)."""
-    for name in narrowphases or ():
-        if name not in NARROWPHASES:
-            raise ValueError(f"--narrowphase {name!r}: expected one of {', '.join(NARROWPHASES)}")
+def _variants(config, device: torch.device, lanes, graphs=None) -> list:
+    """[(name, PhysicsConfig)] for every lanes x graph asked (the config's when not)."""
     for n in lanes or ():
         if n < 1:
             raise ValueError(f"--lanes {n}: expected >= 1")
     key = "lanes_cuda" if device.type == "cuda" else "lanes_cpu"
     out = []
-    for name in narrowphases or [config.narrowphase]:
-        for n in lanes or [getattr(config, key)]:
-            for graph in graphs or ["on" if config.graph else "off"]:
-                label = f"{name}/lanes={n}" + ("/graph" if graph == "on" else "")
-                out.append((label, replace(config, narrowphase=name, graph=graph == "on", **{key: n})))
+    for n in lanes or [getattr(config, key)]:
+        for graph in graphs or ["on" if config.graph else "off"]:
+            label = f"{NARROWPHASE}/lanes={n}" + ("/graph" if graph == "on" else "")
+            out.append((label, replace(config, graph=graph == "on", **{key: n})))
     return out
 
 
