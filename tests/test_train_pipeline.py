@@ -29,7 +29,7 @@ from physcene.config import load_config
 from physcene.ctrc import ParseError, build_prompt, completion_text, parse
 from physcene.layout import layout_to_dict
 from physcene.noisy_scenes import noisy_scenes
-from physcene.reward import PhysicsReward, RewardConfig
+from physcene.reward import ChargeConfig, PhysicsReward, RewardConfig
 from physcene.tto import TTOConfig
 
 TTO_FAST = ["steps=20", "report_relations=false"]
@@ -312,17 +312,20 @@ def test_pada_with_object_credit_trains_on_per_token_advantages(tmp_path, one_th
 
     cfg = _sft_for_pada(tmp_path, 4, 4, "pada.max_steps=2", "pada.object_credit=1.0",
                         "pada.object_credit_penetration=pairs", "pada.object_credit_terms=[penetration,size]")
-    seen = []
+    seen, charges = [], []
     original = PADATrainer._credit_objects
 
     def spy(self, output):
         original(self, output)
         seen.append(tuple(output["advantages"].shape))
+        charges.append(self.reward_funcs[0].keywords["charges"])  # what the trainer asks the reward for
 
     monkeypatch.setattr(PADATrainer, "_credit_objects", spy)
     reward = PhysicsReward(RewardConfig(device="cpu"))
     out = run_pada(cfg, variant="pada", reward=reward)
-    assert reward.penetration_charge == "pairs" and reward.object_terms == ("penetration", "size")
+    asked = ChargeConfig(terms=("penetration", "size"), penetration="pairs")
+    assert charges and all(c == asked for c in charges)
+    assert reward.charges is None  # the trainer binds its charges to its calls: the reward keeps no flags
     assert seen and all(len(shape) == 2 and shape[1] > 1 for shape in seen)
     log = json.loads((out / "train_log.json").read_text())
     assert any("object_credit/charged_token_frac" in e for e in log)
