@@ -1,5 +1,5 @@
 """``reward.valid_terms``: the paper's reward pays a collision dodged by lifting an object off its support
-or by flattening it; with the terms on, such a layout is paid ``invalid`` (docs/results.md, Session 18)."""
+or by flattening it; with the terms on, such a layout is paid ``invalid`` (docs/results.md)."""
 
 from __future__ import annotations
 
