@@ -22,6 +22,7 @@ import time
 from dataclasses import replace
 
 import torch
+from narrowphase_buckets import BucketsEngine
 
 from physcene.assets import AssetLibrary
 from physcene.commands.bench import bench_scenes
@@ -41,8 +42,10 @@ def main() -> None:
     device = torch.device(args.device)
     library = AssetLibrary(n_points=args.points)
     library.add_primitives()
-    engine = PhysicsEngine(library, device)
-    batch = engine.pack(bench_scenes(args.scenes, args.objects))
+    scenes = bench_scenes(args.scenes, args.objects)
+    # the engine's work list and the buckets variant that lost to it (benchmarks/narrowphase_buckets.py)
+    engines = {"worklist": PhysicsEngine(library, device), "buckets": BucketsEngine(library, device)}
+    batches = {name: engine.pack(scenes) for name, engine in engines.items()}
     key = "lanes_cuda" if device.type == "cuda" else "lanes_cpu"
     base = PhysicsConfig.load()
     variants = {}
@@ -50,20 +53,24 @@ def main() -> None:
         name, lanes, *graph = v.split("/")
         if graph not in ([], ["graph"]):
             raise SystemExit(f"variant {v!r}: expected NARROWPHASE/LANES or NARROWPHASE/LANES/graph")
-        variants[v] = replace(base, narrowphase=name, graph=bool(graph), **{key: int(lanes)})
+        if name not in engines:
+            raise SystemExit(f"variant {v!r}: narrowphase {name!r} is one of {', '.join(engines)}")
+        variants[v] = (name, replace(base, graph=bool(graph), **{key: int(lanes)}))
 
     def sync():
         if device.type == "cuda":
             torch.cuda.synchronize(device)
 
     times = {(v, g): ([], []) for v in variants for g in (False, True)}
-    for config in variants.values():  # JIT and warm-up (a graph variant captures on its second call)
+    for name, config in variants.values():  # JIT and warm-up (a graph variant captures on its second call)
+        engine, batch = engines[name], batches[name]
         engine.config = config
         for _ in range(3):
             for grad in (False, True):
                 engine.evaluate(batch, with_grad=grad)
     for _ in range(args.rounds):
-        for v, config in variants.items():
+        for v, (name, config) in variants.items():
+            engine, batch = engines[name], batches[name]
             engine.config = config
             for grad in (False, True):
                 sync()

@@ -20,6 +20,7 @@ from dataclasses import replace
 from itertools import product
 
 import torch
+from narrowphase_buckets import BucketsEngine
 from torch.profiler import ProfilerActivity, profile
 
 from physcene.assets import AssetLibrary
@@ -60,7 +61,8 @@ def main() -> None:
     parser.add_argument("--lanes", type=int, nargs="+", default=[16, 32, 64, 128],
                         help="narrowphase threads per (pair, direction) to compare")
     parser.add_argument("--narrowphase", nargs="+", default=["buckets", "worklist"],
-                        help="narrowphase variants to compare (configs/physics.yaml: narrowphase)")
+                        choices=("buckets", "worklist"),
+                        help="the engine's work list and/or the variant of benchmarks/narrowphase_buckets.py")
     parser.add_argument("--block-dim", type=int, nargs="+", default=[256],
                         help="CUDA threads per narrowphase block (physics.yaml: narrowphase_block_dim)")
     parser.add_argument("--graph", nargs="+", choices=("off", "on"), default=["off"],
@@ -68,15 +70,19 @@ def main() -> None:
     args = parser.parse_args()
     library = AssetLibrary(n_points=args.points)
     library.add_primitives()
-    engine = PhysicsEngine(library, args.device)
-    batch = engine.pack(bench_scenes(args.scenes, args.objects))
+    scenes = bench_scenes(args.scenes, args.objects)
+    # the engine's work list and the buckets variant that lost to it (benchmarks/narrowphase_buckets.py)
+    engines = {"worklist": PhysicsEngine(library, args.device),
+               "buckets": BucketsEngine(library, args.device)}
+    batches = {name: engines[name].pack(scenes) for name in args.narrowphase}
     report = {}
     sweep = product(args.narrowphase, args.lanes, args.block_dim, args.graph)
     for narrowphase, lanes, block_dim, graph in sweep:
-        engine.config = replace(engine.config, lanes_cuda=lanes, lanes_cpu=lanes, narrowphase=narrowphase,
-                                graph=graph == "on", narrowphase_block_dim=block_dim)
+        engine, batch = engines[narrowphase], batches[narrowphase]
+        engine.config = replace(engine.config, lanes_cuda=lanes, lanes_cpu=lanes, graph=graph == "on",
+                                narrowphase_block_dim=block_dim)
         for name, grad in (("forward", False), ("forward+grad", True)):
-            fn = lambda grad=grad: engine.evaluate(batch, with_grad=grad)  # noqa: E731
+            fn = lambda grad=grad, engine=engine, batch=batch: engine.evaluate(batch, with_grad=grad)  # noqa: E731
             for _ in range(3):
                 fn()
             kernels = kernel_times(fn, args.repeat)

@@ -3,8 +3,8 @@
     python benchmarks/profile_fastparse.py --device cuda --scenes 512 --objects 16
 
 On the completion texts of ``physcene bench reward``'s scenes, prints the median wall time
-(device synchronised after each call) of each stage of ``PhysicsEngine.pack_texts`` and of the
-whole reward, and on CUDA the device time of every kernel of one ``pack_texts`` call (from
+(device synchronised after each call) of each stage of ``TextPacker.pack`` and of the
+whole reward, and on CUDA the device time of every kernel of one ``TextPacker.pack`` call (from
 ``torch.profiler``, as benchmarks/profile_engine.py does).
 """
 
@@ -16,14 +16,15 @@ import statistics
 import time
 
 import torch
-from physcene.kernels.ctrc_scan import launch_scan
+from physcene.kernels.ctrc_reader import launch_scan
 from profile_engine import kernel_times
 
 from physcene.assets import AssetLibrary
 from physcene.commands.bench import bench_scenes
 from physcene.ctrc import completion_text
 from physcene.physics import PhysicsEngine
-from physcene.reward import PhysicsReward, RewardConfig
+from physcene.reward import PhysicsReward, RewardConfig, TextPacker
+from physcene.reward.text_batch import READER_LIMITS
 
 
 def wall_ms(fn, device: torch.device, repeat: int) -> float:
@@ -56,8 +57,8 @@ def main() -> None:
     library.add_primitives()
     engine = PhysicsEngine(library, device)
     texts = [completion_text(s) for s in bench_scenes(args.scenes, args.objects)]
-    pack = engine.pack_texts(texts)  # JIT, categories learned
-    packer = engine._text_packer
+    packer = TextPacker(engine)
+    pack = packer.pack(texts)  # JIT, categories learned
     data, header = packer._encode(texts)
     n, n_chunks = len(texts), int(header[-1])
     text_t, header_t = packer._stage(data, header)
@@ -65,7 +66,8 @@ def main() -> None:
 
     def kernels_only():
         launch_scan(text=text_t, offsets=header_t[:n + 1], chunk_start=header_t[n + 1:], n_text=n,
-                    n_chunks=n_chunks, words=packer._words, table=packer._table, buffers=buffers)
+                    n_chunks=n_chunks, words=packer._words, table=packer._table, limits=READER_LIMITS,
+                    buffers=buffers)
 
     reward = PhysicsReward(RewardConfig(device=str(device)), engine=engine)
     batch = pack.batch
@@ -78,12 +80,12 @@ def main() -> None:
         "stage_upload_ms": wall_ms(lambda: packer._stage(data, header), device, r),
         "scan_kernels_ms": wall_ms(kernels_only, device, r),
         "scan_with_status_sync_ms": wall_ms(lambda: packer.scan(texts), device, r),
-        "pack_texts_ms": wall_ms(lambda: engine.pack_texts(texts), device, r),
+        "pack_texts_ms": wall_ms(lambda: packer.pack(texts), device, r),
         "engine_evaluate_ms": wall_ms(lambda: engine.evaluate(batch), device, r),
-        "whole_reward_ms": wall_ms(lambda: reward.score_texts(texts), device, r),
+        "whole_reward_ms": wall_ms(lambda: reward.score(texts), device, r),
     }
     if device.type == "cuda":
-        out["kernels_ms"] = kernel_times(lambda: engine.pack_texts(texts), r)
+        out["kernels_ms"] = kernel_times(lambda: packer.pack(texts), r)
     print(json.dumps(out, indent=1))
 
 

@@ -17,8 +17,8 @@ from physcene.assets import AssetLibrary
 from physcene.commands.bench import bench_scenes
 from physcene.ctrc import completion_text
 from physcene.physics import PhysicsEngine
-from physcene.physics_reference import reference_penetration
-from physcene.reward import PhysicsReward, RewardConfig
+from physcene.physics.reference import reference_penetration
+from physcene.reward import PhysicsReward, RewardConfig, TextPacker
 
 
 def _sizes(device: torch.device) -> tuple[int, int]:
@@ -63,14 +63,14 @@ def test_bench_reference(benchmark, setup, with_grad):
 def test_bench_whole_reward(benchmark, setup, fast_parse):
     """Prepared completion texts -> rewards: parse, pack, one engine call, the reward formula.
 
-    fast-parse: the compiled CTRC scanner (PhysicsEngine.pack_texts); python-parse: ctrc.parse.
+    fast-parse: the compiled CTRC scanner (reward.text_batch); python-parse: ctrc.parse.
     """
     device, engine, scenes, batch = setup
     reward = PhysicsReward(RewardConfig(device=str(device), fast_parse=fast_parse), engine=engine)
     texts = [completion_text(s) for s in scenes]
-    rewards = benchmark.pedantic(synchronized(lambda: reward.score_texts(texts), device), rounds=3,
-                                 iterations=1, warmup_rounds=1)
-    assert len(rewards) == len(scenes) and reward.last_metrics["parse_failure_rate"] == 0.0
+    scored = benchmark.pedantic(synchronized(lambda: reward.score(texts), device), rounds=3,
+                                iterations=1, warmup_rounds=1)
+    assert len(scored.rewards) == len(scenes) and scored.metrics["parse_failure_rate"] == 0.0
     if benchmark.enabled and device.type == "cpu":
         rate = len(scenes) / benchmark.stats.stats.median
         assert rate >= 500, f"reward on 12-object scenes: {rate:.0f} scenes/s < 500"
@@ -83,6 +83,7 @@ def test_bench_pack_texts(benchmark, setup):
     """Completion texts -> SceneBatch by the compiled scanner alone (no engine call)."""
     device, engine, scenes, batch = setup
     texts = [completion_text(s) for s in scenes]
-    pack = benchmark.pedantic(synchronized(lambda: engine.pack_texts(texts), device),
+    packer = TextPacker(engine)
+    pack = benchmark.pedantic(synchronized(lambda: packer.pack(texts), device),
                               rounds=20 if device.type == "cuda" else 3, iterations=1, warmup_rounds=1)
     assert pack.fast.all() and pack.batch.n_scene == len(scenes)

@@ -1,28 +1,20 @@
-"""The work-list narrowphase: threads only for (pair, direction) items that pass the broadphase.
+"""The narrowphase: ``lanes`` threads per (pair, direction) item that passed the broadphase.
 
-The ``buckets`` narrowphase of :mod:`physcene.kernels.penetration` launches ``lanes`` threads for
-every pair and direction of the batch; on the bench batch (512 scenes x 16 objects) 92 % of them
-exit at once because the pair failed the broadphase, and on CUDA the live warps sit in blocks
-whose other warps are dead, so few live warps are resident to hide memory latency. Its live
-lanes also restart their loop at each of up to 64 point buckets of ~16 points.
+The broadphase (``broadphase_items``, kernels/broadphase.py) appends the two items of every pair
+whose inflated boxes meet to a dense work list. Launching threads for every pair instead (the
+``buckets`` variant, kept as an A/B script in benchmarks/narrowphase_buckets.py) left 92 % of them
+exiting at once on the bench batch (512 scenes x 16 objects), and on CUDA the live warps sat in
+blocks whose other warps were dead, so few live warps were resident to hide memory latency.
 
-Here, with the same maths and the same per-point code:
-
-1. ``broadphase_items`` (one thread per pair): the broadphase test; a pair that passes appends its
-   two items (pair * 2 + direction) to a dense list with one ``atomic_add`` on a device counter
-   (zeroed by ``table_contact``, launched just before). The list's order is arbitrary on CUDA, but
-   every item's sums are computed in a fixed order and land in the pair's slots
-   (``pair_item[pair]`` = the position of its direction-0 item), so results are bit-for-bit
-   repeatable anyway.
-2. ``narrowphase_items``: ``lanes`` threads per item. The item's points in the buckets that meet
-   the other object's box form at most 16 contiguous runs (the (kx, ky) columns, kz range
-   contiguous in the bucket-sorted points); the lanes stride over their concatenation, so every
-   lane has a point on every iteration but the last. Partial sums go to ``item * lanes + lane``.
-   The item count stays on the device (no host synchronisation): on CUDA the launch covers
-   min(2T, a few resident waves) x lanes threads that loop over the items (grid-stride); on the
-   CPU, whose threads run one after another, one group of lanes threads loops over all items.
-3. ``reduce_pairs`` (``compact=1``) then sums each pair's 2 x lanes partials in a fixed order,
-   and the scene / object reductions are the buckets path's.
+``narrowphase_items``: ``lanes`` threads per item. The item's points in the buckets that meet
+the other object's box form at most 16 contiguous runs (the (kx, ky) columns, kz range
+contiguous in the bucket-sorted points); the lanes stride over their concatenation, so every
+lane has a point on every iteration but the last. Partial sums go to ``item * lanes + lane``.
+The item count stays on the device (no host synchronisation): on CUDA the launch covers
+min(2T, a few resident waves) x lanes threads that loop over the items (grid-stride); on the
+CPU, whose threads run one after another, one group of lanes threads loops over all items.
+``reduce_pairs`` (kernels/reduce.py) then sums each pair's 2 x lanes partials in a fixed order,
+so results are bit-for-bit repeatable although the list's order is arbitrary on CUDA.
 """
 
 # Warp needs typed constructors (float(0.0), int(0)) for variables a loop modifies.
@@ -31,39 +23,22 @@ Here, with the same maths and the same per-point code:
 from __future__ import annotations
 
 import warp as wp
-from physcene.kernels.penetration import BUCKETS, boxes_meet, bucket_of, decode_pair, rotate_z, world_phi
+from physcene.kernels.boxes import rotate_z
+from physcene.kernels.sdf_field import world_phi
 
 wp.set_module_options({"enable_backward": False})
 
-__all__ = ["broadphase_items", "narrowphase_items"]
+__all__ = ["BUCKETS", "bucket_of", "column_run", "narrowphase_items"]
+
+# Surface points are sorted into BUCKETS^3 cells of the normalised cube (physics.pack_assets), so
+# the narrowphase reads only the cells that meet the other object's box.
+BUCKETS = wp.constant(4)
 
 
-@wp.kernel
-def broadphase_items(
-    pair_start: wp.array(dtype=wp.int32),  # (S+1,)
-    count: wp.array(dtype=wp.int32),  # (S,)
-    n_slot: int,
-    poses: wp.array(dtype=wp.vec4),  # (S*N,) x, y, z, yaw (cm, rad)
-    sizes: wp.array(dtype=wp.vec3),  # (S*N,) w, d, h (cm)
-    margin: float,
-    pair_a_out: wp.array(dtype=wp.int32),  # (T,) slot of the lower-index object
-    pair_b_out: wp.array(dtype=wp.int32),  # (T,)
-    pair_hit_out: wp.array(dtype=wp.int32),  # (T,) 1 if the inflated boxes overlap
-    pair_item_out: wp.array(dtype=wp.int32),  # (T,) position of the pair's first item (hit pairs)
-    n_item: wp.array(dtype=wp.int32),  # (1,) items appended so far; 0 on entry
-    items_out: wp.array(dtype=wp.int32),  # (2T,) pair * 2 + direction, the first n_item[0] valid
-):
-    k = wp.tid()
-    a, b = decode_pair(pair_start, count, n_slot, k)
-    pair_a_out[k] = a
-    pair_b_out[k] = b
-    hit = boxes_meet(poses[a], sizes[a] * 0.5, poses[b], sizes[b] * 0.5, margin)
-    pair_hit_out[k] = hit
-    if hit != 0:
-        first = wp.atomic_add(n_item, 0, 2)
-        items_out[first] = 2 * k
-        items_out[first + 1] = 2 * k + 1
-        pair_item_out[k] = first
+@wp.func
+def bucket_of(x: float):
+    """The point-bucket index (0..BUCKETS-1) of a normalised coordinate, clamped."""
+    return wp.clamp(int(wp.floor((x + 1.0) * 0.5 * float(BUCKETS))), 0, BUCKETS - 1)
 
 
 @wp.func

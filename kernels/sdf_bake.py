@@ -28,6 +28,7 @@ import threading
 
 import numpy as np
 import warp as wp
+from physcene.kernels.launch import init_warp
 
 __all__ = ["SIGN_METHODS", "bake_sdf", "winding_ambiguity"]
 
@@ -153,6 +154,7 @@ def winding_ambiguity(
     single-sheet surfaces, whose winding number is fractional over whole regions.
     """
     vertices, faces = _check_mesh(vertices, faces)
+    init_warp()
     with wp.ScopedDevice(device):
         mesh = _warp_mesh(vertices, faces)
         flags = wp.empty((resolution,) * 3, dtype=wp.int32)
@@ -223,6 +225,7 @@ def bake_sdf(
     vertices, faces = _check_mesh(vertices, faces)
     rc = coarse_resolution or max(4, resolution // 3)
     method = {"parity": _PARITY, "winding": _WINDING, "shell": _UNSIGNED}[sign_method]
+    init_warp()
     with wp.ScopedDevice(device):
         mesh = _warp_mesh(vertices, faces)
         coarse = wp.empty((rc, rc, rc), dtype=wp.float32)

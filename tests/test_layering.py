@@ -173,7 +173,8 @@ def test_a_forbidden_import_or_a_cycle_is_caught():
         "physcene.eval.harness": "from physcene.train.generate import generate_with\n",
         "physcene.ctrc": "from physcene.ctrc.reader import parse\n",
         "physcene.ctrc.reader": "from physcene.scene import Scene\n",
-        "physcene.scene": "from typing import TYPE_CHECKING\nif TYPE_CHECKING:\n    from physcene.ctrc import parse\n",
+        "physcene.scene": ("from typing import TYPE_CHECKING\n"
+                           "if TYPE_CHECKING:\n    from physcene.ctrc import parse\n"),
         "physcene.reward": "from physcene.tto import repair\n",
         "physcene.tto": "from . import reward\n",
         "physcene.train.generate": "",

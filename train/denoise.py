@@ -200,7 +200,7 @@ def denoise_targets(texts: Sequence[str], charges: Sequence, *, config=None, eng
     """Per completion text, its :class:`DenoiseTarget` or None (nothing blamed, not parsed, nothing moved).
 
     ``charges[k]``: the (n_objects,) cm the reward charged each object of ``texts[k]``
-    (:attr:`physcene.reward.PhysicsReward.last_object_depths`), None when it did not parse. Blamed
+    (:attr:`physcene.reward.RewardBatch.placement_charges`), None when it did not parse. Blamed
     table-level objects go to their :func:`free_spot` (in the order written); the blamed objects left
     (``on`` / ``in`` children, table-level ones with no free spot) are repaired in one batched
     :func:`physcene.tto.repair` (``config``: a :class:`~physcene.tto.TTOConfig` on ``engine``'s device),
@@ -261,7 +261,7 @@ def denoise_targets(texts: Sequence[str], charges: Sequence, *, config=None, eng
 class Denoise(PADAExtension):
     """On-policy denoising targets and their cross-entropy (module docstring).
 
-    ``reward``: the physics reward that scored the round, charging each object
+    ``reward``: the charged physics reward that scored the round
     (:func:`physcene.train.object_credit.credit_reward`); ``weight``: ``pada.denoise``; ``tto``: the
     repair's configuration (:meth:`tto_config` of ``pada.denoise_tto``); ``margin_cm`` /
     ``decimals``: ``pada.denoise_margin_cm`` / ``denoise_decimals``.
@@ -269,13 +269,15 @@ class Denoise(PADAExtension):
 
     def __init__(self, reward, weight: float, tto: TTOConfig | None, margin_cm: float = 1.0,
                  decimals: int | None = None):
-        self._credit_reward, self.weight, self.tto = reward, float(weight), tto
+        self.reward, self.weight, self.tto = reward, float(weight), tto
         self.margin_cm, self.decimals = float(margin_cm), decimals
 
     @staticmethod
     def tto_config(overrides, reward) -> TTOConfig:
-        """``configs/tto.yaml`` with ``overrides`` (key=value), on the device of ``reward``'s engine."""
-        return replace(TTOConfig.load(list(overrides)), device=str(reward.engine.device))
+        """``configs/tto.yaml`` with ``overrides`` (key=value), on the device of ``reward``'s engine
+        (``reward``: a :class:`~physcene.reward.PhysicsReward` or a charged one)."""
+        engine = getattr(reward, "reward", reward).engine
+        return replace(TTOConfig.load(list(overrides)), device=str(engine.device))
 
     def after_scoring(self, trainer, inputs: list[dict], output: dict) -> None:
         """Each rollout the reward blamed objects in, with those objects moved (free spot or TTO), as
@@ -287,10 +289,10 @@ class Denoise(PADAExtension):
         lengths = completion_mask.sum(dim=1).tolist()
         texts = [tokenizer.decode(row[:int(n)], skip_special_tokens=True)
                  for row, n in zip(completion_ids.tolist(), lengths)]
-        charges = self._credit_reward.last_placement_depths  # a target moves objects, it does not resize
+        charges = self.reward.latest().placement_charges  # a target moves objects, it does not resize
         if len(charges) != len(texts):
             raise ValueError(f"object charges for {len(charges)} completions, {len(texts)} generated")
-        targets = denoise_targets(texts, charges, config=self.tto, engine=self._credit_reward.engine,
+        targets = denoise_targets(texts, charges, config=self.tto, engine=self.reward.reward.engine,
                                   margin_cm=self.margin_cm, decimals=self.decimals)
         rows = [tokenize_target(tokenizer, t.text, t.spans, max_length=trainer.max_completion_length)
                 if t is not None else ([], []) for t in targets]

@@ -9,11 +9,13 @@ numbers) loses ``object_credit`` × the cm charged to it from its advantage: the
 the objects written into occupied space. TRL's loss takes (B, T) advantages from a subclass. Logged:
 ``object_credit/charged_token_frac`` and ``object_credit/rows_left_out``.
 
-:func:`credit_reward` readies the physics reward for the charges (also used by
-:mod:`physcene.train.denoise`).
+:func:`credit_reward` binds the charges to the trainer's physics reward and keeps the
+:class:`~physcene.reward.RewardBatch` of each of its calls (also read by :mod:`physcene.train.denoise`).
 """
 
 from __future__ import annotations
+
+import functools
 
 import numpy as np
 import torch
@@ -21,40 +23,58 @@ from physcene.train.extension import PADAExtension
 from physcene.train.targets import object_text_spans
 from transformers import PreTrainedTokenizerBase
 
-from physcene.reward import PhysicsReward, object_terms_checked, penetration_charge_checked
+from physcene.reward import ChargeConfig, PhysicsReward, RewardBatch
 
-__all__ = ["ObjectCredit", "credit_reward", "object_token_depths"]
+__all__ = ["ChargedReward", "ObjectCredit", "credit_reward", "object_token_depths"]
 
 
-def credit_reward(reward_funcs, args) -> PhysicsReward:
-    """The :class:`~physcene.reward.PhysicsReward` among ``reward_funcs`` (or their ``reward``),
-    set to charge each object per ``args.object_credit_terms`` / ``object_credit_penetration``."""
-    rewards = (getattr(f, "reward", f) for f in reward_funcs)
-    found = [r for r in rewards if isinstance(r, PhysicsReward)]
+class ChargedReward:
+    """The physics reward as PADA's extensions see it: the reward, the charges it is called with and
+    the :class:`~physcene.reward.RewardBatch` of its latest call (this rank's rollouts, in order)."""
+
+    def __init__(self, reward: PhysicsReward, charges: ChargeConfig):
+        self.reward, self.charges = reward, charges
+        self.batch: RewardBatch | None = None
+
+    def keep(self, batch: RewardBatch) -> None:
+        self.batch = batch
+
+    def latest(self) -> RewardBatch:
+        if self.batch is None:
+            raise RuntimeError("the physics reward has not scored a round yet")
+        return self.batch
+
+
+def credit_reward(reward_funcs: list, args) -> ChargedReward:
+    """The :class:`~physcene.reward.PhysicsReward` among ``reward_funcs`` (or their ``reward``), bound
+    in place to charge each object per ``args.object_credit_terms`` / ``object_credit_penetration``:
+    TRL calls it with its own arguments, the charges and the keeping of the call's batch are added."""
+    found = [k for k, f in enumerate(reward_funcs) if isinstance(getattr(f, "reward", f), PhysicsReward)]
     if not found:
         raise ValueError("pada.object_credit and pada.denoise need the physics reward (physcene."
                          "reward.PhysicsReward) among the reward functions: it charges each "
                          "object its penetration")
-    reward = found[0]
-    reward.object_depths = True
-    reward.object_terms = object_terms_checked(args.object_credit_terms)
-    reward.penetration_charge = penetration_charge_checked(args.object_credit_penetration)
-    return reward
+    k = found[0]
+    charged = ChargedReward(getattr(reward_funcs[k], "reward", reward_funcs[k]),
+                            ChargeConfig(terms=tuple(args.object_credit_terms),
+                                         penetration=args.object_credit_penetration))
+    reward_funcs[k] = functools.partial(reward_funcs[k], charges=charged.charges, on_batch=charged.keep)
+    return charged
 
 
 class ObjectCredit(PADAExtension):
     """Lowers the advantage of the tokens placing each charged object (module docstring).
 
-    ``reward``: the physics reward that scored the round (:func:`credit_reward`); ``weight``:
+    ``reward``: the charged physics reward that scored the round (:func:`credit_reward`); ``weight``:
     ``pada.object_credit``, advantage per cm; ``scope``: ``pada.object_credit_scope``.
     """
 
-    def __init__(self, reward: PhysicsReward, weight: float, scope: str = "line"):
-        self._credit_reward, self.weight, self.scope = reward, float(weight), str(scope)
+    def __init__(self, reward: ChargedReward, weight: float, scope: str = "line"):
+        self.reward, self.weight, self.scope = reward, float(weight), str(scope)
 
     def after_scoring(self, trainer, inputs: list[dict], output: dict) -> None:
-        # the reward's last call scored this rank's completions in this order
-        depths = self._credit_reward.last_object_depths
+        # the reward's latest call scored this rank's completions in this order
+        depths = self.reward.latest().object_charges
         completion_ids = output["completion_ids"]
         if len(depths) != completion_ids.size(0):
             raise ValueError(f"object depths for {len(depths)} completions, "

@@ -58,13 +58,14 @@ from physcene.train.targets import numeric_spans, padded_targets, tokenize_ancho
 from transformers.trainer_utils import get_last_checkpoint
 from trl import GRPOTrainer
 
+from physcene.reward.trl import PhysicsRewardFunction
+
 __all__ = [
     "VARIANTS",
     "NoAnchorsError",
     "AdaptiveKLCallback",
     "PADAConfig",
     "PADATrainer",
-    "PhysicsRewardFunction",
     "numeric_spans",
     "pada_arguments",
     "pada_extensions",
@@ -218,49 +219,6 @@ class PADATrainer(GRPOTrainer):
         if stats[1] > 0:
             self._metrics[mode]["anchor_ce"].append((stats[0] / stats[1]).item())
         return loss + self.anchor_alpha * ce / normalizer
-
-
-class PhysicsRewardFunction:
-    """TRL reward function: ``physcene.reward.PhysicsReward`` with its engine on this rank's device.
-
-    Each rank scores only its own completions (TRL gathers the rewards afterwards), so on N GPUs the
-    engine runs N-way parallel. After each batch it logs, through the trainer's ``log_metric``:
-    ``time/reward_s`` (this rank's seconds), ``parse_rate``, and over the parsed layouts
-    ``penetration_mm`` (mean E_pen, mm), ``max_depth_mm`` and ``collision_free_rate``; with the
-    reward's size guard ``size_outside_cm``, with its ``valid_terms`` ``invalid_rate`` and
-    ``floating_objects`` / ``shrunk_objects`` (mean per layout).
-    """
-
-    __name__ = "physics"
-
-    def __init__(self, device: str | torch.device = "cpu", reward=None, overrides=()):
-        if reward is None:
-            from dataclasses import replace
-
-            from physcene.reward import PhysicsReward, RewardConfig
-
-            reward = PhysicsReward(replace(RewardConfig.load(list(overrides)), device=str(device)))
-        self.reward = reward
-
-    def __call__(self, prompts, completions, log_metric=None, **columns) -> list[float]:
-        start = time.perf_counter()
-        rewards = self.reward(prompts, completions)
-        seconds = time.perf_counter() - start
-        m = self.reward.last_metrics
-        if log_metric is not None:
-            log_metric("time/reward_s", seconds)
-            log_metric("parse_rate", 1.0 - m["parse_failure_rate"])
-            if m["parse_failure_rate"] < 1.0:  # energy figures exist only for parsed layouts
-                log_metric("penetration_mm", m["mean_energy_mm"])
-                log_metric("max_depth_mm", m["mean_max_depth_mm"])
-                log_metric("collision_free_rate", m["collision_free_rate"])
-                if "mean_size_outside_cm" in m:
-                    log_metric("size_outside_cm", m["mean_size_outside_cm"])
-                if "invalid_rate" in m:  # reward.valid_terms: the share paid `invalid`, objects per term
-                    log_metric("invalid_rate", m["invalid_rate"])
-                    for term in self.reward.config.valid_terms:
-                        log_metric(f"{term}_objects", m[f"mean_{term}_objects"])
-        return rewards
 
 
 def run_pada(cfg, variant: str | None = None, reward=None, callbacks=()) -> Path:

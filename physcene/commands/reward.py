@@ -53,19 +53,19 @@ def read_records(path: Path) -> tuple[list, list]:
 
 
 def run(args) -> int:
-    from physcene.reward import PhysicsReward, RewardConfig
+    from physcene.reward import PhysicsReward, RewardConfig, completion_text_of
 
     prompts, completions = read_records(Path(args.file))
     config = RewardConfig.load(args.overrides)
     if args.device:
         config = replace(config, device=args.device)
-    reward = PhysicsReward(config)
-    rewards = reward(prompts, completions) if completions else []
+    batch = PhysicsReward(config).score([completion_text_of(c) for c in completions]) if completions else None
+    rewards = batch.rewards.tolist() if batch is not None else []
     if args.json:
         print(json.dumps({"rewards": rewards}))
     else:
         for value in rewards:
             print(f"{value:.6g}")
-        metrics = ", ".join(f"{k} {v:.4g}" for k, v in reward.last_metrics.items())
+        metrics = ", ".join(f"{k} {v:.4g}" for k, v in (batch.metrics if batch is not None else {}).items())
         print(f"{len(rewards)} completions: {metrics}", file=sys.stderr)
     return 0

@@ -104,8 +104,8 @@ def test_bench_reward_small(capsys):
 
 def test_check_takes_physics_overrides_after_the_paths(capsys, tree):
     path = str(tree / "a" / "layout.json")
-    code, doc = run_json(capsys, ["check", path, "--json", "narrowphase=buckets", "floating_tolerance_cm=5"])
+    code, doc = run_json(capsys, ["check", path, "--json", "graph=false", "floating_tolerance_cm=5"])
     assert code == 0 and doc["scenes"][0]["floating"] == []  # 3 cm above the table: within 5 cm
     assert doc["scenes"][0]["pairs"][0]["depth_cm"] == pytest.approx(2.0, abs=0.05)
-    assert main(["check", path, "narrowphase=tiles"]) == 2
-    assert "narrowphase='tiles'" in capsys.readouterr().err
+    assert main(["check", path, "narrowphase_block_dim=2048"]) == 2
+    assert "narrowphase_block_dim=2048" in capsys.readouterr().err

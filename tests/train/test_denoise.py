@@ -12,12 +12,13 @@ import numpy as np
 import pytest
 import torch
 from physcene.train.denoise import Denoise, _place_table_level, denoise_targets, free_spot, rewrite_boxes
+from physcene.train.object_credit import ChargedReward
 from physcene.train.targets import object_line_spans, tokenize_target
 from physcene.train.tokenizer import build_tokenizer
 from shapely.geometry import Polygon
 
 from physcene.ctrc import completion_text, decimals_of, parse, usual_decimals
-from physcene.reward import PhysicsReward, RewardConfig
+from physcene.reward import ChargeConfig, PhysicsReward, RewardConfig
 from physcene.scene import TABLE, ZONE_TOLERANCE_CM, zone_overshoot
 from physcene.tto import TTOConfig
 
@@ -34,14 +35,13 @@ def texts(written_into):
 
 @pytest.fixture(scope="module")
 def reward():
-    return PhysicsReward(RewardConfig(device="cpu"), object_depths=True)
+    return PhysicsReward(RewardConfig(device="cpu"), charges=ChargeConfig())
 
 
 @pytest.fixture(scope="module")
 def targets(texts, reward):
     clean, moved = texts
-    reward.score_texts([clean, moved, "not a layout"])
-    charges = reward.last_object_depths
+    charges = reward.score([clean, moved, "not a layout"]).object_charges
     return charges, denoise_targets([clean, moved, "not a layout"], charges, config=TTO, engine=reward.engine)
 
 
@@ -56,7 +56,7 @@ def test_only_the_blamed_object_moves_and_the_repair_is_collision_free(texts, re
         if a.instance_id not in blamed:
             assert np.allclose([*a.center, a.yaw], [*b.center, b.yaw], atol=1e-4)
             assert a.size == pytest.approx(b.size, abs=1e-4)
-    assert reward.score_texts([target.text]) == [50.0]  # the rewritten text scores collision-free
+    assert reward.score([target.text]).rewards.tolist() == [50.0]  # the rewritten text scores collision-free
     assert target.depth_before > 0 and target.depth_after == 0.0
     moved = after.get(blamed[0])
     assert moved.size == pytest.approx(before.get(blamed[0]).size, abs=0.02)  # the margin is shrunk back
@@ -68,14 +68,13 @@ def test_only_the_blamed_object_moves_and_the_repair_is_collision_free(texts, re
 def test_the_repair_keeps_the_margin_to_its_neighbours(texts, reward):
     """With a 1.5 cm margin the moved object's footprint, grown by 1 cm, still touches nothing."""
     clean, moved = texts
-    reward.score_texts([moved])
-    charges = reward.last_object_depths
+    charges = reward.score([moved]).object_charges
     target = denoise_targets([moved], charges, config=TTO, engine=reward.engine, margin_cm=1.5)[0]
     after = parse(target.text)
     blamed = after.get(target.moved[0])
     grown = after.with_objects(o.moved(size=(o.size[0] + 2.0, o.size[1] + 2.0, o.size[2]))
                                if o is blamed else o for o in after.objects)
-    assert reward.score_parsed([grown]) == [50.0]
+    assert reward.score_parsed([grown]).rewards.tolist() == [50.0]
 
 
 def _footprint(x, y, hw, hd, yaw) -> Polygon:
@@ -177,8 +176,7 @@ def test_targets_keep_the_rollouts_usual_precision_not_its_longest_number(texts,
     first = re.search(r'"relative_bbox": \[(-?\d+\.\d+)', moved)
     stray = moved[:first.end(1)] + "3141" + moved[first.end(1):]
     assert decimals_of(stray) >= 5 and usual_decimals(stray) == 2 == usual_decimals(moved)
-    reward.score_texts([stray])
-    charges = reward.last_object_depths
+    charges = reward.score([stray]).object_charges
     for decimals, most in ((None, 2), (1, 1)):
         target = denoise_targets([stray], charges, config=TTO, engine=reward.engine, decimals=decimals)[0]
         assert target is not None and target.spans
@@ -197,11 +195,13 @@ def test_pada_builds_denoise_rows_aligned_with_the_rollouts(texts, reward, gener
     clean, moved = texts
     tokenizer = build_tokenizer([clean, moved], vocab_size=320)
     output = generated(tokenizer, [moved, clean])
-    reward.score_texts([moved, clean])
+    scored = reward.score([moved, clean])
     logged = {}
+    charged = ChargedReward(reward, reward.charges)
+    charged.keep(scored)
     trainer = SimpleNamespace(_tokenizer=tokenizer, max_completion_length=10_000,
                               log_value=lambda k, v: logged.__setitem__(k, v))
-    Denoise(reward, 1.0, tto=TTO, margin_cm=1.0, decimals=2).after_scoring(trainer, [], output)
+    Denoise(charged, 1.0, tto=TTO, margin_cm=1.0, decimals=2).after_scoring(trainer, [], output)
     assert output["denoise_ids"].shape[0] == 2
     assert output["denoise_loss_mask"][0].sum() > 0 and output["denoise_loss_mask"][1].sum() == 0
     assert output["denoise_attention_mask"][1].sum() == 0  # no target: an empty row
@@ -210,7 +210,7 @@ def test_pada_builds_denoise_rows_aligned_with_the_rollouts(texts, reward, gener
     assert logged["denoise/collision_free_frac"] == 1.0
     text = tokenizer.decode(output["denoise_ids"][0][output["denoise_attention_mask"][0].bool()],
                             skip_special_tokens=True)
-    assert reward.score_texts([text]) == [50.0]
+    assert reward.score([text]).rewards.tolist() == [50.0]
 
 
 def test_pada_with_denoise_trains_and_logs_it(tmp_path, monkeypatch):

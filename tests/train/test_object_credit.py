@@ -9,12 +9,12 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 import torch
-from physcene.train.object_credit import ObjectCredit, object_token_depths
+from physcene.train.object_credit import ChargedReward, ObjectCredit, object_token_depths
 from physcene.train.targets import numeric_spans, object_line_spans, object_text_spans
 from physcene.train.tokenizer import build_tokenizer
 
 from physcene.ctrc import completion_text, parse
-from physcene.reward import PhysicsReward, RewardConfig
+from physcene.reward import ChargeConfig, PhysicsReward, RewardConfig
 from physcene.scene import TABLE
 
 
@@ -28,7 +28,7 @@ def texts(written_into):
 
 @pytest.fixture(scope="module")
 def reward():
-    return PhysicsReward(RewardConfig(device="cpu"), object_depths=True)
+    return PhysicsReward(RewardConfig(device="cpu"), charges=ChargeConfig())
 
 
 def test_object_lines_are_the_parsed_objects_in_order(texts):
@@ -57,8 +57,8 @@ def test_each_object_is_placed_by_its_plan_step_and_its_layout_line(texts):
 
 def test_the_reward_charges_each_pair_to_the_object_written_later(texts, reward):
     clean, moved = texts
-    rewards = reward.score_texts([clean, moved, "not a layout"])
-    depths = reward.last_object_depths
+    scored = reward.score([clean, moved, "not a layout"])
+    rewards, depths = scored.rewards.tolist(), scored.object_charges
     assert depths[2] is None and rewards[2] == -100.0
     assert not np.any(depths[0]) and rewards[0] == 50.0
     scene = parse(moved)
@@ -77,8 +77,7 @@ def test_the_reward_charges_each_pair_to_the_object_written_later(texts, reward)
 def test_the_tokens_of_a_charged_object_line_carry_its_depth(texts, reward):
     clean, moved = texts
     tokenizer = build_tokenizer([clean, moved], vocab_size=320)
-    reward.score_texts([moved, clean])
-    depths = reward.last_object_depths
+    depths = reward.score([moved, clean]).object_charges
     rows = [tokenizer(t, add_special_tokens=False)["input_ids"] for t in (moved, clean)]
     width = max(map(len, rows)) + 3
     ids = torch.tensor([r + [tokenizer.pad_token_id] * (width - len(r)) for r in rows])
@@ -102,16 +101,18 @@ def test_the_tokens_of_a_charged_object_line_carry_its_depth(texts, reward):
 def test_pada_lowers_the_advantage_of_the_charged_tokens_only(texts, reward):
     _, moved = texts
     tokenizer = build_tokenizer([moved], vocab_size=320)
-    reward.score_texts([moved, moved])
+    scored = reward.score([moved, moved])
     row = tokenizer(moved, add_special_tokens=False)["input_ids"]
     output = {"completion_ids": torch.tensor([row, row]), "completion_mask": torch.ones(2, len(row)),
               "advantages": torch.tensor([0.5, -0.5])}
     logged = {}
+    charged = ChargedReward(reward, reward.charges)
+    charged.keep(scored)
     trainer = SimpleNamespace(_tokenizer=tokenizer, log_value=lambda k, v: logged.__setitem__(k, v))
-    credit = ObjectCredit(reward, 2.0, "line")
+    credit = ObjectCredit(charged, 2.0, "line")
     credit.after_scoring(trainer, [], output)
     charged, _ = object_token_depths(tokenizer, output["completion_ids"], output["completion_mask"],
-                                     reward.last_object_depths)
+                                     scored.object_charges)
     assert output["advantages"].shape == (2, len(row))
     assert torch.allclose(output["advantages"], torch.tensor([[0.5], [-0.5]]) - 2.0 * charged)
     assert 0 < logged["object_credit/charged_token_frac"] < 1 and logged["object_credit/rows_left_out"] == 0
@@ -127,8 +128,7 @@ def test_the_numbers_scope_charges_only_the_charged_objects_geometry_numbers(tex
     rollout tokens, the greedy outputs began writing numbers into descriptions)."""
     _, moved = texts
     tokenizer = build_tokenizer([moved], vocab_size=320)
-    reward.score_texts([moved])
-    depths = reward.last_object_depths
+    depths = reward.score([moved]).object_charges
     ids = torch.tensor([tokenizer(moved, add_special_tokens=False)["input_ids"]])
     mask = torch.ones_like(ids)
     line, _ = object_token_depths(tokenizer, ids, mask, depths)
@@ -168,14 +168,13 @@ def test_floating_and_out_of_zone_objects_are_charged_when_asked(texts):
     # wholly past the right edge (1 cm clear of it): out of the zone, touching nothing
     outside, k_out = _moved_last_table_object(
         clean, lambda o: (clean.zone.xmax + 1.0 + 0.5 * np.ptp(o.footprint()[:, 0]), *o.center[1:]))
-    both = PhysicsReward(RewardConfig(device="cpu"), object_depths=True,
-                         object_terms=("penetration", "floating", "out_of_zone"))
+    both = PhysicsReward(RewardConfig(device="cpu"),
+                         charges=ChargeConfig(terms=("penetration", "floating", "out_of_zone")))
     written = [completion_text(s, decimals=2) for s in (clean, lifted, outside)]
-    rewards = both.score_texts(written)
-    assert rewards == [50.0, 50.0, 50.0]  # the paper's reward sees neither
-    fast = [d.copy() for d in both.last_object_depths]
-    both.score_parsed([parse(t) for t in written])
-    for a, b in zip(fast, both.last_object_depths):
+    scored = both.score(written)
+    assert scored.rewards.tolist() == [50.0, 50.0, 50.0]  # the paper's reward sees neither
+    fast = [d.copy() for d in scored.object_charges]
+    for a, b in zip(fast, both.score_parsed([parse(t) for t in written]).object_charges):
         assert np.allclose(a, b, atol=1e-4)
     none, on_lifted, on_outside = fast
     assert not none.any()
@@ -186,9 +185,9 @@ def test_floating_and_out_of_zone_objects_are_charged_when_asked(texts):
     assert on_outside[k_out] == pytest.approx(fp[:, 0].max() - outside.zone.xmax, abs=1e-3)
     assert on_outside[k_out] > ZONE_TOLERANCE_CM
     # the default charges penetration only: neither moved object is charged
-    only = PhysicsReward(RewardConfig(device="cpu"), object_depths=True)
-    only.score_texts([completion_text(s, decimals=2) for s in (lifted, outside)])
-    assert not any(d.any() for d in only.last_object_depths)
+    only = PhysicsReward(RewardConfig(device="cpu"), charges=ChargeConfig())
+    charged = only.score([completion_text(s, decimals=2) for s in (lifted, outside)]).object_charges
+    assert not any(d.any() for d in charged)
 
 
 def test_unknown_object_terms_are_named():
@@ -197,7 +196,7 @@ def test_unknown_object_terms_are_named():
     from physcene.config import load_config
 
     with pytest.raises(ValueError, match=r"got \['penetration', 'flying'\]"):
-        PhysicsReward(object_terms=("penetration", "flying"))
+        ChargeConfig(terms=("penetration", "flying"))
     repeated = load_config("train_tiny", ["pada.object_credit_terms=[out_of_zone,out_of_zone]"])
     with pytest.raises(ValueError, match="pada.object_credit_terms: object terms must be distinct"):
         pada_arguments(repeated, "pada")

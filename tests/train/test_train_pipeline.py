@@ -29,7 +29,7 @@ from physcene.config import load_config
 from physcene.ctrc import ParseError, build_prompt, completion_text, parse
 from physcene.data.noisy import noisy_scenes
 from physcene.layout import layout_to_dict
-from physcene.reward import PhysicsReward, RewardConfig
+from physcene.reward import ChargeConfig, PhysicsReward, RewardConfig
 from physcene.tto import TTOConfig
 
 TTO_FAST = ["steps=20", "report_relations=false"]
@@ -140,12 +140,13 @@ def test_tiny_pipeline_end_to_end(tmp_path, one_thread, monkeypatch):
     test = _records(4, seed=1)
     texts = generate(outs["pada"], [r["prompt"] for r in test], max_new_tokens=32, batch_size=4)
     assert len(texts) == 4 and all(isinstance(t, str) for t in texts)
-    rewards = reward([r["prompt"] for r in test], texts)
+    scored = reward.score(texts)
+    rewards = scored.rewards.tolist()
     assert all(r == -100.0 or r == 50.0 or -50.0 <= r < 0.0 for r in rewards)
-    assert 0.0 <= reward.last_metrics["parse_failure_rate"] <= 1.0
+    assert 0.0 <= scored.metrics["parse_failure_rate"] <= 1.0
     # The reference completions score through the same path, and all parse.
-    rewards = reward([r["prompt"] for r in test], [r["completion"] for r in test])
-    assert reward.last_metrics["parse_failure_rate"] == 0.0 and -100.0 not in rewards
+    scored = reward.score([r["completion"] for r in test])
+    assert scored.metrics["parse_failure_rate"] == 0.0 and -100.0 not in scored.rewards.tolist()
 
 
 def test_train_cli_reports_bad_config_in_one_line(capsys):
@@ -311,17 +312,20 @@ def test_pada_with_object_credit_trains_on_per_token_advantages(tmp_path, one_th
 
     cfg = _sft_for_pada(tmp_path, 4, 4, "pada.max_steps=2", "pada.object_credit=1.0",
                         "pada.object_credit_penetration=pairs", "pada.object_credit_terms=[penetration,size]")
-    seen = []
+    seen, charges = [], []
     original = ObjectCredit.after_scoring
 
     def spy(self, trainer, inputs, output):
         original(self, trainer, inputs, output)
         seen.append(tuple(output["advantages"].shape))
+        charges.append(trainer.reward_funcs[0].keywords["charges"])  # what the trainer asks the reward for
 
     monkeypatch.setattr(ObjectCredit, "after_scoring", spy)
     reward = PhysicsReward(RewardConfig(device="cpu"))
     out = run_pada(cfg, variant="pada", reward=reward)
-    assert reward.penetration_charge == "pairs" and reward.object_terms == ("penetration", "size")
+    asked = ChargeConfig(terms=("penetration", "size"), penetration="pairs")
+    assert charges and all(c == asked for c in charges)
+    assert reward.charges is None  # the trainer binds its charges to its calls: the reward keeps no flags
     assert seen and all(len(shape) == 2 and shape[1] > 1 for shape in seen)
     log = json.loads((out / "train_log.json").read_text())
     assert any("object_credit/charged_token_frac" in e for e in log)

@@ -105,17 +105,16 @@ def main() -> None:
     from physcene.train.models import load_model, load_tokenizer
     from physcene.train.records import load_records
 
-    from physcene.reward import PhysicsReward, RewardConfig
+    from physcene.reward import ChargeConfig, PhysicsReward, RewardConfig
     from physcene.tto import TTOConfig
 
     torch.manual_seed(args.seed)
     started = time.perf_counter()
     records = [r for r in load_records(args.anchors) if r.get("sft_completion")]
     texts = [r["sft_completion"] for r in records]
-    reward = PhysicsReward(RewardConfig(device="cpu"), object_depths=True,
-                           object_terms=("penetration", "floating", "out_of_zone"))
-    reward.score_texts(texts)
-    targets = denoise_targets(texts, reward.last_object_depths, engine=reward.engine,
+    reward = PhysicsReward(RewardConfig(device="cpu"),
+                           charges=ChargeConfig(terms=("penetration", "floating", "out_of_zone")))
+    targets = denoise_targets(texts, reward.score(texts).object_charges, engine=reward.engine,
                               margin_cm=args.margin_cm, config=TTOConfig.load(["lambda_zone=100.0"]))
     tokenizer = load_tokenizer(args.model)
     rows = supervised_rows(tokenizer, records, targets)

@@ -1,4 +1,4 @@
-"""The compiled CTRC reader (kernels/ctrc_scan.py, PhysicsEngine.pack_texts) against the Python parser.
+"""The compiled CTRC reader (kernels/ctrc_reader/, reward.text_batch.TextPacker) against the Python parser.
 
 The fast path must give the batch ``pack([parse(t)])`` gives and the rewards, metrics and parse
 errors of the pure-Python reward, on real completions, on the fuzz corpus of test_ctrc_fuzz.py
@@ -10,12 +10,13 @@ from __future__ import annotations
 import json
 import math
 import random
+import weakref
 
 import numpy as np
 import pytest
 import torch
 from hypothesis import HealthCheck, given, settings
-from physcene.kernels.ctrc_scan import MAX_ENTRIES, category_hash
+from physcene.kernels.ctrc_reader import MAX_ENTRIES, category_hash
 from test_ctrc import layouts
 from test_ctrc_fuzz import ALPHABET, _base_completions, _mutate, _random_json, _split
 
@@ -26,10 +27,18 @@ from physcene.data import synthesize
 from physcene.graph import build_hierarchy
 from physcene.layout import load_layout
 from physcene.physics import PhysicsEngine
-from physcene.reward import PhysicsReward, RewardConfig
+from physcene.reward import PhysicsReward, RewardConfig, TextPacker
 from physcene.scene import Scene, SceneObject, Zone
 
 MARK = "**Scene Layout:**"
+_PACKERS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+
+
+def pack_texts(engine, texts):
+    """The engine's texts through one TextPacker per engine (its category table kept between calls)."""
+    if engine not in _PACKERS:
+        _PACKERS[engine] = TextPacker(engine)
+    return _PACKERS[engine].pack(texts)
 
 
 @pytest.fixture(scope="module")
@@ -81,17 +90,18 @@ def _python_pack(engine, texts):
 def _rewards_both(engine, texts, **config):
     fast = PhysicsReward(RewardConfig(**config), engine=engine)
     slow = PhysicsReward(RewardConfig(fast_parse=False, **config), engine=engine)
-    got, want = fast.score_texts(texts), slow.score_texts(texts)
+    fast_batch, slow_batch = fast.score(texts), slow.score(texts)
+    got, want = fast_batch.rewards.tolist(), slow_batch.rewards.tolist()
     assert [r == -100.0 for r in got] == [r == -100.0 for r in want]
     assert got == pytest.approx(want, abs=1e-6, rel=1e-6)
-    assert fast.last_parse_errors == slow.last_parse_errors
-    assert fast.last_metrics == pytest.approx(slow.last_metrics, abs=1e-6, rel=1e-6)
+    assert fast_batch.parse_errors == slow_batch.parse_errors
+    assert dict(fast_batch.metrics) == pytest.approx(dict(slow_batch.metrics), abs=1e-6, rel=1e-6)
     return got
 
 
 def test_real_completions_take_the_fast_path_and_match_the_python_batch(engine):
     texts = _real_texts()
-    pack = engine.pack_texts(texts)
+    pack = pack_texts(engine, texts)
     assert pack.fast.all(), pack.status
     assert pack.status.tolist() == [len(parse(t).objects) for t in texts]
     slow, _ = _python_pack(engine, texts)
@@ -102,7 +112,7 @@ def test_real_completions_take_the_fast_path_and_match_the_python_batch(engine):
 @pytest.mark.parametrize("n", [1, 3])
 def test_batch_of_one_and_few(engine, n):
     texts = [completion_text(_stack_scene())] * n
-    pack = engine.pack_texts(texts)
+    pack = pack_texts(engine, texts)
     assert pack.fast.all()
     assert_batches_equal(pack.batch, _python_pack(engine, texts)[0])
 
@@ -156,7 +166,7 @@ def test_unreadable_completions_go_to_the_python_parser(engine):
     base = completion_text(_stack_scene())
     variants = _variants(base)
     texts = list(variants.values())
-    pack = engine.pack_texts(texts)
+    pack = pack_texts(engine, texts)
     for name, status in zip(variants, pack.status.tolist()):
         assert status < 0, name
     parsed = [parse(t) for t in texts]
@@ -186,7 +196,7 @@ def test_key_order_whitespace_and_zone_entry(engine):
     texts = [head + json.dumps(shuffled, indent=3), head + json.dumps(no_zone, separators=(",", ":")),
              head + json.dumps(minimal) + "\nDone. Trailing words after the JSON are ignored.",
              base + "</s>", "<s>" + base]
-    pack = engine.pack_texts(texts)
+    pack = pack_texts(engine, texts)
     assert pack.fast.all(), pack.status
     assert_batches_equal(pack.batch, _python_pack(engine, texts)[0])
 
@@ -199,7 +209,7 @@ def test_too_many_entries_and_non_ascii_text(engine):
         SceneObject("1_tasse_0", "tasse", (20.0, 20.0, 4.0), (8.0, 8.0, 8.0), description="Über 10° — ☕"),
         SceneObject("2_plätzchen_0", "plätzchen", (30.0, 20.0, 1.0), (5.0, 5.0, 2.0)))))
     texts = [many, uni]
-    pack = engine.pack_texts(texts)
+    pack = pack_texts(engine, texts)
     assert pack.status[0] == -7 and pack.status[1] == 2
     assert_batches_equal(pack.batch, _python_pack(engine, texts)[0])
     _rewards_both(engine, texts)
@@ -210,7 +220,7 @@ def test_non_string_items_send_the_batch_to_the_python_parser():
     library.add_primitives()
     engine = PhysicsEngine(library)  # fresh: no scan has run yet
     text = completion_text(_stack_scene())
-    pack = engine.pack_texts([text, 5, None])
+    pack = pack_texts(engine, [text, 5, None])
     assert pack.status.tolist() == [-2, -2, -2] and pack.row.tolist() == [0, -1, -1]
     assert "string" in pack.errors[1] and pack.errors[0] is None
     assert_batches_equal(pack.batch, engine.pack([parse(text)]))
@@ -221,16 +231,16 @@ def test_new_categories_are_learned_and_hash_collisions_fall_back():
     library.add_primitives()
     engine = PhysicsEngine(library)
     text = completion_text(_stack_scene())
-    first = engine.pack_texts([text])
+    first = pack_texts(engine, [text])
     assert first.fast.all()  # unknown categories resolved on the host, then rescanned
-    packer = engine._text_packer
+    packer = _PACKERS[engine]
     learned = {name for _, _, name in packer._categories.values()}
     assert learned == {o.category for o in _stack_scene().objects}
     # a foreign name posing under mug's hash: mug's own occurrences no longer check out
     key, check = category_hash(b"mug")
     packer._categories[key] = (check + 1, 0, "not-a-mug")
     packer._table = packer._upload_table()
-    second = engine.pack_texts([text])
+    second = pack_texts(engine, [text])
     assert second.status.tolist() == [-9]
     assert_batches_equal(second.batch, first.batch)
 
@@ -263,7 +273,7 @@ def _fuzz_corpus(n_trunc=150, n_mut=400, n_junk=300, n_random=60) -> list[str]:
 
 def test_fuzz_corpus_rewards_identical(engine):
     texts = _fuzz_corpus()
-    pack = engine.pack_texts(texts)
+    pack = pack_texts(engine, texts)
     parsed = [parse(t) for t in texts]
     # the scanner never accepts what Python refuses, and agrees on what both read
     for k, (status, p) in enumerate(zip(pack.status.tolist(), parsed)):
@@ -322,7 +332,7 @@ def test_reserialised_layouts_match_the_python_parser(engine):
             if rng.random() < 0.3:
                 e["description"] = rng.choice(descriptions)
     texts = [_rewrite(rng, *rng.choice(bases)) for _ in range(120)]
-    pack = engine.pack_texts(texts)
+    pack = pack_texts(engine, texts)
     assert pack.fast.mean() > 0.5, pack.status
     slow, parsed = _python_pack(engine, texts)
     assert all(isinstance(p, Scene) for p in parsed)
@@ -337,7 +347,7 @@ def test_hypothesis_round_trip_layouts(engine, case):
     data, _ = case
     scene = build_hierarchy(load_layout(json.loads(json.dumps(data))))
     text = completion_text(scene)
-    pack = engine.pack_texts([text])
+    pack = pack_texts(engine, [text])
     slow, parsed = _python_pack(engine, [text])
     assert isinstance(parsed[0], Scene)
     descriptions = " ".join(o.description for o in scene.objects)
@@ -352,7 +362,7 @@ def test_cuda_fast_path_matches_cpu_and_python():
     library.add_primitives()
     cpu, cuda = PhysicsEngine(library, "cpu"), PhysicsEngine(library, "cuda")
     texts = _real_texts() + _fuzz_corpus(40, 100, 80, 10)
-    on_gpu, on_cpu = cuda.pack_texts(texts), cpu.pack_texts(texts)
+    on_gpu, on_cpu = pack_texts(cuda, texts), pack_texts(cpu, texts)
     assert np.array_equal(on_gpu.status, on_cpu.status) and on_gpu.errors == on_cpu.errors
     slow, _ = _python_pack(cpu, texts)
     gpu_batch = on_gpu.batch

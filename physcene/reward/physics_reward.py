@@ -6,18 +6,19 @@ with E_pen = Σ_{i<j} pen(i, j) in MILLIMETRES over pairs deeper than the tolera
 ``size_per_cm`` > 0 (NOT in the paper; 0 by default) also charges every object its size's distance
 (cm) outside its category prior's band (:meth:`physcene.assets.SizePrior.outside_band_cm`), the total
 still ≥ −max_penalty. A reward of penetration alone pays for flattening objects — a thin box cannot be
-penetrated deeply — and a small policy finds that (docs/results.md, "Session 16 run").
+penetrated deeply — and a small policy finds that (docs/results.md).
 ``valid_terms`` (NOT in the paper; empty by default) pays a parsed layout that breaks one of them
 ``invalid`` whatever its penetration: ``floating`` (an object above its support) and ``shrunk`` (a
 dimension far below its category's band). A collision-free reward pays for lifting and flattening
-objects out of each other's way; 36 PADA steps did both (docs/results.md, "Session 18 run").
+objects out of each other's way; 36 PADA steps did both (docs/results.md).
 
 >>> reward = PhysicsReward(RewardConfig(device="cuda"))
->>> trainer = GRPOTrainer(..., reward_funcs=[reward])        # reward.last_metrics after each call
+>>> batch = reward.score(texts)            # RewardBatch: rewards, metrics, parse errors, charges
+>>> trainer = GRPOTrainer(..., reward_funcs=[reward])        # TRL's signature: a list of floats
 
 Each completion is parsed once, every parsed scene of the batch is scored in ONE engine call,
 and unparsable completions never touch the engine. Canonical CTRC is read by the compiled
-scanner (``PhysicsEngine.pack_texts``, config ``fast_parse``); :func:`physcene.ctrc.parse` reads
+scanner (:mod:`physcene.reward.text_batch`, config ``fast_parse``); :func:`physcene.ctrc.parse` reads
 the rest and decides which completions are unparsable. The reward does not need the task's
 zone (penetration does not change when a whole layout is translated); the per-object
 ``out_of_zone`` charge of PADA's ``object_credit`` reads it from the completion.
@@ -25,22 +26,22 @@ zone (penetration does not change when a whole layout is translated); the per-ob
 
 from __future__ import annotations
 
-import functools
-from collections.abc import Sequence
-from dataclasses import asdict, dataclass, replace
+from collections.abc import Mapping, Sequence
+from dataclasses import asdict, dataclass
 
 import numpy as np
 import torch
 
-from physcene.assets import CATEGORY_PRIORS, canonical_category
 from physcene.config import load_dataclass
 from physcene.ctrc import ParseError, parse
-from physcene.layout import category_from_instance
+from physcene.physics import PhysicsEngine
+from physcene.reward.size_prior import low_ratio, outside_cm, prior_bands
+from physcene.reward.text_batch import TextPacker
 from physcene.scene import ZONE_TOLERANCE_CM, Scene
 
-__all__ = ["OBJECT_TERMS", "PENETRATION_CHARGES", "VALID_TERMS", "PhysicsReward", "RewardConfig",
-           "band_low_ratio", "completion_text_of", "penetration_charge_checked", "physics_reward",
-           "prior_bands", "reward_from_energy", "size_outside_band_cm", "valid_terms_checked"]
+__all__ = ["OBJECT_TERMS", "PENETRATION_CHARGES", "VALID_TERMS", "ChargeConfig", "PhysicsReward",
+           "RewardBatch", "RewardConfig", "completion_text_of", "object_terms_checked",
+           "penetration_charge_checked", "reward_from_energy", "valid_terms_checked"]
 
 # What an object can be charged with (cm) when PhysicsReward keeps per-object charges (PADA's
 # object_credit): the penetration of the pairs it was written into, its support gap when it floats,
@@ -92,8 +93,10 @@ class RewardConfig:
     device: str = "cpu"
     """Engine device, ``cpu`` or ``cuda[:N]``."""
     fast_parse: bool = True
-    """Read canonical CTRC completions with the compiled scanner (PhysicsEngine.pack_texts);
-    the others, and every completion when False, with :func:`physcene.ctrc.parse`."""
+    """Read canonical CTRC completions with the compiled scanner (:mod:`physcene.reward.text_batch`);
+    the others, and every completion when False, with :func:`physcene.ctrc.parse`. The scanner
+    writes into a :class:`~physcene.physics.PhysicsEngine`'s batch: an engine that only packs
+    Scenes needs False."""
 
     def __post_init__(self):
         object.__setattr__(self, "valid_terms", valid_terms_checked(self.valid_terms))
@@ -126,70 +129,104 @@ def reward_from_energy(e_pen_mm: np.ndarray, config: RewardConfig) -> np.ndarray
     return np.where(e > 0, -np.minimum(config.per_mm * e, config.max_penalty), config.collision_free)
 
 
-class PhysicsReward:
-    """A TRL reward function ``f(prompts, completions, **columns) -> list[float]``.
+@dataclass(frozen=True, kw_only=True)
+class ChargeConfig:
+    """What :meth:`PhysicsReward.score` charges each object of a parsed layout with (PADA's
+    ``object_credit`` and ``denoise``; not in the paper's reward)."""
 
-    After every call ``last_metrics`` holds the batch's ``parse_failure_rate``,
-    ``mean_energy_mm`` (over parsed layouts), ``collision_free_rate`` (over parsed layouts),
-    ``mean_reward`` and ``mean_max_depth_mm``, for the trainer's log; with ``size_per_cm`` > 0 or the
-    ``size`` object term, also ``mean_size_outside_cm`` (a parsed layout's summed
-    :func:`size_outside_band_cm`: host work per object, so not measured otherwise).
+    terms: tuple[str, ...] = ("penetration",)
+    """The charged terms, distinct names among :data:`OBJECT_TERMS`, at least one."""
+    penetration: str = "depth"
+    """``depth``: a penetrating pair charges its depth (cm); ``pairs``: 1 (:data:`PENETRATION_CHARGES`)."""
+
+    def __post_init__(self):
+        object.__setattr__(self, "terms", object_terms_checked(self.terms))
+        penetration_charge_checked(self.penetration)
+
+
+@dataclass(frozen=True)
+class RewardBatch:
+    """What :meth:`PhysicsReward.score` found for one batch of completions, in input order."""
+
+    rewards: np.ndarray
+    """(n_text,) float64 rewards."""
+    metrics: Mapping[str, float]
+    """``parse_failure_rate``, ``mean_energy_mm`` (over parsed layouts), ``collision_free_rate`` (over
+    parsed layouts), ``mean_max_depth_mm`` and ``mean_reward``; with ``size_per_cm`` > 0 or the ``size``
+    charge term ``mean_size_outside_cm`` (a parsed layout's summed size distance outside its band);
+    with ``valid_terms`` ``invalid_rate`` and ``mean_<term>_objects`` per term."""
+    parse_errors: tuple[str | None, ...]
+    """Per completion, the ParseError reason, None where the text parsed."""
+    object_charges: tuple[np.ndarray | None, ...]
+    """Per completion, (n_objects,) the charge of each object (:class:`ChargeConfig`: cm of penetration,
+    support gap, zone overshoot and size distance, or pair counts); None where the text did not parse
+    or charges were not asked for."""
+    placement_charges: tuple[np.ndarray | None, ...]
+    """``object_charges`` less the ``size`` term: what moving the object can answer (PADA's
+    ``denoise`` targets move objects; they do not resize them)."""
+
+
+class PhysicsReward:
+    """A TRL reward function ``f(prompts, completions, **columns) -> list[float]``; :meth:`score` gives
+    the whole :class:`RewardBatch` (rewards, metrics, parse errors, per-object charges).
+
+    ``charges``: the per-object charges every call computes (None: none, unless a call asks).
     """
 
     __name__ = "physics_reward"  # TRL names reward columns after the function
 
-    def __init__(self, config: RewardConfig | None = None, engine=None, *, object_depths: bool = False,
-                 object_terms: Sequence[str] = ("penetration",), penetration_charge: str = "depth"):
+    def __init__(self, config: RewardConfig | None = None, engine: PhysicsEngine | None = None, *,
+                 charges: ChargeConfig | None = None):
         self.config = config or RewardConfig()
         self._engine = engine
-        self.object_depths = object_depths
-        """Also keep ``last_object_depths`` after each call (PADA's ``object_credit``)."""
-        self.object_terms = object_terms_checked(object_terms)
-        """What ``last_object_depths`` charges each object with (:data:`OBJECT_TERMS`)."""
-        self.penetration_charge = penetration_charge_checked(penetration_charge)
-        """``depth``: a penetrating pair charges its depth (cm); ``pairs``: 1 (PENETRATION_CHARGES)."""
-        self.last_metrics: dict[str, float] = {}
-        self.last_parse_errors: list[str | None] = []
-        self.last_object_depths: list[np.ndarray | None] = []
-        self.last_placement_depths: list[np.ndarray | None] = []
-        """``last_object_depths`` less the ``size`` term: what moving the object can answer (PADA's
-        ``denoise`` targets move objects; they do not resize them)."""
+        self.charges = charges
+        self._text_packer: TextPacker | None = None
 
     @property
     def engine(self):
         if self._engine is None:
-            from physcene.physics import PhysicsEngine
-
             self._engine = PhysicsEngine(device=self.config.device)
         return self._engine
 
-    def __call__(self, prompts=None, completions=None, **columns) -> list[float]:
+    def __call__(self, prompts=None, completions=None, *, charges: ChargeConfig | None = None,
+                 on_batch=None, **columns) -> list[float]:
+        """TRL's signature. ``charges`` and ``on_batch`` (called with the :class:`RewardBatch`) are for a
+        trainer that reads more than the rewards (PADA's object credit)."""
         if completions is None:
             raise ValueError("physics_reward needs completions")
-        return self.score_texts([completion_text_of(c) for c in completions])
+        batch = self.score([completion_text_of(c) for c in completions], charges=charges)
+        if on_batch is not None:
+            on_batch(batch)
+        return batch.rewards.tolist()
 
-    def score_texts(self, texts: Sequence[str]) -> list[float]:
-        """Rewards for completion texts, in order (one parse each, one engine call).
+    def score(self, texts: Sequence[str], *, charges: ChargeConfig | None = None) -> RewardBatch:
+        """The rewards of completion texts, in order (one parse each, one engine call).
 
         With ``fast_parse`` the compiled scanner reads canonical CTRC straight into the engine
-        batch and :func:`physcene.ctrc.parse` reads the rest; the rewards, metrics and
-        ``last_parse_errors`` are those of parsing every text with :func:`parse`.
+        batch and :func:`physcene.ctrc.parse` reads the rest; the rewards, metrics and parse
+        errors are those of parsing every text with :func:`parse`. ``charges`` (default: the
+        reward's own) asks for the per-object charges.
         """
+        charges = charges or self.charges
         engine = self.engine
-        if not self.config.fast_parse or not hasattr(engine, "pack_texts"):  # duck-typed engines
-            return self.score_parsed([parse(t) for t in texts])
-        pack = engine.pack_texts(texts, parse)
-        return self._score(pack.batch, np.nonzero(pack.row >= 0)[0], pack.errors)
+        if not self.config.fast_parse:
+            return self.score_parsed([parse(t) for t in texts], charges=charges)
+        if self._text_packer is None or self._text_packer.engine is not engine:
+            self._text_packer = TextPacker(engine)
+        pack = self._text_packer.pack(texts, parse)
+        return self._score(pack.batch, np.nonzero(pack.row >= 0)[0], pack.errors, charges)
 
-    def score_parsed(self, parsed: Sequence[Scene | ParseError]) -> list[float]:
-        """Rewards for already parsed completions (a Scene or a ParseError each)."""
+    def score_parsed(self, parsed: Sequence[Scene | ParseError], *,
+                     charges: ChargeConfig | None = None) -> RewardBatch:
+        """The rewards of already parsed completions (a Scene or a ParseError each)."""
         ok = [k for k, p in enumerate(parsed) if isinstance(p, Scene)]
         batch = self.engine.pack([parsed[k] for k in ok]) if ok else None
         errors = [p.reason if isinstance(p, ParseError) else None for p in parsed]
-        return self._score(batch, np.asarray(ok, dtype=np.int64), errors)
+        return self._score(batch, np.asarray(ok, dtype=np.int64), errors, charges or self.charges)
 
-    def _score(self, batch, ok: np.ndarray, errors: list[str | None]) -> list[float]:
-        """Rewards of n = len(errors) completions; ``batch`` row r scores completion ok[r]."""
+    def _score(self, batch, ok: np.ndarray, errors: list[str | None],
+               charges: ChargeConfig | None) -> RewardBatch:
+        """The RewardBatch of n = len(errors) completions; ``batch`` row r scores completion ok[r]."""
         cfg = self.config
         n_text = len(errors)
         rewards = np.full(n_text, cfg.unparsable, dtype=np.float64)
@@ -205,12 +242,12 @@ class PhysicsReward:
             both = (torch.stack([e, out["max_depth"]]) * 10.0).cpu().numpy().astype(np.float64)  # one sync
             e_mm, depth_mm = both[0], both[1]
             rewards[ok] = reward_from_energy(e_mm, cfg)
-            wants_size = cfg.size_per_cm or (self.object_depths and "size" in self.object_terms)
+            wants_size = cfg.size_per_cm or (charges is not None and "size" in charges.terms)
             bands = None  # host work per object: only when asked, and once for both of its uses
             if wants_size or "shrunk" in cfg.valid_terms:
                 bands = prior_bands(batch, cfg.size_tolerance)
             if wants_size:
-                size_cm = _outside_cm(bands)
+                size_cm = outside_cm(bands)
             if cfg.size_per_cm:
                 rewards[ok] = np.maximum(rewards[ok] - cfg.size_per_cm * size_cm.sum(1), -cfg.max_penalty)
             if cfg.valid_terms:
@@ -219,16 +256,15 @@ class PhysicsReward:
                 for objects in broken.values():
                     invalid |= objects.any(1)
                 rewards[ok] = np.where(invalid, cfg.invalid, rewards[ok])
-        self.last_object_depths = [None] * n_text
-        self.last_placement_depths = [None] * n_text
-        if self.object_depths and ok.size:
-            sized = "size" in self.object_terms
-            for r, depths in enumerate(self._object_depths(batch, out)):
-                self.last_placement_depths[int(ok[r])] = depths
-                self.last_object_depths[int(ok[r])] = depths + size_cm[r, :depths.size] if sized else depths
+        object_charges: list[np.ndarray | None] = [None] * n_text
+        placement_charges: list[np.ndarray | None] = [None] * n_text
+        if charges is not None and ok.size:
+            sized = "size" in charges.terms
+            for r, charged in enumerate(self._object_charges(batch, out, charges)):
+                placement_charges[int(ok[r])] = charged
+                object_charges[int(ok[r])] = charged + size_cm[r, :charged.size] if sized else charged
         n = max(n_text, 1)
-        self.last_parse_errors = list(errors)
-        self.last_metrics = {
+        metrics = {
             "parse_failure_rate": (n_text - ok.size) / n,
             "mean_energy_mm": float(e_mm.mean()) if ok.size else 0.0,
             "collision_free_rate": float((e_mm == 0).mean()) if ok.size else 0.0,
@@ -236,12 +272,13 @@ class PhysicsReward:
             "mean_reward": float(rewards.mean()) if n_text else 0.0,
         }
         if size_cm is not None:
-            self.last_metrics["mean_size_outside_cm"] = float(size_cm.sum(1).mean())
+            metrics["mean_size_outside_cm"] = float(size_cm.sum(1).mean())
         if cfg.valid_terms and ok.size:
-            self.last_metrics["invalid_rate"] = float(invalid.mean())
+            metrics["invalid_rate"] = float(invalid.mean())
             for term, objects in broken.items():
-                self.last_metrics[f"mean_{term}_objects"] = float(objects.sum(1).mean())
-        return rewards.tolist()
+                metrics[f"mean_{term}_objects"] = float(objects.sum(1).mean())
+        return RewardBatch(rewards=rewards, metrics=metrics, parse_errors=tuple(errors),
+                           object_charges=tuple(object_charges), placement_charges=tuple(placement_charges))
 
     def broken_objects(self, batch, bands=None) -> dict[str, np.ndarray]:
         """Per ``valid_terms`` term, (S, N) bool on the host: the objects of each scene that break it
@@ -256,14 +293,14 @@ class PhysicsReward:
         if "shrunk" in cfg.valid_terms:
             if bands is None:
                 bands = prior_bands(batch, cfg.size_tolerance)
-            broken["shrunk"] = (_low_ratio(bands) < cfg.shrink_ratio) & mask
+            broken["shrunk"] = (low_ratio(bands) < cfg.shrink_ratio) & mask
         return broken
 
-    def _object_depths(self, batch, out: dict) -> list[np.ndarray]:
-        """Per batch row, (n_objects,) cm: what each object is charged with (``object_terms``; the
+    def _object_charges(self, batch, out: dict, charges: ChargeConfig) -> list[np.ndarray]:
+        """Per batch row, (n_objects,): what each object is charged with (``charges.terms``; the
         ``size`` term, :func:`size_outside_band_cm` at ``size_tolerance``, is added by the caller).
 
-        ``penetration``: a pair deeper than the tolerance charges its depth (``penetration_charge``
+        ``penetration``: a pair deeper than the tolerance charges its depth (``charges.penetration``
         ``depth``) or 1 (``pairs``) to the object written later (the larger index: objects keep the
         completion's order), the one placed into a space already taken; with ``table_term`` an object's
         own table depth is charged to it too (a depth either way).
@@ -274,24 +311,24 @@ class PhysicsReward:
         """
         tolerance_cm = self.config.tolerance_mm / 10.0
         count = batch.count.cpu().numpy().astype(np.int64)
-        depths = [np.zeros(int(n)) for n in count]
+        charged = [np.zeros(int(n)) for n in count]
         per_object = []  # (S, N) host charges, each counted beyond its tolerance
-        if "penetration" in self.object_terms:
+        if "penetration" in charges.terms:
             for s, pairs in enumerate(batch.deep_pairs(out["pair_depth"], tolerance_cm)):
                 for i, j, d in pairs:
-                    depths[s][max(i, j)] += d if self.penetration_charge == "depth" else 1.0
+                    charged[s][max(i, j)] += d if charges.penetration == "depth" else 1.0
             if self.config.table_term:
                 per_object.append((out["table_depth"].cpu().numpy(), tolerance_cm))
-        if "floating" in self.object_terms:
+        if "floating" in charges.terms:
             per_object.append((self.engine.support_gap(batch).cpu().numpy(),
                                self.engine.config.floating_tolerance_cm))
-        if "out_of_zone" in self.object_terms:
+        if "out_of_zone" in charges.terms:
             per_object.append((batch.zone_overshoot(), ZONE_TOLERANCE_CM))
         for value, tolerance in per_object:
-            charged = np.where(value > tolerance, value, 0.0)
+            beyond = np.where(value > tolerance, value, 0.0)
             for s, n in enumerate(count):
-                depths[s] += charged[s, :n]
-        return depths
+                charged[s] += beyond[s, :n]
+        return charged
 
     def describe(self) -> dict:
         return asdict(self.config)
@@ -320,88 +357,8 @@ def _distinct_names(terms, allowed: tuple[str, ...], what: str, *, at_least_one:
     return terms
 
 
-@functools.lru_cache(maxsize=4096)
-def _prior_of(instance: str):
-    return CATEGORY_PRIORS.get(canonical_category(category_from_instance(instance)))
-
-
-def prior_bands(batch, tolerance: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """On the host, per object of ``batch``: its size (S, N, 3) sorted ascending, and the low and high
-    edges (S, N, 3) of its category prior's band at ``tolerance`` spreads, per ascending dimension
-    (:meth:`physcene.assets.SizePrior.band_cm`; the category read from the instance id), with ``known``
-    (S, N): whether it has a prior (edges 1 otherwise; False on padded slots). One look-up per object,
-    the arithmetic batched."""
-    sizes = np.sort(batch.sizes.detach().cpu().numpy().astype(np.float64), axis=-1)
-    low, high = np.ones_like(sizes), np.ones_like(sizes)
-    known = np.zeros(sizes.shape[:2], dtype=bool)
-    for s, n in enumerate(batch.count.cpu().tolist()):
-        ids = batch.ids[s]
-        for k in range(int(n)):
-            band = _band_of(ids[k], float(tolerance))
-            if band is not None:
-                low[s, k], high[s, k] = band
-                known[s, k] = True
-    return sizes, low, high, known
-
-
-@functools.lru_cache(maxsize=8192)
-def _band_of(instance: str, tolerance: float):
-    prior = _prior_of(instance)
-    return None if prior is None else prior.band_cm(tolerance)
-
-
-def size_outside_band_cm(batch, tolerance: float) -> np.ndarray:
-    """(S, N) cm on the host: how far each object's size lies outside its category prior's band at
-    ``tolerance`` spreads (:meth:`physcene.assets.SizePrior.outside_band_cm`, batched by
-    :func:`prior_bands`). 0 inside the band, for a category without a prior and on padded slots."""
-    return _outside_cm(prior_bands(batch, tolerance))
-
-
-def band_low_ratio(batch, tolerance: float) -> np.ndarray:
-    """(S, N) on the host: each object's :meth:`physcene.assets.SizePrior.low_ratio` (the smallest ratio
-    of a dimension to its band's low edge), batched by :func:`prior_bands`; inf without a prior."""
-    return _low_ratio(prior_bands(batch, tolerance))
-
-
-def _outside_cm(bands) -> np.ndarray:
-    sizes, low, high, known = bands
-    return np.where(known, (np.maximum(low - sizes, 0.0) + np.maximum(sizes - high, 0.0)).sum(-1), 0.0)
-
-
-def _low_ratio(bands) -> np.ndarray:
-    sizes, low, _, known = bands
-    return np.where(known, (sizes / low).min(-1), np.inf)
-
-
 def penetration_charge_checked(charge: str) -> str:
     """``charge`` if it is one of :data:`PENETRATION_CHARGES`, else a ValueError naming them."""
     if charge not in PENETRATION_CHARGES:
         raise ValueError(f"penetration charge must be one of {list(PENETRATION_CHARGES)}, got {charge!r}")
     return charge
-
-
-_BY_DEVICE: dict[str, PhysicsReward] = {}
-
-
-@functools.lru_cache(maxsize=1)
-def _default_config() -> RewardConfig:
-    return RewardConfig.load()
-
-
-def physics_reward(prompts=None, completions=None, *, device=None, **columns) -> list[float]:
-    """The reward with ``configs/reward.yaml`` defaults; see the module doc.
-
-    ``device`` (e.g. this rank's ``cuda:N``) overrides the config's; one engine per device and
-    process. The last batch's metrics are in ``physics_reward.last_metrics``.
-    """
-    config = _default_config()
-    key = str(device) if device is not None else config.device
-    reward = _BY_DEVICE.get(key)
-    if reward is None:
-        reward = _BY_DEVICE[key] = PhysicsReward(replace(config, device=key))
-    rewards = reward(prompts, completions, **columns)
-    physics_reward.last_metrics = reward.last_metrics
-    return rewards
-
-
-physics_reward.last_metrics = {}

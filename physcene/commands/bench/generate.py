@@ -1,4 +1,4 @@
-"""``physcene bench generate``: batched greedy generation with each KV-cache mode (issue 8).
+"""``physcene bench generate``: batched greedy generation with each KV-cache mode.
 
     physcene bench generate --device cuda --config small --batch 128 --tokens 512 --json
     physcene bench generate --device cpu --config tiny --batch 2 --tokens 8
@@ -8,7 +8,7 @@ A randomly initialised model of ``configs/train_<config>.yaml`` (speed does not 
 weights) and a tokenizer trained the way the train code does (:mod:`physcene.train.tokenizer`, on 32
 synthetic records) generate ``--tokens`` new tokens for ``--batch`` CTRC prompts in one batch, with
 ``min_new_tokens`` so every variant decodes exactly the same number of steps. Timed with
-:func:`physcene.commands.bench.timed` (device synchronised, median of ``--repeat``, one warm-up call
+:func:`physcene.commands.bench.timing.timed` (device synchronised, median of ``--repeat``, one warm-up call
 that also compiles ``static_compile``): :func:`physcene.train.generate.generate_token_ids`, i.e.
 ``generate_with`` without the final text decode. Each variant's token ids are compared with the
 first variant's (``dynamic`` by default): greedy decoding should give identical ids; in bf16 the
@@ -21,6 +21,10 @@ from __future__ import annotations
 import time
 
 import torch
+
+from physcene.commands.bench.timing import BenchTarget, device_name, timed
+
+__all__ = ["TARGET", "VARIANT_CACHE"]
 
 VARIANT_CACHE = {"dynamic": "dynamic", "static": "static", "static+compile": "static_compile"}
 
@@ -39,7 +43,7 @@ def add_arguments(parser) -> None:
 
 
 def run(args) -> dict:
-    from physcene.commands.bench import _device_name, timed
+    # transformers is heavy: imported when this target runs, not when the bench registry is built
     from physcene.config import load_config
     from physcene.data import synthesize
     from physcene.train.generate import generate_token_ids
@@ -58,7 +62,7 @@ def run(args) -> dict:
     prompts = [r["prompt"] for r in records[:args.batch]]
     prompt_tokens = [len(tokenizer(p, add_special_tokens=False)["input_ids"]) for p in prompts]
     result = {
-        "target": "generate", "device": _device_name(device), "config": args.config, "dtype": dtype,
+        "target": "generate", "device": device_name(device), "config": args.config, "dtype": dtype,
         "parameters": count_parameters(model), "attention": model.config._attn_implementation,
         "batch": args.batch, "tokens": args.tokens, "prompt_tokens_max": max(prompt_tokens),
         "prompt_tokens_mean": sum(prompt_tokens) / len(prompt_tokens), "variants": {},
@@ -74,9 +78,9 @@ def run(args) -> dict:
         start = time.perf_counter()
         ids = call(args.tokens)  # the first call: cache allocation, compilation for static_compile
         first = time.perf_counter() - start
-        seconds = timed(lambda: call(args.tokens), device, args.repeat, warmup=0)
-        cpu_seconds = timed.last_cpu_seconds
-        prefill = timed(lambda: call(1), device, args.repeat, warmup=1)  # prompt pass + one token
+        timing = timed(lambda: call(args.tokens), device, args.repeat, warmup=0)
+        seconds, cpu_seconds = timing.seconds, timing.cpu_seconds
+        prefill = timed(lambda: call(1), device, args.repeat, warmup=1).seconds  # prompt pass + one token
         steps = max(args.tokens - 1, 1)
         row = result["variants"][name] = {
             "cache": cache, "seconds": seconds, "cpu_seconds": cpu_seconds, "first_call_seconds": first,
@@ -119,3 +123,7 @@ def summary(r: dict) -> str:
                      f"{v['speedup']:5.2f}x  first call {v['first_call_seconds']:.1f} s  {same} as "
                      f"{r['reference']}")
     return "\n".join(lines)
+
+
+TARGET = BenchTarget("Batched greedy generation: dynamic vs static vs static+compile KV cache",
+                     add_arguments, run, summary, repeat=(3, 2))

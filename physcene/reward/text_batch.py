@@ -1,8 +1,9 @@
 """Completion texts -> the engine's :class:`~physcene.physics.SceneBatch` without Python per object.
 
-The reward's fast path (``PhysicsEngine.pack_texts``). Per call, on the host: one join + encode
+The reward's fast path (:class:`TextPacker`, one per engine: ``TextPacker(engine).pack(texts)``).
+The engine knows nothing of text; this module reads text for it. Per call, on the host: one join + encode
 of all texts, one offsets array, one copy into a staging buffer (pinned on CUDA) and one upload;
-on the device: the compiled CTRC reader of :mod:`physcene.kernels.ctrc_scan` (prescan + scan);
+on the device: the compiled CTRC reader of :mod:`physcene.kernels.ctrc_reader` (prescan + scan);
 one device -> host copy of the per-text status; then one small upload (row sources, counts, CSR
 pair offsets) and one gather kernel into the padded batch.
 
@@ -23,18 +24,35 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from physcene.kernels.ctrc_scan import (
+from physcene.ctrc import MAX_ABS_CM, ON_CONTACT_GAP_CM, ParseError, parse
+from physcene.kernels.ctrc_reader import (
     CHUNK,
     MAX_ENTRIES,
     STATUS,
+    ReaderLimits,
     category_hash,
     keyword_table,
     launch_gather,
     launch_scan,
     scan_buffers,
 )
+from physcene.physics import PhysicsEngine, SceneBatch
+from physcene.scene import Scene
 
 __all__ = ["STATUS", "TextPack", "TextPacker"]
+
+# The words the compiled reader compares against, in its role order (kernels.ctrc_reader: ENTRY_ROLES,
+# TOP_ROLES, WORD_ROLES), and the limits it applies: the grammar's, given to the reader here.
+# from physcene.ctrc.grammar after the merge
+ENTRY_KEYS = ("layer", "instance_id", "category", "parent_id", "relation_type", "description",
+              "relative_bbox", "relative_rotation_deg", "type", "bbox", "z_rotation")
+# from physcene.ctrc.grammar after the merge
+TOP_KEYS = ("objects", "item_placement_zone")
+# from physcene.ctrc.grammar after the merge (the relations in the reader's order: in, on, near)
+RELATIONS = ("in", "on", "near")
+# the root zone's parent id and the zone entry's type
+ZONE_WORDS = ("root_zone", "zone")
+READER_LIMITS = ReaderLimits(max_abs_cm=MAX_ABS_CM, on_contact_gap_cm=ON_CONTACT_GAP_CM)
 
 # Offsets are int32 (Warp indexes with int): larger batches are read by the Python parser.
 _MAX_BYTES = 2**31 - 1
@@ -43,7 +61,7 @@ _UNKNOWN_CATEGORY = -9
 
 @dataclass
 class TextPack:
-    """The result of ``PhysicsEngine.pack_texts(texts)``."""
+    """The result of :meth:`TextPacker.pack`."""
 
     batch: object | None
     """SceneBatch of every completion that parsed (rows in input order), None if none did."""
@@ -94,10 +112,10 @@ class _LazyIds(Sequence):
 class TextPacker:
     """Per-engine state of the fast path: staging/scan buffers and the category table."""
 
-    def __init__(self, engine):
+    def __init__(self, engine: PhysicsEngine):
         self.engine = engine
         self.device = engine.device
-        words, starts = keyword_table()
+        words, starts = keyword_table(ENTRY_KEYS, TOP_KEYS, (*ZONE_WORDS, *RELATIONS))
         self._words = {"bytes": torch.from_numpy(words).to(self.device),
                        "start": torch.from_numpy(starts).to(self.device)}
         self._categories: dict[int, tuple[int, int, str]] = {}  # FNV hash -> (check, slot, name)
@@ -160,7 +178,7 @@ class TextPacker:
             if key in self._categories:
                 continue  # a 64-bit hash collision with another name: those texts use Python
             name = raw.decode("utf-8", "surrogatepass")
-            slot = self.engine._resolve(name, None)[0]
+            slot = self.engine.resolve(name, None)[0]
             self._categories[key] = (check, slot, name)
             grew = True
         if grew:
@@ -204,7 +222,8 @@ class TextPacker:
         text_t, header_t = self._stage(data, header)
         for attempt in range(2):
             launch_scan(text=text_t, offsets=header_t[:n + 1], chunk_start=header_t[n + 1:], n_text=n,
-                        n_chunks=n_chunks, words=self._words, table=self._table, buffers=buffers)
+                        n_chunks=n_chunks, words=self._words, table=self._table, limits=READER_LIMITS,
+                        buffers=buffers)
             both = torch.cat([buffers["status"][:n], buffers["n_read"][:n]]).cpu().numpy()  # one sync
             status, n_read = both[:n], both[n:]
             unknown = np.nonzero(status == _UNKNOWN_CATEGORY)[0]
@@ -215,11 +234,13 @@ class TextPacker:
         return status.copy(), data
 
     def pack(self, texts: Sequence[str], fallback: Callable | None = None) -> TextPack:
-        """Scan ``texts``; parse the rest with ``fallback`` (default ``ctrc.parse``); one batch."""
-        from physcene.ctrc import ParseError, parse
-        from physcene.physics import SceneBatch
-        from physcene.scene import Scene
+        """Completion texts → a :class:`TextPack` (batch, row per text, errors).
 
+        Canonical CTRC (what ``ctrc.completion_text`` writes, keys in any order) is read by the
+        compiled scanner straight into the batch; every other text goes to ``fallback`` (default
+        :func:`physcene.ctrc.parse`), whose Scenes are packed into the same batch and whose
+        ParseErrors are the texts that do not parse. Rows follow the input order.
+        """
         fallback = fallback or parse
         engine, device = self.engine, self.device
         n = len(texts)

@@ -13,6 +13,7 @@ from physcene.reward import (
     RewardConfig,
     completion_text_of,
     physics_reward,
+    reward_for_device,
     reward_from_energy,
 )
 from physcene.scene import Scene, SceneObject, Zone
@@ -21,7 +22,8 @@ ZONE = Zone(0.0, 120.0, 0.0, 60.0)
 
 
 class CountingEngine:
-    """The real engine, counting calls (the reward must make one per batch)."""
+    """The real engine, counting calls (the reward must make one per batch). It packs Scenes only:
+    the rewards given it read texts with ``fast_parse=False``."""
 
     def __init__(self):
         library = AssetLibrary(resolution=32, n_points=512)
@@ -59,31 +61,35 @@ SUNK = text(box("1_box_0", (30, 30, 4), (10, 10, 10)))  # 1 cm below the table t
 
 
 def test_reward_values_and_one_engine_call(engine):
-    reward = PhysicsReward(RewardConfig(), engine=engine)
+    reward = PhysicsReward(RewardConfig(fast_parse=False), engine=engine)
     chat = [{"role": "assistant", "content": OVERLAP}]
     rewards = reward(["p"] * 4, [CLEAN, OVERLAP, "I cannot do that.", chat])
     assert rewards[0] == 50.0 and rewards[2] == -100.0
     assert rewards[1] == pytest.approx(-0.2, abs=2e-3) and rewards[3] == rewards[1]
     assert engine.packs == 1 and engine.evaluations == 1
-    m = reward.last_metrics
+    batch = reward.score([CLEAN, OVERLAP, "I cannot do that.", OVERLAP])
+    assert batch.rewards.tolist() == rewards and engine.packs == 2 and engine.evaluations == 2
+    m = batch.metrics
     assert m["parse_failure_rate"] == 0.25
     assert m["mean_energy_mm"] == pytest.approx(40 / 3, abs=0.1)
     assert m["collision_free_rate"] == pytest.approx(1 / 3)
-    assert reward.last_parse_errors[2] is not None and reward.last_parse_errors[0] is None
+    assert batch.parse_errors[2] is not None and batch.parse_errors[0] is None
 
 
 def test_unparsable_batch_never_touches_the_engine(engine):
-    reward = PhysicsReward(RewardConfig(), engine=engine)
-    assert reward(None, ["", "{not json", '{"objects": []}']) == [-100.0] * 3
+    reward = PhysicsReward(RewardConfig(fast_parse=False), engine=engine)
+    batch = reward.score(["", "{not json", '{"objects": []}'])
+    assert batch.rewards.tolist() == [-100.0] * 3
     assert engine.packs == 0 and engine.evaluations == 0
-    assert reward.last_metrics["parse_failure_rate"] == 1.0
+    assert batch.metrics["parse_failure_rate"] == 1.0
 
 
 def test_tolerance_and_table_term(engine):
-    assert PhysicsReward(RewardConfig(tolerance_mm=25.0), engine=engine)(None, [OVERLAP]) == [50.0]
-    assert PhysicsReward(RewardConfig(tolerance_mm=15.0), engine=engine)(None, [OVERLAP])[0] < 0
-    assert PhysicsReward(RewardConfig(), engine=engine)(None, [SUNK]) == [50.0]
-    sunk = PhysicsReward(RewardConfig(table_term=True), engine=engine)(None, [SUNK])[0]
+    slow = {"fast_parse": False}
+    assert PhysicsReward(RewardConfig(tolerance_mm=25.0, **slow), engine=engine)(None, [OVERLAP]) == [50.0]
+    assert PhysicsReward(RewardConfig(tolerance_mm=15.0, **slow), engine=engine)(None, [OVERLAP])[0] < 0
+    assert PhysicsReward(RewardConfig(fast_parse=False), engine=engine)(None, [SUNK]) == [50.0]
+    sunk = PhysicsReward(RewardConfig(table_term=True, **slow), engine=engine)(None, [SUNK])[0]
     assert sunk == pytest.approx(-0.1, abs=1e-3)
 
 
@@ -104,7 +110,7 @@ def test_completion_formats():
 def test_module_level_function_uses_the_config_and_device():
     rewards = physics_reward(["p", "p"], [CLEAN, "nope"], device="cpu", extra_column=[1, 2])
     assert rewards == [50.0, -100.0]
-    assert physics_reward.last_metrics["parse_failure_rate"] == 0.5
+    assert reward_for_device("cpu").score([CLEAN, "nope"]).metrics["parse_failure_rate"] == 0.5
     assert RewardConfig.load(["tolerance_mm=2"]).tolerance_mm == 2.0
     with pytest.raises(ValueError, match="unknown keys"):
         RewardConfig.load(["bogus=1"])
@@ -126,4 +132,5 @@ def test_resting_contacts_written_as_text_are_not_penetration(fast_parse):
     stacked = [s for s in stacked if any(o.relation == "on" for o in s.objects)]
     assert len(stacked) >= 16
     reward = PhysicsReward(RewardConfig(fast_parse=fast_parse), engine=engine)
-    assert reward.score_texts([completion_text(s, decimals=2) for s in stacked]) == [50.0] * len(stacked)
+    texts = [completion_text(s, decimals=2) for s in stacked]
+    assert reward.score(texts).rewards.tolist() == [50.0] * len(stacked)

@@ -1,5 +1,5 @@
 """``reward.valid_terms``: the paper's reward pays a collision dodged by lifting an object off its support
-or by flattening it; with the terms on, such a layout is paid ``invalid`` (docs/results.md, Session 18)."""
+or by flattening it; with the terms on, such a layout is paid ``invalid`` (docs/results.md)."""
 
 from __future__ import annotations
 
@@ -45,25 +45,27 @@ def scenes(written_into):
 
 def test_the_papers_reward_pays_for_lifting_and_flattening_and_valid_terms_take_it_back(scenes):
     texts = [completion_text(s, decimals=2) for s in scenes]
-    paper = np.array(PhysicsReward(RewardConfig()).score_texts(texts))
+    paper = PhysicsReward(RewardConfig()).score(texts).rewards
     assert paper[0] == 50.0 and paper[1] < 0
     assert paper[2] == 50.0  # lifted out of the collision: paid as collision-free
     assert paper[1] < paper[3] <= 50.0  # flattened: a shallower collision, paid better
 
     floating = PhysicsReward(RewardConfig(valid_terms=("floating",)))
-    got = np.array(floating.score_texts(texts))
+    scored = floating.score(texts)
+    got = scored.rewards
     assert got[0] == 50.0 and got[1] == paper[1] and got[3] == paper[3]
     assert got[2] == RewardConfig().invalid == -50.0
-    assert floating.last_metrics["invalid_rate"] == pytest.approx(0.25)
-    assert floating.last_metrics["mean_floating_objects"] == pytest.approx(1 / 4)  # only its base floats
+    assert scored.metrics["invalid_rate"] == pytest.approx(0.25)
+    assert scored.metrics["mean_floating_objects"] == pytest.approx(1 / 4)  # only its base floats
 
     both = PhysicsReward(RewardConfig(valid_terms=("floating", "shrunk"), invalid=-60.0))
-    got = np.array(both.score_texts(texts))
+    scored = both.score(texts)
+    got = scored.rewards
     assert got[0] == 50.0 and got[1] == paper[1]
     assert got[2] == got[3] == -60.0
-    assert both.last_metrics["mean_shrunk_objects"] == pytest.approx(1 / 4)
+    assert scored.metrics["mean_shrunk_objects"] == pytest.approx(1 / 4)
     # the same from parsed scenes (the Python packer) as from the compiled scanner
-    assert both.score_parsed([parse(t) for t in texts]) == pytest.approx(got.tolist())
+    assert both.score_parsed([parse(t) for t in texts]).rewards.tolist() == pytest.approx(got.tolist())
     # the test data's objects are neither lifted nor shrunk: the terms never touch its clean scenes
     assert both.broken_objects(both.engine.pack([scenes[0]]))["shrunk"].sum() == 0
 
@@ -87,7 +89,7 @@ def test_low_ratio_reads_the_band_in_any_orientation(scenes):
 
 
 def test_valid_terms_from_the_config_and_bad_ones_are_named():
-    from physcene.train.pada import PhysicsRewardFunction
+    from physcene.reward.trl import PhysicsRewardFunction
 
     assert RewardConfig.load().valid_terms == ()  # the paper's reward by default
     assert RewardConfig.load(["valid_terms=floating"]).valid_terms == ("floating",)  # one name, not letters
@@ -100,7 +102,7 @@ def test_valid_terms_from_the_config_and_bad_ones_are_named():
 
 
 def test_pada_logs_what_the_valid_terms_charged(scenes):
-    from physcene.train.pada import PhysicsRewardFunction
+    from physcene.reward.trl import PhysicsRewardFunction
 
     logged = {}
     fn = PhysicsRewardFunction("cpu", overrides=["valid_terms=[floating,shrunk]"])

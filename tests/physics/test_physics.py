@@ -11,7 +11,7 @@ import torch
 
 from physcene.assets import Asset, grid_coordinates, primitive_asset
 from physcene.physics import PhysicsEngine, SceneBatch, bucket_points
-from physcene.physics_reference import reference_penetration, reference_support_gap
+from physcene.physics.reference import reference_penetration, reference_support_gap
 from physcene.scene import Scene, SceneObject, Zone
 
 ZONE = Zone(0.0, 120.0, 0.0, 60.0)

@@ -1,88 +1,32 @@
-"""``physcene bench TARGET``: throughput benchmarks with the numbers the issues ask for.
+"""``physcene bench reward``: the Warp engine against the torch reference, and the whole reward.
 
     physcene bench reward --device cuda                      # 512 scenes x 16 objects x 1024 points
     physcene bench reward --device cpu --scenes 256 --objects 12 --json
-    physcene bench reward --device cuda --narrowphase buckets worklist   # A/B in one process
+    physcene bench reward --device cuda --lanes 16 32 --graph off on    # A/B in one process
 
-Targets live in ``TARGETS`` (name -> :class:`BenchTarget`). A new target is one function:
-
-    @bench_target("tto", "TTO steps/s", add_arguments=_tto_arguments)
-    def bench_tto(args) -> dict: ...        # args.device, args.repeat, args.json + its own options
-
-Every target takes ``--device``, ``--json`` and ``--repeat``; use :func:`timed` (warm-up, device
-synchronised around every timed call, median).
+The narrowphase variant that lost (``buckets``) is timed against the product's by
+benchmarks/ab_narrowphase.py.
 """
 
 from __future__ import annotations
 
-import json
-import statistics
-import time
-from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import replace
 
 import numpy as np
 import torch
 
-NAME = "bench"
-HELP = "Throughput benchmarks (targets: reward, tto, generate)"
+from physcene.assets import AssetLibrary
+from physcene.commands.bench.timing import BenchTarget, Timing, device_name, timed
+from physcene.ctrc import completion_text
+from physcene.physics import PhysicsConfig, PhysicsEngine
+from physcene.physics.reference import reference_penetration
+from physcene.reward import PhysicsReward, RewardConfig, TextPacker
+from physcene.scene import Scene, SceneObject, Zone
 
-__all__ = ["TARGETS", "BenchTarget", "bench_scenes", "bench_target", "timed"]
+__all__ = ["TARGET", "bench_reward", "bench_scenes"]
 
-
-@dataclass(frozen=True)
-class BenchTarget:
-    help: str
-    add_arguments: Callable
-    run: Callable[..., dict]
-    """run(args) -> a JSON-able dict of figures."""
-    summary: Callable[[dict], str]
-    """Human-readable lines of the figures."""
-    repeat: tuple[int, int] = (20, 3)
-    """Default ``--repeat`` on (CUDA, CPU)."""
-
-
-TARGETS: dict[str, BenchTarget] = {}
-
-
-def bench_target(name: str, help: str, *, add_arguments: Callable = lambda parser: None,
-                 summary: Callable[[dict], str] | None = None):
-    """Register ``run(args) -> dict`` as ``physcene bench NAME`` (summary default: indented JSON)."""
-
-    def register(run: Callable[..., dict]) -> Callable[..., dict]:
-        TARGETS[name] = BenchTarget(help, add_arguments, run, summary or (lambda r: json.dumps(r, indent=1)))
-        return run
-
-    return register
-
-
-def timed(fn: Callable[[], object], device: torch.device, repeat: int, warmup: int = 2) -> float:
-    """Median wall seconds of ``fn()`` with the device synchronised before and after each call.
-
-    The median process CPU seconds of the same calls is left in ``timed.last_cpu_seconds``: on a
-    loaded CPU-only machine it is the figure an idle machine would show for single-threaded work.
-    """
-
-    def sync():
-        if device.type == "cuda":
-            torch.cuda.synchronize(device)
-
-    for _ in range(warmup):
-        fn()
-    sync()
-    times, cpu = [], []
-    for _ in range(max(1, repeat)):
-        sync()
-        start, start_cpu = time.perf_counter(), time.process_time()
-        fn()
-        sync()
-        times.append(time.perf_counter() - start)
-        cpu.append(time.process_time() - start_cpu)
-    timed.last_cpu_seconds = statistics.median(cpu)
-    return statistics.median(times)
-
-
-timed.last_cpu_seconds = 0.0
+# The engine's one narrowphase, as the figures name it (each variant's label and "narrowphase").
+NARROWPHASE = "worklist"
 
 
 def bench_scenes(n_scene: int, n_obj: int, seed: int = 0):
@@ -91,8 +35,6 @@ def bench_scenes(n_scene: int, n_obj: int, seed: int = 0):
     Sizes 4-18 cm wide, 2-20 cm tall, uniform positions: an untrained generator's density, with
     many (not all) pairs in contact.
     """
-    from physcene.scene import Scene, SceneObject, Zone
-
     rng = np.random.default_rng(seed)
     zone = Zone(0.0, 120.0, 0.0, 60.0)
     kinds = ("box", "cylinder", "sphere")
@@ -116,9 +58,6 @@ def _reward_arguments(parser) -> None:
     parser.add_argument("--points", type=int, default=1024, help="surface points per asset")
     parser.add_argument("--resolution", type=int, default=64, help="SDF grid nodes per axis")
     parser.add_argument("--no-reference", action="store_true", help="skip the torch reference")
-    parser.add_argument("--narrowphase", nargs="+", default=None, metavar="NAME",
-                        help="narrowphase variant(s) to time, each in this process: worklist, buckets "
-                             "(default: configs/physics.yaml's; key=value overrides apply to the engine)")
     parser.add_argument("--lanes", type=int, nargs="+", default=None,
                         help="narrowphase threads per (pair, direction) to time (default: the config's)")
     parser.add_argument("--graph", nargs="+", choices=("off", "on"), default=None,
@@ -127,17 +66,11 @@ def _reward_arguments(parser) -> None:
 
 def bench_reward(args) -> dict:
     """Warp engine vs torch reference (forward, forward+gradient) and the whole reward."""
-    from physcene.assets import AssetLibrary
-    from physcene.ctrc import completion_text
-    from physcene.physics import PhysicsConfig, PhysicsEngine
-    from physcene.physics_reference import reference_penetration
-    from physcene.reward import PhysicsReward, RewardConfig
-
     device = torch.device(args.device)
     library = AssetLibrary(resolution=args.resolution, n_points=args.points)
     library.add_primitives()
     config = PhysicsConfig.load(getattr(args, "overrides", []))
-    variants = _variants(config, device, args.narrowphase, args.lanes, args.graph)
+    variants = _variants(config, device, args.lanes, args.graph)
     engine = PhysicsEngine(library, device, variants[0][1])
     scenes = bench_scenes(args.scenes, args.objects)
     batch = engine.pack(scenes)
@@ -151,13 +84,14 @@ def bench_reward(args) -> dict:
     n = batch.count.cpu().numpy()
     nominal = int((n * (n - 1)).sum() * pt.mean())  # every ordered pair, no broadphase
     result = {
-        "target": "reward", "device": _device_name(device), "scenes": args.scenes, "objects": args.objects,
+        "target": "reward", "device": device_name(device), "scenes": args.scenes, "objects": args.objects,
         "points": float(pt.mean()), "resolution": args.resolution, "pairs": batch.n_pairs,
         "candidate_pairs": int(hit.sum()), "queries_evaluated": evaluated, "queries_all_pairs": nominal,
     }
 
-    def figures(seconds: float) -> dict:
-        return {"seconds": seconds, "cpu_seconds": timed.last_cpu_seconds,
+    def figures(timing: Timing) -> dict:
+        seconds = timing.seconds
+        return {"seconds": seconds, "cpu_seconds": timing.cpu_seconds,
                 "scenes_per_s": args.scenes / seconds,
                 "gq_per_s": evaluated / seconds / 1e9, "all_pairs_gq_per_s": nominal / seconds / 1e9}
 
@@ -167,7 +101,7 @@ def bench_reward(args) -> dict:
     for name, variant in variants:  # the first is the engine's config, used for the reward below
         engine.config = variant
         row = result["variants"][name] = {
-            "narrowphase": variant.narrowphase, "graph": variant.graph,
+            "narrowphase": NARROWPHASE, "graph": variant.graph,
             "lanes": variant.lanes_cuda if device.type == "cuda" else variant.lanes_cpu,
             "warp_forward": figures(timed(lambda: engine.evaluate(batch), device, repeat)),
             "warp_grad": figures(timed(lambda: engine.evaluate(batch, with_grad=True), device, repeat))}
@@ -194,25 +128,23 @@ def bench_reward(args) -> dict:
     texts = [completion_text(s) for s in scenes]
     parsed = list(scenes)
     result["text_bytes"] = sum(len(t.encode()) for t in texts)
-    result["fast_parse_accepted"] = float(engine.pack_texts(texts).fast.mean())
+    packer = TextPacker(engine)
+    result["fast_parse_accepted"] = float(packer.pack(texts).fast.mean())
     # the whole reward from text: compiled scanner (fast_parse) and pure-Python parse, same run
-    whole = timed(lambda: reward.score_texts(texts), device, repeat)
-    whole_cpu = timed.last_cpu_seconds
-    result["pack_texts"] = _seconds(timed(lambda: engine.pack_texts(texts), device, repeat), args.scenes)
-    whole_python = timed(lambda: python_reward.score_texts(texts), device, max(1, repeat // 4), 1)
-    result["reward_from_text_python"] = {"seconds": whole_python, "cpu_seconds": timed.last_cpu_seconds,
-                                         "scenes_per_s": args.scenes / whole_python}
+    whole = timed(lambda: reward.score(texts), device, repeat)
+    result["pack_texts"] = _seconds(timed(lambda: packer.pack(texts), device, repeat), args.scenes)
+    whole_python = timed(lambda: python_reward.score(texts), device, max(1, repeat // 4), 1)
+    result["reward_from_text_python"] = _seconds(whole_python, args.scenes)
     from_scenes = timed(lambda: reward.score_parsed(parsed), device, repeat)
-    result["reward_from_text"] = {"seconds": whole, "cpu_seconds": whole_cpu,
-                                  "scenes_per_s": args.scenes / whole}
-    result["fast_parse_speedup"] = whole_python / whole
-    result["reward_from_scenes"] = {"seconds": from_scenes, "cpu_seconds": timed.last_cpu_seconds,
-                                    "scenes_per_s": args.scenes / from_scenes}
+    result["reward_from_text"] = _seconds(whole, args.scenes)
+    result["fast_parse_speedup"] = whole_python.seconds / whole.seconds
+    result["reward_from_scenes"] = _seconds(from_scenes, args.scenes)
     return result
 
 
-def _seconds(seconds: float, n_scene: int) -> dict:
-    return {"seconds": seconds, "cpu_seconds": timed.last_cpu_seconds, "scenes_per_s": n_scene / seconds}
+def _seconds(timing: Timing, n_scene: int) -> dict:
+    return {"seconds": timing.seconds, "cpu_seconds": timing.cpu_seconds,
+            "scenes_per_s": n_scene / timing.seconds}
 
 
 def _rel_diff(a: torch.Tensor, b: torch.Tensor) -> float:
@@ -220,25 +152,17 @@ def _rel_diff(a: torch.Tensor, b: torch.Tensor) -> float:
     return float((a - b).abs().max() / b.abs().max().clamp_min(1e-12)) if b.numel() else 0.0
 
 
-def _variants(config, device: torch.device, narrowphases, lanes, graphs=None) -> list:
-    """[(name, PhysicsConfig)] for every narrowphase x lanes x graph asked (the config's when not)."""
-    from dataclasses import replace
-
-    from physcene.kernels.penetration import NARROWPHASES
-
-    for name in narrowphases or ():
-        if name not in NARROWPHASES:
-            raise ValueError(f"--narrowphase {name!r}: expected one of {', '.join(NARROWPHASES)}")
+def _variants(config, device: torch.device, lanes, graphs=None) -> list:
+    """[(name, PhysicsConfig)] for every lanes x graph asked (the config's when not)."""
     for n in lanes or ():
         if n < 1:
             raise ValueError(f"--lanes {n}: expected >= 1")
     key = "lanes_cuda" if device.type == "cuda" else "lanes_cpu"
     out = []
-    for name in narrowphases or [config.narrowphase]:
-        for n in lanes or [getattr(config, key)]:
-            for graph in graphs or ["on" if config.graph else "off"]:
-                label = f"{name}/lanes={n}" + ("/graph" if graph == "on" else "")
-                out.append((label, replace(config, narrowphase=name, graph=graph == "on", **{key: n})))
+    for n in lanes or [getattr(config, key)]:
+        for graph in graphs or ["on" if config.graph else "off"]:
+            label = f"{NARROWPHASE}/lanes={n}" + ("/graph" if graph == "on" else "")
+            out.append((label, replace(config, graph=graph == "on", **{key: n})))
     return out
 
 
@@ -281,56 +205,5 @@ def _reward_summary(r: dict) -> str:
     return "\n".join(lines)
 
 
-def _device_name(device: torch.device) -> str:
-    if device.type == "cuda":
-        return f"{device} ({torch.cuda.get_device_name(device)})"
-    return f"cpu ({torch.get_num_threads()} torch threads)"
-
-
-bench_target("reward", "Warp engine vs torch reference, and the whole physics reward",
-             add_arguments=_reward_arguments, summary=_reward_summary)(bench_reward)
-
-
-def _tto_target() -> BenchTarget:
-    from physcene.commands import _bench_tto  # owned by the tto helper (issue 5)
-
-    return BenchTarget("Batched hierarchy-constrained TTO (512 scenes x 16 objects x 100 steps)",
-                       _bench_tto.add_arguments, _bench_tto.run, _bench_tto.summary)
-
-
-TARGETS["tto"] = _tto_target()
-
-
-def _generate_target() -> BenchTarget:
-    from physcene.commands import _bench_generate  # issue 8: KV-cache variants of batched generation
-
-    return BenchTarget("Batched greedy generation: dynamic vs static vs static+compile KV cache",
-                       _bench_generate.add_arguments, _bench_generate.run, _bench_generate.summary,
-                       repeat=(3, 2))
-
-
-TARGETS["generate"] = _generate_target()
-
-
-def add_arguments(parser) -> None:
-    sub = parser.add_subparsers(dest="target", metavar="TARGET")
-    sub.required = True
-    for name, target in TARGETS.items():
-        p = sub.add_parser(name, help=target.help, description=target.help)
-        p.add_argument("--device", default="cpu", help="cpu (default), cuda, cuda:N")
-        p.add_argument("--json", action="store_true", help="print the figures as one JSON object")
-        p.add_argument("--repeat", type=int, default=None,
-                       help="timed calls per figure (median); default per target (reward: 20 CUDA, 3 CPU)")
-        target.add_arguments(p)
-
-
-def run(args) -> int:
-    device = torch.device(args.device)
-    if device.type == "cuda" and not torch.cuda.is_available():
-        raise ValueError(f"--device {args.device}: CUDA is not available on this machine")
-    target = TARGETS[args.target]
-    if args.repeat is None:
-        args.repeat = target.repeat[0] if device.type == "cuda" else target.repeat[1]
-    result = target.run(args)
-    print(json.dumps(result, indent=1) if args.json else target.summary(result))
-    return 0
+TARGET = BenchTarget("Warp engine vs torch reference, and the whole physics reward", _reward_arguments,
+                     bench_reward, _reward_summary)
