@@ -153,7 +153,8 @@ def narrowphase_buckets(
 
 
 def launch_penetration_buckets(*, pair_start, count, n_pairs, poses, sizes, obj_asset, assets, margin,
-                               tolerance, with_grad, lanes=None) -> dict[str, torch.Tensor]:
+                               tolerance, with_grad, depth_cap_ratio=0.0,
+                               lanes=None) -> dict[str, torch.Tensor]:
     """:func:`physcene.kernels.penetration.launch_penetration` with the buckets narrowphase
     (direct launches): table contact, broadphase, narrowphase for every pair, the same reductions."""
     device = poses.device
@@ -193,8 +194,9 @@ def launch_penetration_buckets(*, pair_start, count, n_pairs, poses, sizes, obj_
     launch(narrowphase_buckets, n_part, [w_pair_a, w_pair_b, w_hit, *fields, lanes, *w_part])
     w_pair_energy, w_pair_depth = view(out["pair_energy"]), view(out["pair_depth"])
     # compact = 0: the partials of pair p at p * 2 * lanes (pair_item unused: any int array)
-    launch(reduce_pairs, n_pairs, [w_pair_a, w_pair_b, w_hit, w_poses, *w_part, w_hit, 0, int(with_grad),
-                                   lanes, w_pair_energy, w_pair_depth, w_pair_grad])
+    launch(reduce_pairs, n_pairs, [w_pair_a, w_pair_b, w_hit, w_poses, w_sizes, float(depth_cap_ratio),
+                                   *w_part, w_hit, 0, int(with_grad), lanes, w_pair_energy, w_pair_depth,
+                                   w_pair_grad])
     launch(reduce_scenes, n_scene, [w_pair_start, w_pair_energy, w_pair_depth, float(tolerance),
                                     view(out["energy"]), view(out["max_depth"]), view(out["depth_sum"])])
     if with_grad:
@@ -212,5 +214,6 @@ class BucketsEngine(PhysicsEngine):
             pair_start=batch.pair_start, count=batch.count, n_pairs=batch.n_pairs,
             poses=self._poses(batch, poses), sizes=batch.sizes, obj_asset=batch.asset_index,
             assets=self.packed_assets(), margin=self.config.margin_cm, tolerance=tolerance,
+            depth_cap_ratio=self.config.depth_cap_ratio,
             with_grad=with_grad,
             lanes=self.config.lanes_cuda if self.device.type == "cuda" else self.config.lanes_cpu)

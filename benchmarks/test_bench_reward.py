@@ -53,7 +53,8 @@ def test_bench_engine(benchmark, setup, with_grad):
 def test_bench_reference(benchmark, setup, with_grad):
     device, engine, scenes, batch = setup
     kw = dict(poses=batch.poses, sizes=batch.sizes, count=batch.count, obj_asset=batch.asset_index,
-              assets=engine.packed_assets(), margin=engine.config.margin_cm, with_grad=with_grad)
+              assets=engine.packed_assets(), margin=engine.config.margin_cm, with_grad=with_grad,
+              depth_cap_ratio=engine.config.depth_cap_ratio)
     out = benchmark.pedantic(synchronized(lambda: reference_penetration(**kw), device), rounds=2,
                              iterations=1, warmup_rounds=0)
     assert out["energy"].shape == (len(scenes),)

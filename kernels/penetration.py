@@ -76,6 +76,7 @@ def launch_penetration(
     margin: float,
     tolerance: float,
     with_grad: bool,
+    depth_cap_ratio: float = 0.0,
     lanes: int | None = None,
     graph: bool = False,
     block_dim: int | None = None,
@@ -110,7 +111,7 @@ def launch_penetration(
     launcher = Launcher(device)
     args = dict(pair_start=pair_start, count=count, n_pairs=n_pairs, sizes=sizes, obj_asset=obj_asset,
                 assets=assets, margin=float(margin), tolerance=float(tolerance), with_grad=bool(with_grad),
-                lanes=lanes,
+                depth_cap_ratio=float(depth_cap_ratio), lanes=lanes,
                 block_dim=None if block_dim is None else int(block_dim))
     if not graph or n_pairs == 0:
         return _penetration(launcher, torch_view, poses=poses, buffers=_allocate(poses, **args), **args)
@@ -175,7 +176,7 @@ def _outputs(floats: torch.Tensor, ints: torch.Tensor, n_scene: int, n_slot: int
 
 
 def _penetration(launch, view, *, pair_start, count, n_pairs, poses, sizes, obj_asset, assets, margin,
-                 tolerance, with_grad, lanes, block_dim, buffers) -> dict[str, torch.Tensor]:
+                 tolerance, with_grad, depth_cap_ratio, lanes, block_dim, buffers) -> dict[str, torch.Tensor]:
     """Issue every launch of one call through ``launch(kernel, dim, inputs)`` with array arguments
     made by ``view(tensor, dtype=None)``, writing into ``buffers`` (see :func:`_allocate`)."""
     device = poses.device
@@ -225,7 +226,8 @@ def _penetration(launch, view, *, pair_start, count, n_pairs, poses, sizes, obj_
     launch(narrowphase_items, n_thread, [w_items, w_n_item, n_thread, lanes, w_pair_a, w_pair_b,
                                          *w_fields, *w_part], block_dim)
     w_pair_energy, w_pair_depth = view(out["pair_energy"]), view(out["pair_depth"])
-    launch(reduce_pairs, n_pairs, [w_pair_a, w_pair_b, w_hit, w_poses, *w_part, w_pair_item, 1,
+    launch(reduce_pairs, n_pairs, [w_pair_a, w_pair_b, w_hit, w_poses, w_sizes, depth_cap_ratio, *w_part,
+                                   w_pair_item, 1,
                                    int(with_grad), lanes, w_pair_energy, w_pair_depth, w_pair_grad])
     launch(reduce_scenes, n_scene, [w_pair_start, w_pair_energy, w_pair_depth, tolerance,
                                     view(out["energy"]), view(out["max_depth"]), view(out["depth_sum"])])
@@ -283,7 +285,8 @@ class _Plan:
         # per thread: a replay writes the plan's buffers, so two threads must not share one
         return (launcher.device.alias, id(launcher.stream), threading.get_ident(), tuple(poses.shape),
                 poses.dtype, tuple((t.data_ptr(), t.numel()) for t in arrays),
-                *(args[k] for k in ("n_pairs", "margin", "tolerance", "with_grad", "lanes", "block_dim")))
+                *(args[k] for k in ("n_pairs", "margin", "tolerance", "with_grad", "depth_cap_ratio", "lanes",
+                                    "block_dim")))
 
     def replay(self, poses: torch.Tensor, launcher: Launcher) -> dict[str, torch.Tensor]:
         self.poses.copy_(poses)

@@ -22,6 +22,8 @@ def reduce_pairs(
     pair_b: wp.array(dtype=wp.int32),
     pair_hit: wp.array(dtype=wp.int32),
     poses: wp.array(dtype=wp.vec4),
+    sizes: wp.array(dtype=wp.vec3),
+    depth_cap_ratio: float,  # depth <= this x half the thinner object's smallest size; 0: no cap
     part_energy: wp.array(dtype=float),
     part_depth: wp.array(dtype=float),
     part_gu: wp.array(dtype=wp.vec3),
@@ -47,6 +49,13 @@ def reduce_pairs(
         for k in range(2 * lanes):
             energy += part_energy[base + k]
             depth = wp.max(depth, part_depth[base + k])
+        if depth_cap_ratio > 0.0:
+            # where the interior samples' spacing decides the reading (docs/physics.md): a level that
+            # every deeper overlap reaches, so the reading never falls as the overlap grows
+            sa = sizes[pair_a[pair]]
+            sb = sizes[pair_b[pair]]
+            thin = wp.min(wp.min(wp.min(sa[0], sa[1]), sa[2]), wp.min(wp.min(sb[0], sb[1]), sb[2]))
+            depth = wp.min(depth, depth_cap_ratio * 0.5 * thin)
         if with_grad != 0:
             ya = poses[pair_a[pair]][3]
             yb = poses[pair_b[pair]][3]

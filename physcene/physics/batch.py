@@ -14,6 +14,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
+from physcene.assets.interior import interior_points
 from physcene.kernels.penetration import BUCKETS
 from physcene.scene import zone_overshoot
 
@@ -170,15 +171,21 @@ def bucket_points(points: np.ndarray, buckets: int = BUCKETS) -> tuple[np.ndarra
     return points[order], offsets
 
 
-def _derived_arrays(asset) -> tuple[np.ndarray, tuple[np.ndarray, np.ndarray]]:
+def _derived_arrays(asset, interior_per_axis: int) -> tuple[np.ndarray, tuple[np.ndarray, np.ndarray]]:
     """An asset's arrays that packing derives from its SDF and points: the axis-ray distances per
-    node (interleaved, flat) and its bucketed points (:func:`bucket_points`)."""
-    return np.moveaxis(axis_ray_distances(asset.sdf), 0, -1).reshape(-1), bucket_points(asset.points)
+    node (interleaved, flat) and its bucketed samples (:func:`bucket_points`): the surface points
+    and the interior samples (:func:`physcene.assets.interior.interior_points`)."""
+    samples = np.concatenate([asset.points, interior_points(asset.sdf, interior_per_axis)])
+    return np.moveaxis(axis_ray_distances(asset.sdf), 0, -1).reshape(-1), bucket_points(samples)
 
 
 def pack_assets(assets: Sequence, device: torch.device, derived: dict | None = None,
-                before: dict[str, torch.Tensor] | None = None) -> dict[str, torch.Tensor]:
-    """Concatenate assets' SDF grids and points into the engine's flat arrays on ``device``.
+                before: dict[str, torch.Tensor] | None = None, *,
+                interior_per_axis: int = 0) -> dict[str, torch.Tensor]:
+    """Concatenate assets' SDF grids and samples into the engine's flat arrays on ``device``.
+
+    The samples of an asset are its surface points and, with ``interior_per_axis`` > 0, its
+    interior samples (:class:`~physcene.physics.PhysicsConfig`'s ``interior_per_axis``).
 
     ``derived``: a cache of each asset's derived arrays by ``asset_id`` (filled here).
     ``before``: the packed arrays of the assets that come first; ``assets`` are appended to them
@@ -187,12 +194,12 @@ def pack_assets(assets: Sequence, device: torch.device, derived: dict | None = N
     derived = {} if derived is None else derived
     for a in assets:
         if a.asset_id not in derived:
-            derived[a.asset_id] = _derived_arrays(a)
+            derived[a.asset_id] = _derived_arrays(a, interior_per_axis)
     sdf_base = 0 if before is None else int(before["sdf"].numel())
     pt_base = 0 if before is None else int(before["points"].shape[0])
     res = np.array([a.resolution for a in assets], dtype=np.int32)
-    n_pt = np.array([len(a.points) for a in assets], dtype=np.int32)
     bucketed = [derived[a.asset_id][1] for a in assets]
+    n_pt = np.array([len(b[0]) for b in bucketed], dtype=np.int32)
     pt_start = pt_base + np.concatenate([[0], np.cumsum(n_pt)[:-1]]).astype(np.int64)
     sdf_start = sdf_base + np.concatenate([[0], np.cumsum(res.astype(np.int64) ** 3)[:-1]])
     if sdf_base + int((res.astype(np.int64) ** 3).sum()) >= 2**31:

@@ -9,7 +9,8 @@ device and scores them with the Warp kernels of :mod:`physcene.kernels.penetrati
 >>> energy = engine.penetration_energy(batch, batch.poses.requires_grad_())   # (S,) cm
 >>> energy.sum().backward()                 # hand-written pose gradients
 
-Units: cm and radians; energies are sums over surface points of penetration depths (cm).
+Units: cm and radians; energies are sums over surface and interior samples of penetration depths
+(cm).
 The maths and its choices are in docs/physics.md; the float64 oracle is
 :mod:`physcene.physics.reference`; the batch and the packed assets are
 :mod:`physcene.physics.batch`.
@@ -49,12 +50,26 @@ class PhysicsConfig:
     narrowphase_block_dim: int = 128
     """CUDA threads per block of the narrowphase launch (with fewer, a block whose items are done
     frees its SM slot sooner; a multiple of the lanes keeps an item in one block)."""
+    interior_per_axis: int = 7
+    """Interior samples per asset: one per cell of this many lattice cells per axis where the
+    asset's own SDF is negative (:func:`physcene.assets.interior.interior_points`), read like its
+    surface samples, so deep and coincident overlaps never read as clean (docs/physics.md, "Sound
+    penetration"). 0: surface samples only (the paper's L_sdf, which reads coincident objects as 0)."""
+    depth_cap_ratio: float = 0.8
+    """A pair's depth reads at most this × half the thinner object's smallest size: the level every
+    deeper overlap reaches with the interior samples, so the reading never falls as an overlap grows
+    (shallower overlaps read exactly). 0: no cap."""
     graph: bool = True
     """Capture the kernel launches once per batch layout (CUDA graph; Warp CPU graph on the CPU)
     and replay them when the same batch is scored again (TTO steps, benchmarks): host launch
     cost off the critical path, at one capture per new layout. Same results."""
 
     def __post_init__(self):
+        if self.interior_per_axis < 0:
+            raise ConfigError(f"configs/physics.yaml: interior_per_axis={self.interior_per_axis}: "
+                              "expected >= 0")
+        if not 0.0 <= self.depth_cap_ratio <= 1.0:
+            raise ConfigError(f"configs/physics.yaml: depth_cap_ratio={self.depth_cap_ratio}: expected 0..1")
         if not 1 <= self.narrowphase_block_dim <= 1024:
             raise ConfigError(f"configs/physics.yaml: narrowphase_block_dim={self.narrowphase_block_dim}: "
                               "expected 1..1024")
@@ -106,11 +121,13 @@ class PhysicsEngine:
     def packed_assets(self) -> dict[str, torch.Tensor]:
         """The flat asset arrays on the engine's device (new assets are appended as they appear)."""
         if self._packed is None:
-            self._packed = (len(self._assets), pack_assets(self._assets, self.device, self._derived))
+            self._packed = (len(self._assets), pack_assets(self._assets, self.device, self._derived,
+                                                          interior_per_axis=self.config.interior_per_axis))
         elif self._packed[0] != len(self._assets):  # append the new assets to what is uploaded
             n, packed = self._packed
             self._packed = (len(self._assets),
-                            pack_assets(self._assets[n:], self.device, self._derived, before=packed))
+                            pack_assets(self._assets[n:], self.device, self._derived, before=packed,
+                                        interior_per_axis=self.config.interior_per_axis))
         return self._packed[1]
 
     # Packing -----------------------------------------------------------------------------------
@@ -174,7 +191,7 @@ class PhysicsEngine:
             pair_start=batch.pair_start, count=batch.count, n_pairs=batch.n_pairs,
             poses=self._poses(batch, poses), sizes=batch.sizes, obj_asset=batch.asset_index,
             assets=self.packed_assets(), margin=self.config.margin_cm, tolerance=tolerance,
-            with_grad=with_grad, graph=self.config.graph,
+            with_grad=with_grad, depth_cap_ratio=self.config.depth_cap_ratio, graph=self.config.graph,
             block_dim=self.config.narrowphase_block_dim,
             lanes=self.config.lanes_cuda if self.device.type == "cuda" else self.config.lanes_cpu)
 

@@ -129,9 +129,12 @@ def _pairs(count: torch.Tensor, n_slot: int):
 
 def reference_penetration(*, poses: torch.Tensor, sizes: torch.Tensor, count: torch.Tensor,
                           obj_asset: torch.Tensor, assets: dict[str, torch.Tensor], margin: float,
-                          tolerance: float = 0.0, with_grad: bool = False,
+                          tolerance: float = 0.0, with_grad: bool = False, depth_cap_ratio: float = 0.0,
                           chunk_queries: int = 1 << 21) -> dict[str, torch.Tensor]:
     """The engine's forward (and gradient) in torch, in the dtype of ``poses``.
+
+    ``assets`` are the engine's packed arrays (surface and interior samples); ``depth_cap_ratio``
+    as :class:`~physcene.physics.PhysicsConfig`'s.
 
     poses (S, N, 4), sizes (S, N, 3), count (S,), obj_asset (S, N). Returns ``energy``,
     ``max_depth``, ``depth_sum`` (S,); ``pair_hit``, ``pair_energy``, ``pair_depth`` (T,) in CSR
@@ -197,6 +200,9 @@ def reference_penetration(*, poses: torch.Tensor, sizes: torch.Tensor, count: to
     pair_depth = torch.zeros(a.shape[0], dtype=dtype, device=device)
     pair_energy[cand] = combo_energy[:n_cand] + combo_energy[n_cand:]
     pair_depth[cand] = torch.maximum(combo_depth[:n_cand], combo_depth[n_cand:])
+    if depth_cap_ratio > 0:
+        thin = torch.minimum(flat_half[a].min(-1).values, flat_half[b].min(-1).values)
+        pair_depth = torch.minimum(pair_depth, depth_cap_ratio * thin)
     energy = torch.zeros(n_scene, dtype=dtype, device=device).index_add_(0, s, pair_energy)
     max_depth = torch.zeros(n_scene, dtype=dtype, device=device).scatter_reduce_(0, s, pair_depth, "amax")
     depth_sum = torch.zeros(n_scene, dtype=dtype, device=device).index_add_(

@@ -71,7 +71,8 @@ def random_scenes(rng, n_scene, max_obj=7, spread=25.0, kinds=("box", "sphere", 
 def reference(engine: PhysicsEngine, batch: SceneBatch, poses=None, **kw):
     return reference_penetration(poses=(batch.poses if poses is None else poses).double(), sizes=batch.sizes,
                                  count=batch.count, obj_asset=batch.asset_index,
-                                 assets=engine.packed_assets(), margin=engine.config.margin_cm, **kw)
+                                 assets=engine.packed_assets(), margin=engine.config.margin_cm,
+                                 depth_cap_ratio=engine.config.depth_cap_ratio, **kw)
 
 
 # Exactness on primitives -----------------------------------------------------------------------
