@@ -30,7 +30,6 @@ from __future__ import annotations
 
 import json
 import logging
-import re
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -41,7 +40,13 @@ from physcene.train.sft import nonfinite_gradients
 from transformers import PreTrainedTokenizerBase, TrainerCallback
 from trl import GRPOConfig, GRPOTrainer
 
-from physcene.ctrc import LAYOUT_HEADER, MAX_DECIMALS
+from physcene.ctrc import MAX_DECIMALS
+from physcene.ctrc.spans import (
+    GEOMETRY_KEYS,
+    numeric_spans,
+    object_line_spans,  # noqa: F401  (train/denoise.py imports it from here)
+    object_text_spans,
+)
 
 __all__ = [
     "VARIANTS",
@@ -63,9 +68,6 @@ logger = logging.getLogger(__name__)
 # variant -> (anchor column, numeric tokens masked out of the CE); grpo has no anchor (α = 0)
 VARIANTS = {"pada": ("anchor", False), "pada_star": ("anchor_raw", True), "grpo": (None, False)}
 
-# JSON keys whose numbers PADA* leaves to exploration: the geometry, not the semantics.
-GEOMETRY_KEYS = ("relative_bbox", "relative_rotation_deg")
-_NUMBER = re.compile(r"-?\d+(?:\.\d+)?(?:[eE][-+]?\d+)?")
 
 
 class NoAnchorsError(ValueError):
@@ -136,20 +138,6 @@ class PADAConfig(GRPOConfig):
                           "weighed 10x, train/denoise.py); its device is the reward engine's."})
 
 
-def numeric_spans(text: str, keys: tuple[str, ...] | list[str] = GEOMETRY_KEYS) -> list[tuple[int, int]]:
-    """Character spans ``[start, end)`` of the numbers inside the JSON values of ``keys`` in ``text``.
-
-    A value is the bracketed list or the scalar after ``"key":``. Numbers elsewhere (instance ids such
-    as ``pen_0``, layer indices, the zone) are semantic and stay supervised.
-    """
-    spans = []
-    for key in keys:
-        for m in re.finditer(rf'"{re.escape(key)}"\s*:\s*(\[[^\]]*\]|[-+0-9.eE]+)', text):
-            base = m.start(1)
-            spans.extend((base + n.start(), base + n.end()) for n in _NUMBER.finditer(m.group(1)))
-    return sorted(spans)
-
-
 def tokenize_anchor(tokenizer: PreTrainedTokenizerBase, text: str, *, max_length: int,
                     numeric_mask: bool = False, keys=GEOMETRY_KEYS) -> tuple[list[int], list[int]]:
     """(token ids, loss mask) of an anchor completion, EOS appended, at most ``max_length`` tokens.
@@ -210,21 +198,6 @@ def _tokens_over(offsets, spans: list[tuple[int, int]]) -> list[int]:
     return out
 
 
-def object_line_spans(text: str) -> list[tuple[int, int]]:
-    """Character spans ``[start, end)`` of the object lines of a CTRC layout, in the order written
-    (the lines with a ``relative_bbox``; the zone's line has none): object k of the parsed scene."""
-    spans, start = [], 0
-    for line in text.splitlines(keepends=True):
-        if '"relative_bbox"' in line:
-            spans.append((start, start + len(line.rstrip("\n"))))
-        start += len(line)
-    return spans
-
-
-_INSTANCE_ID = re.compile(r'"instance_id": "([^"]*)"')
-_PLAN_STEP = re.compile(r"\s*\d+\.\s+Place (\S+)\s")
-
-
 OBJECT_CREDIT_SCOPES = ("line", "numbers")
 
 
@@ -233,28 +206,6 @@ def object_credit_scope_checked(scope: str) -> str:
     if scope not in OBJECT_CREDIT_SCOPES:
         raise ValueError(f"object credit scope must be one of {list(OBJECT_CREDIT_SCOPES)}, got {scope!r}")
     return scope
-
-
-def object_text_spans(text: str, scope: str = "line") -> list[list[tuple[int, int]]]:
-    """Per object of a CTRC layout, in the order written (object k of the parsed scene): the
-    character spans of the text that places it. ``scope`` ``line``: its plan step ("k. Place <id>
-    ...", the first one naming it, when the plan has one) and its layout line
-    (:func:`object_line_spans`); ``numbers``: only the numbers of its geometry (:data:`GEOMETRY_KEYS`)
-    on that line, so its id, category, relation and description are never charged."""
-    if object_credit_scope_checked(scope) == "numbers":
-        return [[(a + x, a + y) for x, y in numeric_spans(text[a:b])] for a, b in object_line_spans(text)]
-    plan_end = text.find(LAYOUT_HEADER)
-    steps, start = {}, 0
-    for line in text[:max(plan_end, 0)].splitlines(keepends=True):
-        if (m := _PLAN_STEP.match(line)) is not None:
-            steps.setdefault(m.group(1), (start, start + len(line.rstrip("\n"))))
-        start += len(line)
-    spans = []
-    for a, b in object_line_spans(text):
-        m = _INSTANCE_ID.search(text, a, b)
-        step = steps.get(m.group(1)) if m is not None else None
-        spans.append([s for s in (step, (a, b)) if s is not None])
-    return spans
 
 
 def object_token_depths(tokenizer: PreTrainedTokenizerBase, completion_ids: torch.Tensor,
