@@ -354,13 +354,13 @@ class PADATrainer(GRPOTrainer):
                                        warpers=sampling_warpers(config))
             kwargs["logits_processor"] = LogitsProcessorList([processor])
             output = plain_generate(*args, **kwargs)
-            self._round_overruled = processor.overruled  # row order = this round's prompts
-            self._log_value("time/constraint_s", processor.seconds)
-            self._log_value("time/constraint_wait_s", processor.wait_seconds)  # GPU: the forward's share
+            self._round_overruled = processor.stats.overruled  # row order = this round's prompts
+            self._log_value("time/constraint_s", processor.stats.seconds)
+            self._log_value("time/constraint_wait_s", processor.stats.wait_seconds)  # GPU: forward's share
             # where that time goes: draws refused, and rows that fell back to scanning the vocabulary
-            self._log_value("time/constraint_scan_s", processor.scan_seconds)
-            self._log_value("constraint/refused_draws", float(processor.refused_draws))
-            self._log_value("constraint/vocabulary_scans", float(processor.vocabulary_scans))
+            self._log_value("time/constraint_scan_s", processor.stats.scan_seconds)
+            self._log_value("constraint/refused_draws", float(processor.stats.refused_draws))
+            self._log_value("constraint/vocabulary_scans", float(processor.stats.vocabulary_scans))
             return output
 
         model.generate = generate  # an instance attribute shadows the method for this round only

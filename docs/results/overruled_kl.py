@@ -86,7 +86,7 @@ def main() -> None:
     gap = reference - policy
     kl = torch.exp(gap) - gap - 1
     overruled = torch.zeros_like(valid)
-    for row, positions in enumerate(constraint.overruled):
+    for row, positions in enumerate(constraint.stats.overruled):
         overruled[row, [p for p in positions if p < completion.shape[1]]] = True
     overruled &= valid
     top = torch.topk(kl.masked_fill(~valid, -1).flatten(), 10)
