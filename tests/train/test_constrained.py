@@ -142,7 +142,7 @@ def test_boxes_keep_each_max_above_its_min():
 
 def test_a_box_never_reaches_a_dead_end():
     """Every prefix the rule admits has a character that continues it. At a dead end the mask gives
-    up and the model's own token follows: session 15's PADA model wrote a max of ``1.06386999`` over
+    up and the model's own token follows: a PADA-trained small model wrote a max of ``1.06386999`` over
     a min of ``1.06386999`` (eight decimals, no digit may follow) and 15 of 200 test layouts failed
     to parse. A random walk over the box's characters, copying the min's digits into the max most
     of the time, where that dead end lay."""
