@@ -53,7 +53,8 @@ class ConstraintStats:
 
 
 class CTRCConstraint(LogitsProcessor):
-    """Restrict each row's next token to what keeps its completion a valid CTRC prefix (module docstring).
+    """Restrict each row's next token to what keeps its completion a valid CTRC prefix (the rules:
+    :mod:`physcene.train.constrained`).
 
     ``prompts``: the CTRC prompt of every row of the batch, in batch order (their Object Lists give the
     ids). Pass one instance per ``generate`` call: it keeps each row's text between steps.
