@@ -43,6 +43,7 @@ def fast_path_reads(texts: list[str]) -> np.ndarray:
 def test_the_compiled_reader_compares_against_the_grammar_s_words():
     """The reader's keyword table is built from the grammar's names, in the reader's role order."""
     from physcene.kernels.ctrc_reader.codes import ENTRY_ROLES, TOP_ROLES, WORD_ROLES
+
     from physcene.reward import text_batch
 
     assert text_batch.ENTRY_KEYS == ENTRY_ROLES and text_batch.TOP_KEYS == TOP_ROLES
