@@ -2,8 +2,8 @@
 
     python benchmarks/ab_constrained.py 2000bc3 c95eeb9 --rows 64 --decimals 2 --rounds 5
 
-Each git revision's ``train/constrained.py`` is loaded as a module of its own, next to the working
-tree's; every round replays the same synthetic completions through one ``CTRCConstraint`` of each
+Each git revision's single-module ``train/constrained.py`` is loaded as a module of its own, next to
+the working tree's; every round replays the same synthetic completions through one ``CTRCConstraint`` of each
 version (rejection sampling, as PADA's groups: the true token holds ~99.9 % of the mass, the rest
 N(-18, 2)), so load that changes during the run hits all versions alike. Prints ms per decoding step
 in the processor (min and median over the rounds) and whether every version returned the same masks.
@@ -33,9 +33,13 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 def module_at(rev: str, folder: Path):
-    """``train/constrained.py`` as it was at git revision ``rev``, imported under its own name."""
-    source = subprocess.run(["git", "show", f"{rev}:train/constrained.py"], cwd=ROOT, check=True,
-                            capture_output=True, text=True).stdout
+    """``train/constrained.py`` as it was at git revision ``rev``, imported under its own name (a
+    revision where it is the package ``train/constrained/`` is timed from a checkout of its own)."""
+    found = subprocess.run(["git", "show", f"{rev}:train/constrained.py"], cwd=ROOT, capture_output=True,
+                           text=True)
+    if found.returncode != 0:
+        raise SystemExit(f"{rev} has no single-module train/constrained.py: time it from its own checkout")
+    source = found.stdout
     path = folder / f"constrained_{rev}.py"
     path.write_text(source)
     spec = importlib.util.spec_from_file_location(path.stem, path)
@@ -69,14 +73,16 @@ def main() -> None:
         return s
 
     def replay(module):
-        module._compiled.cache_clear()  # cold, as for the new prompts of every PADA step
+        # cold, as for the new prompts of every PADA step
+        getattr(module, "grammar", module)._compiled.cache_clear()
         torch.manual_seed(0)
         processor = module.CTRCConstraint(tokenizer, [r["prompt"] for r in records], greedy=False,
                                           warpers=LogitsProcessorList())
         # a digest of each step's mask (finished rows come back whole: their indices would fill memory)
         kept = [hashlib.sha1(torch.isfinite(processor(torch.cat([prompt, tokens[:, :k]], 1), scores(k)))
                              .numpy().tobytes()).hexdigest() for k in range(steps)]
-        return 1e3 * processor.seconds / steps, kept, processor.masked_steps
+        stats = getattr(processor, "stats", processor)  # revisions before ConstraintStats: on the processor
+        return 1e3 * stats.seconds / steps, kept, stats.masked_steps
 
     with tempfile.TemporaryDirectory() as folder:
         versions = {rev: module_at(rev, Path(folder)) for rev in args.revs}

@@ -66,7 +66,7 @@ def main() -> None:
         torch.cuda.synchronize()
         total = time.perf_counter() - start
         n_steps = max(len(row) for row in ids)
-        seconds = sum(m.seconds for m in made)
+        seconds = sum(m.stats.seconds for m in made)
         print(f"{name}: {n_steps} steps, generate {total:.2f} s, constraint {seconds:.2f} s "
               f"({1000 * seconds / n_steps:.2f} ms/step of {1000 * total / n_steps:.2f})", flush=True)
     if args.profile:

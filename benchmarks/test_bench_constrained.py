@@ -1,4 +1,4 @@
-"""Host cost of CTRC-constrained decoding per decoding step (train/constrained.py).
+"""Host cost of CTRC-constrained decoding per decoding step (train/constrained/).
 
     python -m pytest benchmarks/test_bench_constrained.py --benchmark-enable -q -s
 
@@ -49,7 +49,7 @@ def test_constrained_decoding_step_cost(benchmark, mode):
     greedy = kwargs["greedy"]
 
     def replay():
-        constrained._compiled.cache_clear()  # cold, as for the new prompts of every PADA step
+        constrained.grammar._compiled.cache_clear()  # cold, as for the new prompts of every PADA step
         torch.manual_seed(0)
         processor = CTRCConstraint(tokenizer, [r["prompt"] for r in records], **kwargs)
         gen = torch.Generator().manual_seed(0)
@@ -65,11 +65,11 @@ def test_constrained_decoding_step_cost(benchmark, mode):
 
     processor = benchmark.pedantic(replay, rounds=1, iterations=1)
     if greedy:
-        assert processor.masked_steps == 0  # the true continuation is never refused
+        assert processor.stats.masked_steps == 0  # the true continuation is never refused
     start = time.perf_counter()
     processor = replay()
     per_step = (time.perf_counter() - start) / steps
     print(f"\nCTRCConstraint {mode}: {rows} rows x {steps} steps, {1e3 * per_step:.2f} ms per step "
-          f"(of which in the processor {1e3 * processor.seconds / steps:.2f}); rows x steps overruled "
-          f"{processor.masked_steps}; vocabulary scans {processor.vocabulary_scans} "
-          f"({1e3 * processor.scan_seconds / steps:.2f} ms per step)")
+          f"(of which in the processor {1e3 * processor.stats.seconds / steps:.2f}); rows x steps overruled "
+          f"{processor.stats.masked_steps}; vocabulary scans {processor.stats.vocabulary_scans} "
+          f"({1e3 * processor.stats.scan_seconds / steps:.2f} ms per step)")

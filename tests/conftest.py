@@ -6,8 +6,16 @@ Markers (pyproject's ``[tool.pytest.ini_options]``): ``cuda`` tests skip without
 
 import functools
 import os
+import sys
+from pathlib import Path
 
 import pytest
+
+# Test modules import shared strategies and fixtures from each other by basename (``from test_ctrc
+# import layouts``); basenames are unique across tests/, so every test folder is importable.
+for _folder in sorted(p for p in Path(__file__).resolve().parent.iterdir() if p.is_dir()):
+    if not _folder.name.startswith((".", "_")) and str(_folder) not in sys.path:
+        sys.path.insert(0, str(_folder))
 
 
 def pytest_addoption(parser):

@@ -189,3 +189,14 @@ def test_a_forbidden_import_or_a_cycle_is_caught():
     assert graph["physcene.ctrc"] == {"physcene.ctrc.reader"}
     assert graph["physcene.scene"] == set()  # a TYPE_CHECKING import is no dependency
     assert import_cycles(graph) == [["physcene.reward", "physcene.tto"]]
+
+
+def test_every_package_is_installed():
+    """pyproject's package list names every package folder (a non-editable install ships only those)."""
+    tomllib = pytest.importorskip("tomllib")  # Python 3.11+
+    setuptools = tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["setuptools"]
+    files = module_sources()
+    packages = {name for name, path in files.items() if path.name == "__init__.py"}
+    assert set(setuptools["packages"]) == packages
+    mapped = {setuptools["package-dir"][p] for p in ("physcene.kernels", "physcene.train", "physcene.eval")}
+    assert mapped == {"kernels", "train", "eval"}

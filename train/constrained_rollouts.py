@@ -51,13 +51,13 @@ class ConstrainedRollouts(PADAExtension):
 
     def after_generation(self, trainer) -> None:
         processor = self._processor
-        self._overruled = processor.overruled  # row order = this round's prompts
-        trainer.log_value("time/constraint_s", processor.seconds)
-        trainer.log_value("time/constraint_wait_s", processor.wait_seconds)  # GPU: the forward's share
+        self._overruled = processor.stats.overruled  # row order = this round's prompts
+        trainer.log_value("time/constraint_s", processor.stats.seconds)
+        trainer.log_value("time/constraint_wait_s", processor.stats.wait_seconds)  # GPU: the forward's share
         # where that time goes: draws refused, and rows that fell back to scanning the vocabulary
-        trainer.log_value("time/constraint_scan_s", processor.scan_seconds)
-        trainer.log_value("constraint/refused_draws", float(processor.refused_draws))
-        trainer.log_value("constraint/vocabulary_scans", float(processor.vocabulary_scans))
+        trainer.log_value("time/constraint_scan_s", processor.stats.scan_seconds)
+        trainer.log_value("constraint/refused_draws", float(processor.stats.refused_draws))
+        trainer.log_value("constraint/vocabulary_scans", float(processor.stats.vocabulary_scans))
 
     def after_scoring(self, trainer, inputs: list[dict], output: dict) -> None:
         overruled, self._overruled = self._overruled, None

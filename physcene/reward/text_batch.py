@@ -24,7 +24,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from physcene.ctrc import MAX_ABS_CM, ON_CONTACT_GAP_CM, ParseError, parse
+from physcene.ctrc import MAX_ABS_CM, ON_CONTACT_GAP_CM, ParseError, grammar, parse
 from physcene.kernels.ctrc_reader import (
     CHUNK,
     MAX_ENTRIES,
@@ -43,15 +43,10 @@ __all__ = ["STATUS", "TextPack", "TextPacker"]
 
 # The words the compiled reader compares against, in its role order (kernels.ctrc_reader: ENTRY_ROLES,
 # TOP_ROLES, WORD_ROLES), and the limits it applies: the grammar's, given to the reader here.
-# from physcene.ctrc.grammar after the merge
-ENTRY_KEYS = ("layer", "instance_id", "category", "parent_id", "relation_type", "description",
-              "relative_bbox", "relative_rotation_deg", "type", "bbox", "z_rotation")
-# from physcene.ctrc.grammar after the merge
-TOP_KEYS = ("objects", "item_placement_zone")
-# from physcene.ctrc.grammar after the merge (the relations in the reader's order: in, on, near)
-RELATIONS = ("in", "on", "near")
-# the root zone's parent id and the zone entry's type
-ZONE_WORDS = ("root_zone", "zone")
+ENTRY_KEYS = (*grammar.ENTRY_KEYS, grammar.TYPE, grammar.ZONE_BBOX, grammar.ZONE_ROTATION)
+TOP_KEYS = grammar.TOP_KEYS
+RELATIONS = (*grammar.CHILD_RELATIONS, grammar.TABLE_RELATION)  # the reader's order: in, on, near
+ZONE_WORDS = (grammar.TABLE, grammar.ZONE_TYPE)  # the root entry's id and type
 READER_LIMITS = ReaderLimits(max_abs_cm=MAX_ABS_CM, on_contact_gap_cm=ON_CONTACT_GAP_CM)
 
 # Offsets are int32 (Warp indexes with int): larger batches are read by the Python parser.

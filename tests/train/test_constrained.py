@@ -1,4 +1,4 @@
-"""CTRC-constrained decoding (train/constrained.py): never blocks a valid completion, repairs the
+"""CTRC-constrained decoding (train/constrained/): never blocks a valid completion, repairs the
 failures a small model makes (repeated ids, broken numbers, a missing close), and plugs into HF generate."""
 
 import random
@@ -8,13 +8,13 @@ import torch
 from physcene.train.constrained import (
     CTRCConstraint,
     Rule,
-    _TokenIndex,
-    _vocabulary,
     constraint_rule,
     listed_instance_ids,
     prompt_zone,
     sampling_warpers,
 )
+from physcene.train.constrained.grammar import may_end_anchor
+from physcene.train.constrained.sampling import TokenIndex, vocabulary
 from physcene.train.tokenizer import build_tokenizer
 from transformers import GenerationConfig, LogitsProcessorList
 
@@ -68,8 +68,8 @@ def test_reference_completions_pass_unchanged(records, tokenizer, mode):
             out = proc(torch.cat([prompt, torch.tensor([ids[:k]], dtype=torch.long)], 1), scores)
             assert out[0, t] == 50.0, (r["id"], repr(proc.texts[0][-60:]), repr(tokenizer.decode([t])))
         if greedy:  # the first choice was always allowed: no row was ever masked
-            assert proc.masked_steps == 0
-        assert proc.overruled == [[]]  # every token was the model's own choice
+            assert proc.stats.masked_steps == 0
+        assert proc.stats.overruled == [[]]  # every token was the model's own choice
 
 
 def test_repeated_instance_id_is_refused():
@@ -142,7 +142,7 @@ def test_boxes_keep_each_max_above_its_min():
 
 def test_a_box_never_reaches_a_dead_end():
     """Every prefix the rule admits has a character that continues it. At a dead end the mask gives
-    up and the model's own token follows: session 15's PADA model wrote a max of ``1.06386999`` over
+    up and the model's own token follows: a PADA-trained small model wrote a max of ``1.06386999`` over
     a min of ``1.06386999`` (eight decimals, no digit may follow) and 15 of 200 test layouts failed
     to parse. A random walk over the box's characters, copying the min's digits into the max most
     of the time, where that dead end lay."""
@@ -251,8 +251,8 @@ def test_generate_runs_constrained_and_parses_a_forced_completion(records, token
             break
         out.append(t)
         text += proc.token_text[t]
-    assert proc.masked_steps >= 1
-    assert proc.overruled == [changed] and changed  # exactly the positions where it overruled the model
+    assert proc.stats.masked_steps >= 1
+    assert proc.stats.overruled == [changed] and changed  # exactly the positions where it overruled the model
     scene = parse(text)
     assert not isinstance(scene, ParseError), scene
     assert sorted(o.instance_id for o in scene.objects) == sorted(listed_instance_ids(r["prompt"]))
@@ -319,17 +319,17 @@ def test_literal_rules_scan_only_the_tokens_that_fit_and_allow_the_same(records,
     every such token, writes the very same completion as with every token of the vocabulary checked."""
     record = min(records, key=lambda r: len(r["completion"]))
     indexed, proc = _random_logits_run(record, tokenizer, mode)
-    assert proc.indexed_scans > 10 and proc.indexed_scans <= proc.vocabulary_scans
-    monkeypatch.setattr(_TokenIndex, "literal_candidates", lambda self, rule: None)
+    assert proc.stats.indexed_scans > 10 and proc.stats.indexed_scans <= proc.stats.vocabulary_scans
+    monkeypatch.setattr(TokenIndex, "literal_candidates", lambda self, rule: None)
     scanned, plain = _random_logits_run(record, tokenizer, mode)
-    assert plain.indexed_scans == 0 and plain.vocabulary_scans == proc.vocabulary_scans
+    assert plain.stats.indexed_scans == 0 and plain.stats.vocabulary_scans == proc.stats.vocabulary_scans
     assert indexed == scanned
 
 
 def test_a_literal_rules_candidates_hold_every_token_it_admits(tokenizer):
-    """``_TokenIndex.literal_candidates`` is a superset of what the rule admits, on open and closed
+    """``TokenIndex.literal_candidates`` is a superset of what the rule admits, on open and closed
     literal rules part-way through their strings, and gives up (None) where any token may fit."""
-    index = _vocabulary(tokenizer)
+    index = vocabulary(tokenizer)
     texts = index.texts
     zone = " [0.0, 113.7, 0.0, 48.25, 0.0, 0.0], \"z_rotation\":"
     copies = [Rule(zone[:k], "", choices=(zone,)) for k in (0, 1, 5, 12, len(zone) - 3)]
@@ -390,7 +390,7 @@ def test_rejection_draws_sample_the_allowed_part_of_the_distribution(records, to
         logits = torch.randn(len(tokenizer), generator=gen) * 2.0
         probe = CTRCConstraint(tokenizer, [r["prompt"]])
         rule = probe._advance(_replay(probe, tokenizer, r["completion"][:cut], 1))[0]
-        allowed_ids = probe._allowed(0, rule, range(len(tokenizer)))
+        allowed_ids = probe.allowed_tokens(0, rule, range(len(tokenizer)))
         assert 2 <= len(allowed_ids) < len(tokenizer) - 2
         torch.manual_seed(1)
         out = proc(step, logits.repeat(rows, 1))
@@ -398,8 +398,8 @@ def test_rejection_draws_sample_the_allowed_part_of_the_distribution(records, to
         counts = torch.bincount(picked, minlength=len(tokenizer)).float()
         assert counts.sum() == counts[allowed_ids].sum()  # nothing refused comes through
         # accepted draws need no scan; where two tokens are allowed some rows exhaust their draws
-        assert (proc.vocabulary_scans > 0) == (len(allowed_ids) < len(tokenizer) // 2)
-        assert 0 <= proc.scan_seconds <= proc.seconds
+        assert (proc.stats.vocabulary_scans > 0) == (len(allowed_ids) < len(tokenizer) // 2)
+        assert 0 <= proc.stats.scan_seconds <= proc.stats.seconds
         p = (logits / 0.7).softmax(-1)[allowed_ids]
         p = p / p.sum()
         freq = counts[allowed_ids] / rows
@@ -433,8 +433,6 @@ def test_the_rule_kept_between_steps_is_the_rule_of_the_whole_text(records, toke
     """The processor keeps each row's anchor and skips the anchor search for tokens that cannot end one
     (a layout's decimal points) and the rule match for text its last step admitted; at every step of
     a noisy model's generation its rule equals the one found from scratch in the text so far."""
-    from physcene.train import constrained
-
     vocab = len(tokenizer)
     gen = torch.Generator().manual_seed(11)
     torch.manual_seed(11)
@@ -463,6 +461,6 @@ def test_the_rule_kept_between_steps_is_the_rule_of_the_whole_text(records, toke
         ids.append(t)
     assert compared > 100  # the comparison ran inside rules, not only in free text
     # a decimal point inside the layout starts no anchor search; the "." that ends a plan line does
-    assert not constrained._may_end_anchor('**Scene Layout:**\n{"objects": [{"bbox": [12', ".")
-    assert constrained._may_end_anchor("1. Place 1_mirror_0 on the table\n2. Place 2_tray_0 near it", ".")
-    assert not constrained._may_end_anchor("1. Place 1_mirror_0 on the table\n2", ".")
+    assert not may_end_anchor('**Scene Layout:**\n{"objects": [{"bbox": [12', ".")
+    assert may_end_anchor("1. Place 1_mirror_0 on the table\n2. Place 2_tray_0 near it", ".")
+    assert not may_end_anchor("1. Place 1_mirror_0 on the table\n2", ".")

@@ -1,0 +1,364 @@
+"""The rules of CTRC-constrained decoding: a regular expression per anchor of the completion, built
+from :mod:`physcene.ctrc.grammar` (its keys, key order, number syntax, limits and the writer's
+whitespace) and the prompt's **Object List** and **item_placement_zone**. The package docstring
+(:mod:`physcene.train.constrained`) says what each anchor admits and why.
+"""
+
+from __future__ import annotations
+
+import functools
+import json
+import math
+import re
+from collections.abc import Sequence
+from typing import NamedTuple
+
+import regex
+
+from physcene.ctrc.grammar import (
+    BOX_EXTENTS,
+    BOX_LENGTH,
+    CATEGORY,
+    CHILD_RELATIONS,
+    DESCRIPTION,
+    DESCRIPTION_MAX_CHARS,
+    ENTRY_SEPARATOR,
+    INSTANCE_ID,
+    INTEGER_DIGITS,
+    ITEM_SEPARATOR,
+    KEY_COLON,
+    KEY_SEPARATOR,
+    LAYER,
+    LAYER_DIGITS,
+    LAYOUT_CLOSE,
+    LAYOUT_HEADER,
+    LAYOUT_OPEN,
+    MAX_DECIMALS,
+    NUMBER_PATTERN,
+    OBJECTS_CLOSE,
+    PARENT_ID,
+    PLACE,
+    RELATION_TYPE,
+    RELATIVE_BBOX,
+    RELATIVE_ROTATION,
+    STEP_END,
+    STEP_SEPARATOR,
+    TABLE,
+    TABLE_RELATION,
+    TYPE,
+    VALUE_SPACE,
+    ZONE,
+    ZONE_BBOX,
+    ZONE_LENGTH,
+    ZONE_ROTATION,
+    ZONE_TYPE,
+    key_text,
+    next_key,
+    quoted,
+    step_start,
+    step_start_pattern,
+    string_value_pattern,
+)
+from physcene.ctrc.prompts import OBJECT_LIST_LABEL, ZONE_LABEL
+from physcene.ctrc.writer import json_line
+from physcene.layout import category_from_instance
+
+__all__ = ["ANCHOR", "Rule", "active_rule", "constraint_rule", "last_anchor", "listed_instance_ids",
+           "may_end_anchor", "prompt_zone", "within_rule"]
+
+_OBJECT_LIST = re.compile(re.escape(OBJECT_LIST_LABEL) + r"([^\n]*)")
+_ZONE = re.compile(re.escape(ZONE_LABEL) + r"(\[[^\]\n]*\])")
+_LIST_ITEM = re.compile(r"\s*([^,()]+?) \((\d+)\)")
+_ARRAY_LENGTH = {RELATIVE_BBOX: BOX_LENGTH, ZONE_BBOX: BOX_LENGTH, ZONE: ZONE_LENGTH}
+# (min, max) index pairs of an array whose max must exceed its min (physcene.ctrc refuses a
+# non-positive extent); the root's "bbox" is the zone with a zero height, so it has none.
+_ORDERED = {RELATIVE_BBOX: BOX_EXTENTS, ZONE: BOX_EXTENTS[:2]}
+# The keys whose value a rule steers (the others follow from their predecessor's rule).
+_CONSTRAINED_KEYS = (INSTANCE_ID, CATEGORY, PARENT_ID, RELATION_TYPE, RELATIVE_BBOX, ZONE_BBOX, ZONE,
+                     RELATIVE_ROTATION, ZONE_ROTATION)
+# A plan step's text runs to its first STEP_END on its line.
+_STEP_REST = f"[^{re.escape(STEP_SEPARATOR + STEP_END)}]*"
+# The last of these in the text decides the rule in force (group "key": a JSON key; "step": a plan
+# step's number; "line": a finished plan line's number).
+_STEP_START = re.escape(STEP_SEPARATOR) + step_start_pattern()  # "\n3. Place"
+ANCHOR = re.compile(
+    '"(?P<key>' + "|".join(map(re.escape, _CONSTRAINED_KEYS)) + ')"' + re.escape(KEY_COLON)
+    + "|" + re.escape(STEP_SEPARATOR) + step_start_pattern(r"(?P<step>\d+)")
+    + f"(?!{_STEP_REST}{re.escape(STEP_END)})"
+    + "|" + re.escape(STEP_SEPARATOR) + step_start_pattern(r"(?P<line>\d+)") + " " + _STEP_REST
+    + re.escape(STEP_END))
+_PLACED_IN_PLAN = re.compile(_STEP_START + r" (\S+?)" + f"[ {re.escape(STEP_END)}]")
+_STEP_LINE = re.compile(_STEP_START)
+_INSTANCE_IDS = re.compile(string_value_pattern(INSTANCE_ID))
+_PARENT_IDS = re.compile(string_value_pattern(PARENT_ID))
+# The completion's fixed text, as physcene.ctrc.completion_text writes it: the layout's start up to the
+# root entry's instance_id; what follows an object entry's closing brace: the next entry up to its
+# instance_id (whose own rule follows), or the end of the objects array up to the zone's key.
+_ENTRY_START = "{" + quoted(LAYER) + KEY_SEPARATOR
+_LAYOUT_START = LAYOUT_OPEN + _ENTRY_START + "0" + key_text(INSTANCE_ID)
+_LAYER = rf"[1-9]\d{{0,{LAYER_DIGITS - 1}}}"
+_NEXT_ENTRY = regex.escape(ENTRY_SEPARATOR + _ENTRY_START) + _LAYER + regex.escape(key_text(INSTANCE_ID))
+_END_OF_OBJECTS = regex.escape(OBJECTS_CLOSE)
+_ROOT_KEYS = key_text(TYPE) + VALUE_SPACE + quoted(ZONE_TYPE) + key_text(ZONE_BBOX)  # after the root's id
+# One JSON string on one line.
+_DESCRIPTION = (regex.escape(VALUE_SPACE) + r'"(?:[^"\\\x00-\x1f]|\\(?:["\\/bfnrt]|u[0-9a-fA-F]{4}))'
+                + f'{{0,{DESCRIPTION_MAX_CHARS}}}"')
+# Characters searched for the last anchor: longer than any constrained segment (the longest: a
+# relation, the description and the next key).
+_TAIL = 2 * DESCRIPTION_MAX_CHARS
+
+
+class Rule(NamedTuple):
+    """What the next tokens must continue: ``partial`` (the text since the anchor) + the new text must
+    stay a prefix of ``pattern``, and numbers at ``ordered`` (min, max) positions of its JSON array
+    must leave room for max > min. ``pattern`` None: the completion is finished; only EOS may follow.
+    ``choices``: the rule is one of these literal strings, then anything (the next anchor's rule), or
+    nothing after it when ``closed`` (the completion's last text): a prefix test stands in for
+    ``pattern``, so no regex is compiled per set of ids left."""
+
+    partial: str
+    pattern: str | None
+    ordered: tuple[tuple[int, int], ...] = ()
+    choices: tuple[str, ...] = ()
+    closed: bool = False
+
+    def admits(self, added: str) -> bool:
+        if self.pattern is None:
+            return False
+        text = self.partial + added
+        if self.choices:
+            return any(c.startswith(text) or (not self.closed and text.startswith(c)) for c in self.choices)
+        if _compiled(self.pattern).fullmatch(text, partial=True) is None:
+            return False
+        return not self.ordered or _extents_possible(text, self.ordered)
+
+
+class _Core(NamedTuple):
+    pattern: str
+    ordered: tuple[tuple[int, int], ...] = ()
+    then_eos: bool = False  # once the pattern is complete the completion ends
+    choices: tuple[str, ...] = ()  # literal alternatives instead of ``pattern`` (see Rule)
+
+    def prefix_rule(self, partial: str) -> Rule:
+        """The :class:`Rule` of this core after ``partial``: its pattern, then anything (the next
+        anchor's rule takes over) unless the completion ends with it."""
+        pattern = self.pattern if self.then_eos else self.pattern + r"[\s\S]*"
+        return Rule(partial, pattern, self.ordered, self.choices, closed=self.then_eos)
+
+    def complete(self, partial: str) -> int | None:
+        """Where the rule's text ends if ``partial`` starts with all of it, else None."""
+        if self.choices:
+            return next((len(c) for c in self.choices if partial.startswith(c)), None)
+        done = _compiled(self.pattern).match(partial)
+        return None if done is None else done.end()
+
+
+def _literal(*strings: str, then_eos: bool = False) -> _Core:
+    """A rule that is one of ``strings`` (plain text, no regex), the completion's end if ``then_eos``."""
+    return _Core("", then_eos=then_eos, choices=strings)
+
+
+def _extents_possible(text: str, pairs) -> bool:
+    """Whether the JSON number array that ``text`` starts (`` [1.5, 2``) can still end with every
+    max above its min: a finished max must exceed its min, a max being written must be able to."""
+    m = re.match(r"\s*\[([^\]]*)(\]?)", text)
+    if m is None:
+        return True
+    values = [v.strip() for v in m.group(1).split(",")]
+    n_done = len(values) if m.group(2) else len(values) - 1  # the last one is still being written
+    for lo, hi in pairs:
+        if lo == n_done == len(values) - 1 and values[lo] and not values[lo].startswith("-"):
+            if float(values[lo].rstrip(".")) >= _largest(""):  # a min no max can exceed (9999.99999999)
+                return False
+            continue
+        if lo >= n_done or hi > n_done or hi >= len(values):
+            continue
+        low = float(values[lo])
+        if hi < n_done:
+            if not float(values[hi]) > low:
+                return False
+        elif not _largest(values[hi]) > low:
+            return False
+    return True
+
+
+def _largest(prefix: str) -> float:
+    """The largest number of the grammar (``NUMBER_PATTERN``: at most ``INTEGER_DIGITS`` integer digits and
+    ``MAX_DECIMALS`` decimals) that starts with ``prefix``. A max must be able to exceed its min by a
+    number that can still be written: a least upper bound would let ``1.06386999`` (eight decimals)
+    through after a min of ``1.06386999`` and leave no token that continues the box."""
+    negative = prefix.startswith("-")
+    digits = prefix[1:] if negative else prefix
+    whole, dot, fraction = digits.partition(".")
+    if negative:  # the fewest digits: "-" -> -0, "-1." -> -1.0, "-12" -> -12
+        return -float(f"{whole or 0}.{fraction or 0}")
+    if not dot and whole != "0":  # more integer digits may follow (none after a leading 0)
+        whole += "9" * (INTEGER_DIGITS - len(whole))
+    return float(f"{whole}.{fraction}{'9' * (MAX_DECIMALS - len(fraction))}")
+
+
+def listed_instance_ids(prompt: str) -> list[str] | None:
+    """The instance ids a CTRC prompt's **Object List** implies, in list order; None without a list.
+
+    ``napkin (1), vase (2)`` -> ``["1_napkin_0", "2_vase_0", "2_vase_1"]`` (MesaTask naming, spaces in
+    a category become ``_``).
+    """
+    m = _OBJECT_LIST.search(prompt)
+    if m is None:
+        return None
+    items = _LIST_ITEM.findall(m.group(1))
+    if not items:
+        return None
+    return [f"{k}_{name.strip().replace(' ', '_')}_{j}" for k, (name, n) in enumerate(items, 1)
+            for j in range(int(n))]
+
+
+def prompt_zone(prompt: str) -> list[float] | None:
+    """The prompt's **item_placement_zone** ``[xmin, xmax, ymin, ymax]`` (cm), or None without a
+    well-formed one (four finite numbers, max above min)."""
+    m = _ZONE.search(prompt)
+    if m is None:
+        return None
+    try:
+        zone = [float(v) for v in json.loads(m.group(1))]
+    except (ValueError, TypeError):
+        return None
+    if len(zone) != 4 or not all(math.isfinite(v) for v in zone) or zone[1] <= zone[0] or zone[3] <= zone[2]:
+        return None
+    return zone
+
+
+def _alternatives(strings: Sequence[str]) -> str:
+    """A regex group of the literal ``strings`` (relation types; id choices are literal rules)."""
+    return "(?:" + "|".join(regex.escape(s) for s in strings) + ")"
+
+
+def constraint_rule(text: str, listed: Sequence[str] | None,
+                    zone: Sequence[float] | None = None) -> Rule | None:
+    """The :class:`Rule` the next token of a completion prefix must keep, or None. ``listed``: the
+    prompt's ids (:func:`listed_instance_ids`); ``zone``: its placement zone (:func:`prompt_zone`).
+
+    None: nothing constrains the next token (free text, a finished segment, or a prefix that already
+    broke the rule: the parser will reject it; no mask can repair it).
+    """
+    found = last_anchor(text, listed, zone)
+    return None if found is None else active_rule(text[found[0]:], found[1])
+
+
+def active_rule(partial: str, core: _Core | None, within: bool = False) -> Rule | None:
+    """The rule of ``core`` (from :func:`last_anchor`) while ``partial``, the text since its anchor, is
+    inside it; EOS only once a rule that ends the completion is complete; else None. ``within``: the
+    caller already knows ``partial`` continues the rule (its last token was checked against it)."""
+    if core is None:
+        return None
+    end = core.complete(partial)
+    if end is not None:  # the segment is complete
+        return Rule(partial, None) if core.then_eos and end == len(partial) else None
+    return core.prefix_rule(partial) if within or within_rule(partial, core) else None
+
+
+def within_rule(partial: str, core: _Core | None) -> bool:
+    """Whether ``partial``, the text since an anchor, can still continue into that anchor's rule."""
+    return core is None or core.prefix_rule("").admits(partial)
+
+
+def last_anchor(text: str, listed: Sequence[str] | None,
+                zone: Sequence[float] | None = None) -> tuple[int, _Core | None] | None:
+    """(position in ``text`` where its last anchor ends, the rule of what must follow it or None).
+
+    None: no anchor in the last ``_TAIL`` characters. The rule stays valid until the next anchor, so
+    a decoder need not look for one again until a token that can end an anchor arrives.
+    """
+    tail = text[-_TAIL:]
+    anchors = list(ANCHOR.finditer(tail))
+    if not anchors:
+        return None
+    anchor = anchors[-1]
+    position = len(text) - len(tail) + anchor.end()
+    return position, _core(text[:position], anchor, listed, zone)
+
+
+def _core(text: str, anchor, listed: Sequence[str] | None, zone: Sequence[float] | None) -> _Core | None:
+    """The rule of ``anchor``, the last anchor of ``text`` (which ends with it)."""
+    in_plan = LAYOUT_HEADER not in text  # the anchor lies in the plan
+    key = anchor.group("key")
+    if anchor.group("step") is not None or anchor.group("line") is not None:
+        if not in_plan or not listed:
+            return None
+        placed = set(_PLACED_IN_PLAN.findall(text))
+        left = [i for i in listed if i not in placed]
+        if anchor.group("step") is not None:
+            return _literal(*(f" {i}{end}" for i in left for end in (" ", STEP_END))) if left else None
+        if left:
+            return _literal(STEP_SEPARATOR + step_start(int(anchor.group("line")) + 1))
+        return _literal(_LAYOUT_START)
+    if zone is not None and key in (ZONE_BBOX, ZONE):  # given by the prompt: copy it
+        if key == ZONE_BBOX:  # the root entry: the zone with a zero height
+            return _literal(VALUE_SPACE + _json_numbers([*zone, 0.0, 0.0]) + key_text(next_key(key)))
+        return _literal(VALUE_SPACE + _json_numbers(zone) + LAYOUT_CLOSE, then_eos=True)
+    if key in _ARRAY_LENGTH:
+        n = _ARRAY_LENGTH[key]
+        core = (regex.escape(VALUE_SPACE + "[") + NUMBER_PATTERN
+                + f"(?:{regex.escape(ITEM_SEPARATOR)}{NUMBER_PATTERN}){{{n - 1}}}" + regex.escape("]"))
+        if key == ZONE:  # the layout's last value: its brace, then EOS
+            return _Core(core + regex.escape(LAYOUT_CLOSE), _ORDERED[key], then_eos=True)
+        return _Core(core + _key(next_key(key)), _ORDERED.get(key, ()))
+    if key in (RELATIVE_ROTATION, ZONE_ROTATION):
+        core = regex.escape(VALUE_SPACE) + NUMBER_PATTERN + regex.escape("}")
+        if listed is not None:
+            placed = set(_INSTANCE_IDS.findall(text))
+            core += _NEXT_ENTRY if any(i not in placed for i in listed) else _END_OF_OBJECTS
+        return _Core(core)
+    ids = _INSTANCE_IDS.findall(text)
+    follow = key_text(next_key(key))
+    if key == INSTANCE_ID:
+        if not ids:
+            return _literal(VALUE_SPACE + f'"{TABLE}"' + _ROOT_KEYS)
+        if listed is None:
+            return None
+        allowed = [i for i in listed if i not in ids]
+    elif key == CATEGORY:
+        if not ids or ids[-1] == TABLE:
+            return None
+        allowed = [category_from_instance(ids[-1])]
+    elif key == PARENT_ID:
+        allowed = [TABLE, *[i for i in ids[:-1] if i != TABLE]]
+    else:  # relation_type, then the free description: a regex (two patterns in all: near / in, on)
+        parents = _PARENT_IDS.findall(text)
+        if not parents:
+            return None
+        allowed = [TABLE_RELATION] if parents[-1] == TABLE else list(CHILD_RELATIONS)
+        return _Core(regex.escape(VALUE_SPACE) + '"' + _alternatives(allowed) + '"' + regex.escape(follow)
+                     + _DESCRIPTION + _key(next_key(DESCRIPTION)))
+    if not allowed:
+        return None
+    return _literal(*(VALUE_SPACE + f'"{i}"' + follow for i in allowed))
+
+
+def _json_numbers(values: Sequence[float]) -> str:
+    """``[0.0, 132.9, ...]`` as physcene.ctrc writes a layout's numbers (JSON floats)."""
+    return json_line([float(v) + 0.0 for v in values])
+
+
+def _key(name: str) -> str:
+    """The regex of :func:`physcene.ctrc.grammar.key_text`: one key of an entry, after the previous value."""
+    return regex.escape(key_text(name))
+
+
+@functools.lru_cache(maxsize=4096)
+def _compiled(pattern: str):
+    return regex.compile(pattern)
+
+
+def may_end_anchor(text: str, added: str) -> bool:
+    """Whether appending ``added`` to ``text`` can complete an anchor: a key's ``":``, a plan step's
+    ``Place`` (also one split over tokens), or the ``.`` that ends a plan line: only on a line that
+    starts ``N. Place``, so a layout's decimal points (most of its ``.``) start no search."""
+    if KEY_COLON in added or PLACE in text[-len(PLACE):] + added or STEP_SEPARATOR in added:
+        return True
+    dot = added.find(STEP_END)
+    if dot < 0:
+        return False
+    line = text.rfind(STEP_SEPARATOR, 0, len(text) + dot)
+    return line >= 0 and _STEP_LINE.match(text, line) is not None
+
