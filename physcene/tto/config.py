@@ -37,6 +37,13 @@ class TTOConfig:
     reattach_gap_cm: float = 3.0
     """A table-level object hovering over / sunk into a support by less than this is optimised as
     ``on`` it (0 disables; see :func:`physcene.tto.problem.reattach`)."""
+    separate_deep: bool = True
+    """Before the optimisation, move apart penetrating table-level pairs where one object stands
+    deep in the other's footprint (coincident, or sunk past half its width): the penetration energy
+    of such a pair has a local minimum at coincidence (every surface sample of one lies on the
+    other's surface), so gradient steps would not part them. The later-written object (with its
+    stack) moves sideways the shortest way out of the other's footprint box; coincident ones along
+    the golden angle of their rank, a deterministic symmetry break (docs/tto.md)."""
     in_children: str = "slide"
     """``slide``: an ``in`` child's (x, y, yaw) in its container's frame are parameters (z offset held,
     footprint kept inside the container's), so a content modelled into its container's wall can be

@@ -28,7 +28,7 @@ from physcene.scene import TABLE, Scene, SceneObject
 from physcene.tto.config import TTOConfig
 
 __all__ = ["CM", "IN", "LIFT_CM", "ON", "ROOT", "TTOProblem", "build_problem", "forward_kinematics",
-           "reattach"]
+           "reattach", "separate_deep_pairs"]
 
 # Kinds of parametrisation per object slot.
 ROOT, ON, IN = 0, 1, 2
@@ -266,8 +266,76 @@ def build_problem(scenes: Sequence[Scene], engine, config: TTOConfig,
         _encode_near(host, s, scene, objs, config)
     problem = _to_device(host, batch, engine, config)
     _seat_contents(engine, problem)
+    if config.separate_deep:
+        separate_deep_pairs(engine, problem)
     problem.contact, problem.contact_mask = _contact_pairs(engine, problem)
     return problem
+
+
+_GOLDEN_ANGLE = math.pi * (3.0 - math.sqrt(5.0))  # rad: successive ranks never line up
+_SEPARATION_GAP_CM = 0.1  # clearance left between the footprint boxes of a parted pair
+
+
+def separate_deep_pairs(engine, problem: TTOProblem, rounds: int = 8) -> None:
+    """Move apart, in ``problem.xi0``, penetrating table-level pairs where one object stands deep in
+    the other's footprint.
+
+    A pair is deep when the shortest sideways move that parts their footprint boxes is longer than
+    half the narrower box along that axis (one's centre inside the other's box: coincident, or sunk
+    into it). Each round: evaluate ξ0, and for every deep pair of two free table-level objects
+    (different container bodies) move the later-written one (its stack follows) that shortest way
+    out, away from the other's centre, or, coincident, along the golden angle of its rank among the
+    coincident objects. Rounds repeat until no pair is deep (N coincident objects take up to N − 1).
+    """
+    slots = problem.batch.pair_slots()
+    if len(slots) == 0:
+        return
+    kind = problem.kind.cpu().numpy()
+    free = problem.trainable.cpu().numpy() & (kind == ROOT)
+    sizes = problem.sizes.cpu().numpy().astype(np.float64)
+    s_, i_, j_ = slots[:, 0], slots[:, 1], slots[:, 2]
+    candidate = free[s_, i_] & free[s_, j_] & (problem.body[s_, i_] != problem.body[s_, j_])
+    if not candidate.any():
+        return
+    for _ in range(rounds):
+        poses = forward_kinematics(problem, problem.xi0)
+        depth = engine.evaluate(problem.batch, poses)["pair_energy"].detach().cpu().numpy()
+        pose = poses.detach().cpu().numpy().astype(np.float64)
+        shift = np.zeros(pose.shape[:2] + (2,))
+        moved = np.zeros(pose.shape[:2], bool)
+        rank: dict[tuple[int, int], int] = {}
+        for s, i, j in slots[candidate & (depth > 0)]:
+            if moved[s, j]:
+                continue
+            lo_i, hi_i = _footprint_box(pose[s, i], sizes[s, i])
+            lo_j, hi_j = _footprint_box(pose[s, j], sizes[s, j])
+            push = np.minimum(hi_i - lo_j, hi_j - lo_i)  # per axis: the move that parts the boxes
+            axis = int(np.argmin(push))
+            if push[axis] <= 0.5 * min(hi_i[axis] - lo_i[axis], hi_j[axis] - lo_j[axis]):
+                continue  # shallow: the gradient steps part it
+            moved[s, j] = True
+            delta = pose[s, j, :2] - pose[s, i, :2]
+            if np.abs(delta).max() < 1e-3:  # coincident: no side is nearer, break the tie
+                k = rank[(s, i)] = rank.get((s, i), 0) + 1
+                u = np.array([math.cos(k * _GOLDEN_ANGLE), math.sin(k * _GOLDEN_ANGLE)])
+                # the shortest move along u that clears the boxes on one axis
+                need = (0.5 * (hi_i - lo_i + hi_j - lo_j) + _SEPARATION_GAP_CM) / np.maximum(np.abs(u), 1e-9)
+                shift[s, j] = u * need.min()
+            else:
+                shift[s, j, axis] = math.copysign(push[axis] + _SEPARATION_GAP_CM,
+                                                  delta[axis] if delta[axis] != 0 else 1.0)
+        if not moved.any():
+            return
+        xi = problem.xi0.clone()
+        xi[..., :2] += torch.as_tensor(shift / CM, dtype=xi.dtype, device=xi.device)
+        problem.xi0 = xi
+
+
+def _footprint_box(pose: np.ndarray, size: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The axis-aligned box (lo (2,), hi (2,)) cm of an object's yawed footprint."""
+    c, s = abs(math.cos(pose[3])), abs(math.sin(pose[3]))
+    half = 0.5 * np.array([c * size[0] + s * size[1], s * size[0] + c * size[1]])
+    return pose[:2] - half, pose[:2] + half
 
 
 _SEAT_GRID = 13  # lifts tried per content: 0, 1/12, ..., 1 × its lift_max

@@ -115,7 +115,8 @@ def bench_reward(args) -> dict:
     result["warp_grad"] = result["variants"][variants[0][0]]["warp_grad"]
     if not args.no_reference:
         kw = dict(poses=batch.poses, sizes=batch.sizes, count=batch.count, obj_asset=batch.asset_index,
-                  assets=assets, margin=engine.config.margin_cm, depth_cap_ratio=engine.config.depth_cap_ratio)
+                  assets=assets, margin=engine.config.margin_cm,
+                  depth_cap_ratio=engine.config.depth_cap_ratio)
         ref_repeat = max(1, repeat // 5)
         result["reference_forward"] = figures(
             timed(lambda: reference_penetration(**kw), device, ref_repeat, 1))
