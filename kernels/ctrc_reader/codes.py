@@ -21,6 +21,7 @@ __all__ = [
     "FNV_PRIME",
     "MAX_ENTRIES",
     "STATUS",
+    "S_LONG",
     "TOP_ROLES",
     "WORD_ROLES",
     "ReaderLimits",
@@ -72,8 +73,9 @@ STATUS = {
     -7: "more entries than MAX_ENTRIES",
     -8: "no zone (item_placement_zone or zone entry bbox) the decoder would accept",
     -9: "category not in the engine's table yet (resolved on the host, then rescanned)",
+    -10: "longer than the grammar's character limit (set on the host: the parser refuses it)",
 }
-S_MARKER, S_SYNTAX, S_KEY, S_NUMBER, S_VALUE, S_TREE, S_MANY, S_ZONE, S_CATEGORY = range(-1, -10, -1)
+S_MARKER, S_SYNTAX, S_KEY, S_NUMBER, S_VALUE, S_TREE, S_MANY, S_ZONE, S_CATEGORY, S_LONG = range(-1, -11, -1)
 E_NONE = wp.constant(-100)  # entries kernel: no candidate in this slot
 
 # Value kinds of the generic value reader.

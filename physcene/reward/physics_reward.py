@@ -98,12 +98,35 @@ class RewardConfig:
     writes into a :class:`~physcene.physics.PhysicsEngine`'s batch: an engine that only packs
     Scenes needs False."""
 
+    max_overlapping_pairs: int = 2048
+    """A parsed layout with more object pairs whose boxes overlap than this is refused like a
+    completion that does not parse (``unparsable``, the reason names the count): it bounds the cost
+    of one completion (999 objects stacked at one spot are ~500,000 deep pairs, seconds of engine
+    time each). The benchmark's scenes have at most a few dozen such pairs."""
+
     def __post_init__(self):
         object.__setattr__(self, "valid_terms", valid_terms_checked(self.valid_terms))
+        if self.max_overlapping_pairs < 1:
+            raise ValueError(f"max_overlapping_pairs must be >= 1, got {self.max_overlapping_pairs}")
 
     @classmethod
     def load(cls, overrides: Sequence[str] = ()) -> RewardConfig:
         return load_dataclass(cls, "reward", overrides)
+
+
+def overlapping_box_pairs(scene: Scene) -> int:
+    """How many object pairs of ``scene`` have overlapping boxes (the axis-aligned bounds of the
+    yawed footprints, and the z ranges): the pairs the engine's narrowphase would read."""
+    centre = np.array([o.center for o in scene.objects], dtype=np.float64)
+    size = np.array([o.size for o in scene.objects], dtype=np.float64)
+    yaw = np.array([o.yaw for o in scene.objects], dtype=np.float64)
+    c, s = np.abs(np.cos(yaw)), np.abs(np.sin(yaw))
+    half = 0.5 * np.stack([c * size[:, 0] + s * size[:, 1], s * size[:, 0] + c * size[:, 1], size[:, 2]], 1)
+    lo, hi = centre - half, centre + half
+    meet = np.ones((len(centre), len(centre)), bool)
+    for axis in range(3):
+        meet &= (lo[:, None, axis] < hi[None, :, axis]) & (lo[None, :, axis] < hi[:, None, axis])
+    return int(np.triu(meet, 1).sum())
 
 
 def completion_text_of(completion) -> str:
@@ -213,12 +236,26 @@ class PhysicsReward:
             return self.score_parsed([parse(t) for t in texts], charges=charges)
         if self._text_packer is None or self._text_packer.engine is not engine:
             self._text_packer = TextPacker(engine)
-        pack = self._text_packer.pack(texts, parse)
+        # the compiled scanner reads at most MAX_ENTRIES objects: the texts it leaves to the parser
+        # are the ones that can hold more pairs than the bound
+        pack = self._text_packer.pack(texts, lambda text: self.bounded(parse(text)))
         return self._score(pack.batch, np.nonzero(pack.row >= 0)[0], pack.errors, charges)
+
+    def bounded(self, parsed: Scene | ParseError) -> Scene | ParseError:
+        """``parsed``, or a ParseError when its objects overlap in more than ``max_overlapping_pairs``
+        pairs of boxes (yawed footprints' bounding boxes × z ranges)."""
+        limit = self.config.max_overlapping_pairs
+        if not isinstance(parsed, Scene) or len(parsed.objects) * (len(parsed.objects) - 1) // 2 <= limit:
+            return parsed
+        n = overlapping_box_pairs(parsed)
+        if n <= limit:
+            return parsed
+        return ParseError(f"{n} pairs of objects overlap (limit {limit}, reward.max_overlapping_pairs)")
 
     def score_parsed(self, parsed: Sequence[Scene | ParseError], *,
                      charges: ChargeConfig | None = None) -> RewardBatch:
         """The rewards of already parsed completions (a Scene or a ParseError each)."""
+        parsed = [self.bounded(p) for p in parsed]
         ok = [k for k, p in enumerate(parsed) if isinstance(p, Scene)]
         batch = self.engine.pack([parsed[k] for k in ok]) if ok else None
         errors = [p.reason if isinstance(p, ParseError) else None for p in parsed]

@@ -24,10 +24,11 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from physcene.ctrc import MAX_ABS_CM, ON_CONTACT_GAP_CM, ParseError, grammar, parse
+from physcene.ctrc import MAX_ABS_CM, MAX_CHARS, ON_CONTACT_GAP_CM, ParseError, grammar, parse
 from physcene.kernels.ctrc_reader import (
     CHUNK,
     MAX_ENTRIES,
+    S_LONG,
     STATUS,
     ReaderLimits,
     category_hash,
@@ -226,7 +227,10 @@ class TextPacker:
                 break
             if not self._learn_categories(data, unknown, n_read[unknown]):
                 break
-        return status.copy(), data
+        status = status.copy()
+        # the parser refuses a text over the grammar's length limit: leave it to the parser
+        status[np.array([len(t) > MAX_CHARS for t in texts])] = S_LONG
+        return status, data
 
     def pack(self, texts: Sequence[str], fallback: Callable | None = None) -> TextPack:
         """Completion texts → a :class:`TextPack` (batch, row per text, errors).

@@ -121,11 +121,8 @@ def _mutations(kind: str, texts: list[str], rng: random.Random) -> list[str]:
     return out
 
 
-_OVER_LIMIT = pytest.mark.xfail(strict=True, reason="issue 30 item 3: the fast path does not enforce the "
-                                                    "parser's limits on over-limit texts")
 KINDS = ["deleted_character", "duplicated_character", "swapped_key_order", "swapped_key_names",
-         "number_over_limit", "too_many_decimals",
-         pytest.param("text_over_limit", marks=_OVER_LIMIT), "too_many_objects"]
+         "number_over_limit", "too_many_decimals", "text_over_limit", "too_many_objects"]
 
 
 @pytest.mark.parametrize("kind", KINDS)
