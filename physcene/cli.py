@@ -4,8 +4,8 @@ Each module in :mod:`physcene.commands` defines ``NAME``, ``HELP``, ``add_argume
 ``run(args) -> int``; they are found here without a central list, so adding a subcommand is
 adding a file. ``NAME``, ``HELP`` and the optional ``SETTINGS`` (the config file its ``key=value``
 settings override, and the page that documents them) are string literals read from the source
-without importing it, and only the invoked subcommand's module is imported: the modules pull in torch, Warp and
-trimesh, and importing all of them cost every command several seconds of start-up. Expected
+without importing it, and only the invoked subcommand's module is imported: the modules pull in
+torch, Warp and trimesh, and importing all of them cost every command several seconds of start-up. Expected
 errors (bad input files, bad configs) print one line and exit 2; they never print a traceback.
 """
 
@@ -46,7 +46,8 @@ def subcommands() -> dict[str, tuple[str, str, str]]:
         if info.name.startswith("_"):
             continue
         module = f"physcene.commands.{info.name}"
-        consts = _literal_constants(Path(importlib.util.find_spec(module).origin), ("NAME", "HELP", "SETTINGS"))
+        origin = Path(importlib.util.find_spec(module).origin)
+        consts = _literal_constants(origin, ("NAME", "HELP", "SETTINGS"))
         if "NAME" not in consts:
             raise RuntimeError(f"{module} defines no literal NAME")
         table[consts["NAME"]] = (module, consts.get("HELP", ""), consts.get("SETTINGS", ""))
@@ -67,11 +68,14 @@ def build_parser(selected: str | None = None) -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     sub.required = True
     for name, (module_name, help_text, settings) in subcommands().items():
-        p = sub.add_parser(name, help=help_text, description=help_text,
-                           epilog=_epilog(settings))
+        p = sub.add_parser(name, help=help_text, description=help_text, epilog=_epilog(settings))
         if selected is None or name == selected:
             module = importlib.import_module(module_name)
             module.add_arguments(p)
+            for action in p._actions:  # nested actions (data synth) repeat the note
+                if isinstance(action, argparse._SubParsersAction):
+                    for nested in action.choices.values():
+                        nested.epilog = nested.epilog or p.epilog
             p.set_defaults(_run=module.run)
     return parser
 

@@ -63,7 +63,9 @@ def test_data_synth_shows_a_bar_unless_quiet_and_keeps_no_progress(tmp_path):
     hidden = _physcene("data", "synth", "--out", str(tmp_path / "b"), "--n", "2", "--measure", "no",
                        "--no-progress", cwd=tmp_path)  # the old spelling still works
     assert "%|" not in hidden.stderr
-    assert "--no-progress" not in _physcene("data", "synth", "--help", cwd=tmp_path).stdout
+    help_text = _physcene("data", "synth", "--help", cwd=tmp_path).stdout
+    assert "--no-progress" not in help_text and "--quiet" in help_text
+    assert "key=value" in help_text  # a nested action repeats the settings note
 
 
 def test_repair_json(tmp_path):
