@@ -68,6 +68,16 @@ def test_data_synth_shows_a_bar_unless_quiet_and_keeps_no_progress(tmp_path):
     assert "key=value" in help_text  # a nested action repeats the settings note
 
 
+def test_data_import_mesatask_json(tmp_path):
+    scene = tmp_path / "Layout_info" / "office_table" / "s1" / "layout.json"
+    scene.parent.mkdir(parents=True)
+    scene.write_text(EXAMPLE.read_text())
+    doc = _document(_physcene("data", "import-mesatask", str(tmp_path / "Layout_info"), "--out",
+                              str(tmp_path / "out"), "--test-size", "0", "--json", "--quiet", cwd=tmp_path))
+    assert [s["split"] for s in doc["splits"]] == ["train", "test"]
+    assert doc["splits"][0]["n"] == 1 and Path(doc["splits"][0]["file"]).is_file()
+
+
 def test_repair_json(tmp_path):
     doc = _document(_physcene("repair", str(EXAMPLE), "-o", str(tmp_path / "fixed.json"), "--json",
                               "--quiet", cwd=tmp_path))
