@@ -2,9 +2,10 @@
 
 Each module in :mod:`physcene.commands` defines ``NAME``, ``HELP``, ``add_arguments(parser)`` and
 ``run(args) -> int``; they are found here without a central list, so adding a subcommand is
-adding a file. ``NAME`` and ``HELP`` are string literals read from the source without importing
-it, and only the invoked subcommand's module is imported: the modules pull in torch, Warp and
-trimesh, and importing all of them cost every command several seconds of start-up. Expected
+adding a file. ``NAME``, ``HELP`` and the optional ``SETTINGS`` (the config file its ``key=value``
+settings override, and the page that documents them) are string literals read from the source
+without importing it, and only the invoked subcommand's module is imported: the modules pull in
+torch, Warp and trimesh, and importing all of them cost every command several seconds of start-up. Expected
 errors (bad input files, bad configs) print one line and exit 2; they never print a traceback.
 """
 
@@ -18,7 +19,7 @@ import pkgutil
 import sys
 from pathlib import Path
 
-from physcene import commands
+from physcene import __version__, commands
 
 __all__ = ["main"]
 
@@ -38,37 +39,50 @@ def _literal_constants(path: Path, names: tuple[str, ...]) -> dict[str, str]:
     return found
 
 
-def subcommands() -> dict[str, tuple[str, str]]:
-    """``{name: (module, help)}`` for every module of :mod:`physcene.commands`."""
+def subcommands() -> dict[str, tuple[str, str, str]]:
+    """``{name: (module, help, settings)}`` for every module of :mod:`physcene.commands`."""
     table = {}
     for info in sorted(pkgutil.iter_modules(commands.__path__), key=lambda m: m.name):
         if info.name.startswith("_"):
             continue
         module = f"physcene.commands.{info.name}"
-        consts = _literal_constants(Path(importlib.util.find_spec(module).origin), ("NAME", "HELP"))
+        origin = Path(importlib.util.find_spec(module).origin)
+        consts = _literal_constants(origin, ("NAME", "HELP", "SETTINGS"))
         if "NAME" not in consts:
             raise RuntimeError(f"{module} defines no literal NAME")
-        table[consts["NAME"]] = (module, consts.get("HELP", ""))
+        table[consts["NAME"]] = (module, consts.get("HELP", ""), consts.get("SETTINGS", ""))
     return table
+
+
+def _epilog(settings: str) -> str | None:
+    """The ``--help`` note on ``key=value`` settings, from the command's ``SETTINGS``."""
+    if not settings:
+        return None
+    return f"settings: key=value arguments override {settings}"
 
 
 def build_parser(selected: str | None = None) -> argparse.ArgumentParser:
     """The parser; only ``selected`` (or, when None, every) subcommand gets its arguments."""
     parser = argparse.ArgumentParser(prog="physcene", description=__doc__.splitlines()[0])
+    parser.add_argument("--version", action="version", version=f"physcene {__version__}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     sub.required = True
-    for name, (module_name, help_text) in subcommands().items():
-        p = sub.add_parser(name, help=help_text, description=help_text)
+    for name, (module_name, help_text, settings) in subcommands().items():
+        p = sub.add_parser(name, help=help_text, description=help_text, epilog=_epilog(settings))
         if selected is None or name == selected:
             module = importlib.import_module(module_name)
             module.add_arguments(p)
+            for action in p._actions:  # nested actions (data synth) repeat the note
+                if isinstance(action, argparse._SubParsersAction):
+                    for nested in action.choices.values():
+                        nested.epilog = nested.epilog or p.epilog
             p.set_defaults(_run=module.run)
     return parser
 
 
 def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
-    # the first word that is not an option names the subcommand (top-level takes only -h)
+    # the first word that is not an option names the subcommand (top-level takes only -h, --version)
     invoked = next((a for a in argv if not a.startswith("-")), "")
     parser = build_parser(invoked if invoked in subcommands() else "")
     args, extra = parser.parse_known_args(argv)

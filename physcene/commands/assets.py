@@ -19,6 +19,7 @@ from physcene.config import load_config
 
 NAME = "assets"
 HELP = "bake the asset library's SDF grids into the cache, or list the library"
+SETTINGS = "configs/assets.yaml (docs/assets.md)"
 
 
 def add_arguments(parser) -> None:

@@ -16,11 +16,15 @@ import sys
 from dataclasses import dataclass
 from pathlib import Path
 
+from tqdm import tqdm
+
+from physcene.commands import add_quiet
 from physcene.layout import load_layout
 from physcene.scene import Scene
 
 NAME = "check"
 HELP = "Check layouts for interpenetration, floating objects and table penetration"
+SETTINGS = "configs/physics.yaml (docs/physics.md)"
 
 # Scenes per engine call: bounds device memory for very large datasets.
 _CHUNK = 4096
@@ -43,6 +47,7 @@ def add_arguments(parser) -> None:
                              "whose records carry a 'layout' object")
     parser.add_argument("--device", default="cpu", help="engine device: cpu (default), cuda, cuda:N")
     parser.add_argument("--json", action="store_true", help="print one JSON document")
+    add_quiet(parser)
 
 
 def _load_json_file(path: Path) -> _Item:
@@ -99,10 +104,13 @@ def collect(paths) -> list[_Item]:
     return items
 
 
-def check_scenes(items: list[_Item], engine) -> list[dict]:
-    """The ``scenes`` entries of the JSON report, in input order."""
+def check_scenes(items: list[_Item], engine, progress: bool = False) -> list[dict]:
+    """The ``scenes`` entries of the JSON report, in input order; ``progress``: a bar on stderr
+    over the scenes, when there is more than one engine call."""
     ok = [k for k, it in enumerate(items) if it.scene is not None]
     reports: dict[int, dict] = {}
+    bar = tqdm(total=len(ok), desc="check", unit="scene", file=sys.stderr,
+               disable=not progress or len(ok) <= _CHUNK)
     for lo in range(0, len(ok), _CHUNK):
         chunk = ok[lo:lo + _CHUNK]
         scenes = [items[k].scene for k in chunk]
@@ -119,6 +127,8 @@ def check_scenes(items: list[_Item], engine) -> list[dict]:
                 "floating": [ids[i] for i in score.floating[m]],
                 "table_penetration_cm": table[m], "error": None,
             }
+        bar.update(len(chunk))
+    bar.close()
     return [reports.get(k) or {"path": it.path, "objects": None, "pairs": [], "max_depth_cm": None,
                                "energy": None, "floating": [], "table_penetration_cm": None,
                                "error": it.error}
@@ -144,7 +154,7 @@ def run(args) -> int:
     items = collect([p for p in args.paths if p not in overrides])
     config = PhysicsConfig.load([*args.overrides, *overrides])
     engine = PhysicsEngine(device=args.device, config=config) if any(it.scene for it in items) else None
-    reports = check_scenes(items, engine)
+    reports = check_scenes(items, engine, progress=not args.quiet)
     if args.json:
         print(json.dumps({"scenes": reports}, indent=1))
     else:

@@ -22,6 +22,7 @@ from physcene.scene import SceneError, Zone
 
 NAME = "ctrc"
 HELP = "Print the CTRC completion of a MesaTask layout.json, or (--decode) parse a completion to layout.json"
+SETTINGS = "configs/graph.yaml (docs/scene_language.md)"
 
 
 class CompletionError(ValueError):

@@ -17,6 +17,7 @@ from pathlib import Path
 
 from tqdm import tqdm
 
+from physcene.commands import add_json, add_quiet, print_json
 from physcene.config import load_config
 from physcene.data.benchmark import DataConfig, split_stats, stats_markdown, write_records, write_split
 from physcene.data.instructions import EndpointInstructor
@@ -26,6 +27,7 @@ from physcene.eval.metrics import measure_reference
 
 NAME = "data"
 HELP = "Build benchmark data: synthetic MesaTask-style splits or MesaTask-CTRC from real layouts"
+SETTINGS = "configs/data.yaml (docs/data.md)"
 
 
 def add_arguments(parser) -> None:
@@ -47,7 +49,8 @@ def add_arguments(parser) -> None:
         default=None,
         help="Score every scene with the engine for the reference SCR/ACR (auto: test and ood only)",
     )
-    synth.add_argument("--no-progress", action="store_true", help="No progress bar")
+    add_quiet(synth, legacy=("--no-progress",))
+    add_json(synth, "the files written and the split's stats")
     imp = sub.add_parser(
         "import-mesatask", help="Build MesaTask-CTRC records from a MesaTask-10k Layout_info tree"
     )
@@ -62,6 +65,8 @@ def add_arguments(parser) -> None:
     )
     imp.add_argument("--skip-errors", action="store_true", help="Skip unreadable layout files")
     imp.add_argument("--measure", action="store_true", help="Measure the reference SCR/ACR with the engine")
+    add_quiet(imp)
+    add_json(imp, "the files written")
 
 
 def _config(args):
@@ -88,10 +93,14 @@ def _run_synth(args) -> int:
     if args.measure == "auto":
         measure = args.split in ("test", "ood")
     stats = write_split(
-        args.out, args.split, args.n, args.seed, config, progress=not args.no_progress, measure=measure,
+        args.out, args.split, args.n, args.seed, config, progress=not args.quiet, measure=measure,
         measurer=measure_reference,
     )
     out = Path(args.out)
+    if args.json:
+        print_json({"file": out / f"{args.split}.jsonl", "stats_json": out / f"{args.split}_stats.json",
+                    "stats_md": out / f"{args.split}_stats.md", "stats": stats})
+        return 0
     print(
         f"wrote {out / (args.split + '.jsonl')} ({stats['n']} scenes, "
         f"{stats['distinct_instructions']} distinct instructions) in {stats['generation_seconds']:.1f} s"
@@ -123,6 +132,7 @@ def _run_import(args) -> int:
             desc="import",
             unit="scene",
             file=sys.stderr,
+            disable=args.quiet,
         )
     ]
     if not records:
@@ -131,6 +141,7 @@ def _run_import(args) -> int:
         )
     test_idx = set(select_test([(r["scene_type"], r["level"]) for r in records], args.test_size, args.seed))
     out = Path(args.out)
+    written = []
     for split, chosen in (
         ("train", [r for k, r in enumerate(records) if k not in test_idx]),
         ("test", [r for k, r in enumerate(records) if k in test_idx]),
@@ -142,7 +153,12 @@ def _run_import(args) -> int:
         stats.update(split=split, seed=args.seed, file=f"{split}.jsonl", source=str(root))
         (out / f"{split}_stats.json").write_text(json.dumps(stats, indent=2, sort_keys=True) + "\n")
         (out / f"{split}_stats.md").write_text(stats_markdown(stats))
-        print(f"wrote {out / (split + '.jsonl')} ({len(chosen)} scenes)")
+        written.append({"split": split, "file": out / f"{split}.jsonl", "n": len(chosen),
+                        "stats_json": out / f"{split}_stats.json", "stats_md": out / f"{split}_stats.md"})
+        if not args.json:
+            print(f"wrote {out / (split + '.jsonl')} ({len(chosen)} scenes)")
+    if args.json:
+        print_json({"splits": written})
     return 0
 
 

@@ -5,12 +5,14 @@ from __future__ import annotations
 import shlex
 import sys
 
+from physcene.commands import add_json, add_quiet, print_json
 from physcene.config import load_config
 from physcene.eval.harness import EvalError, run_evaluation
 from physcene.eval.report import main_table
 
 NAME = "eval"
 HELP = "evaluate layout generators on the test/OOD benchmark (SCR, ACR, judge scores, QPR)"
+SETTINGS = "configs/eval.yaml, or the --config file (docs/eval.md)"
 
 
 def add_arguments(parser) -> None:
@@ -22,7 +24,8 @@ def add_arguments(parser) -> None:
     parser.add_argument("--n", type=int, help="evaluate only the first N scenes of the split")
     parser.add_argument("--repair", action="store_true", help="apply TTO to every generator's output")
     parser.add_argument("--config", default="eval", help="config name or YAML path (default: eval)")
-    parser.add_argument("--quiet", action="store_true", help="no progress bars")
+    add_quiet(parser)
+    add_json(parser, "the paths written and every method's summary")
 
 
 def _config(args):
@@ -65,6 +68,10 @@ def run(args) -> int:
     command = "physcene " + " ".join(shlex.quote(a) for a in argv)
     tables, path = run_evaluation(cfg, command=command, title=f"physcene eval — {cfg.split} split",
                                   progress=not args.quiet, generators=model_generators(cfg))
+    if args.json:
+        print_json({"split": cfg.split, "n": cfg.n, "report": path, "results": path.parent / "results.json",
+                    "methods": tables})
+        return 0
     print(main_table(tables))
     print(f"\nreport: {path}\nresults: {path.parent / 'results.json'}")
     return 0

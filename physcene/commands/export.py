@@ -14,11 +14,13 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from physcene.commands import add_json, print_json
 from physcene.export import FORMATS, SIMULATOR_FORMATS, ExportConfig, ExportError, export
 
 NAME = "export"
 HELP = ("Export a layout to GLB, MJCF (MuJoCo), URDF + scene.json (SAPIEN/ManiSkill), SceneEval's scene "
         "state or USD (Isaac Sim), in metres")
+SETTINGS = "configs/export.yaml (docs/export.md)"
 
 
 def add_arguments(parser) -> None:
@@ -27,6 +29,7 @@ def add_arguments(parser) -> None:
     parser.add_argument("--format", dest="formats", required=True, choices=[*FORMATS, "all"],
                         action="append", help="output format (repeatable; 'all' for glb, mjcf and urdf)")
     parser.add_argument("-o", "--output", required=True, metavar="DIR", help="output folder")
+    add_json(parser, "the files written")
 
 
 def run(args) -> int:
@@ -42,8 +45,13 @@ def run(args) -> int:
     config = ExportConfig.load(args.overrides)
     formats = SIMULATOR_FORMATS if "all" in args.formats else tuple(dict.fromkeys(args.formats))
     out = Path(args.output)
+    written = []
     for fmt in formats:
         # Each format in its own folder when several are asked for: their mesh files differ.
         path = export(scene, out / fmt if len(formats) > 1 else out, fmt, config=config)
-        print(f"{label}: {fmt} -> {path}")
+        written.append({"format": fmt, "path": path})
+        if not args.json:
+            print(f"{label}: {fmt} -> {path}")
+    if args.json:
+        print_json({"layout": label, "outputs": written})
     return 0

@@ -18,6 +18,8 @@ from __future__ import annotations
 import json
 import sys
 
+from physcene.commands import add_quiet
+
 NAME = "generate"
 HELP = "Generate tabletop layouts from a text instruction (procedural, endpoint:URL or model:PATH)"
 
@@ -43,7 +45,7 @@ def add_arguments(parser) -> None:
     parser.add_argument("--device", default="cpu", help="physics/TTO/model device: cpu (default), cuda")
     parser.add_argument("--no-render", action="store_true", help="skip the PNG renders")
     parser.add_argument("--json", action="store_true", help="print generate.json's content")
-    parser.add_argument("--quiet", action="store_true", help="no progress bars")
+    add_quiet(parser)
 
 
 def _line(sample) -> str:

@@ -16,6 +16,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+from physcene.commands import add_json, add_quiet, print_json
 from physcene.ctrc import MAX_DECIMALS, completion_text, decimals_of
 from physcene.layout import layout_to_dict, load_layout
 from physcene.scene import SceneError
@@ -23,6 +24,7 @@ from physcene.tto import TTOConfig, repair, summarize
 
 NAME = "repair"
 HELP = "Repair layouts by hierarchy-constrained test-time optimisation (layout.json, a tree, or JSONL)"
+SETTINGS = "configs/tto.yaml (docs/tto.md)"
 
 
 class RepairInputError(ValueError):
@@ -38,6 +40,8 @@ def add_arguments(parser) -> None:
     parser.add_argument("--decimals", type=int, default=None,
                         help="JSONL: digits after the point of the re-written 'completion' column "
                              "(default: each record's own, read from its completion)")
+    add_quiet(parser)
+    add_json(parser, "the paths written, the summary and the per-scene reports")
 
 
 def _read_json(path: Path) -> dict:
@@ -128,7 +132,8 @@ def run(args) -> int:
         mode, items = "file", _items_file(src)
     if mode != "tree" and out.is_dir():
         out = out / src.name
-    results = repair([scene for *_, scene in items], config, PhysicsEngine(device=config.device))
+    results = repair([scene for *_, scene in items], config, PhysicsEngine(device=config.device),
+                     progress=not args.quiet)
     reports = []
     if mode == "tree":
         for (rel, raw, _), result in zip(items, results):
@@ -150,7 +155,11 @@ def run(args) -> int:
         reports.append({"layout": str(src), **result.report.as_dict()})
         report_path = _report_path(out)
     _write_text(report_path, json.dumps(reports, indent=1, ensure_ascii=False) + "\n")
-    print(_summary(results, config), f"report: {report_path}")
+    if args.json:
+        print_json({"input": src, "output": out, "report": report_path, "summary": summarize(results),
+                    "collision_depth_cm": config.collision_depth_cm, "scenes": reports})
+    else:
+        print(_summary(results, config), f"report: {report_path}")
     return 0
 
 

@@ -17,6 +17,7 @@ from pathlib import Path
 
 NAME = "reward"
 HELP = "Score completions (JSONL of {prompt, completion}) with the paper's physics reward"
+SETTINGS = "configs/reward.yaml (docs/physics.md)"
 
 
 class RewardInputError(ValueError):

@@ -21,6 +21,7 @@ import sys
 from collections.abc import Sequence
 from pathlib import Path
 
+from physcene.commands import add_quiet
 from physcene.commands.check import collect
 from physcene.export import ExportConfig
 from physcene.scene import Scene
@@ -28,6 +29,7 @@ from physcene.settle import SettleConfig, object_stability_rate, settle_many, st
 
 NAME = "settle"
 HELP = "Simulate layouts in MuJoCo for 2 s and report which objects stay put (stability rate)"
+SETTINGS = "configs/export.yaml: settle.* and mujoco.* (docs/export.md)"
 
 
 def add_arguments(parser) -> None:
@@ -36,6 +38,7 @@ def add_arguments(parser) -> None:
     parser.add_argument("--json", action="store_true", help="print one JSON document")
     parser.add_argument("--workers", type=int, default=1,
                         help="processes to simulate scenes in parallel (default 1)")
+    add_quiet(parser)
 
 
 def read_inputs(paths: Sequence[str]) -> list[tuple[str, Scene | None, str | None]]:
@@ -66,7 +69,8 @@ def run(args) -> int:
     if args.workers < 1:
         raise ValueError(f"--workers must be >= 1, got {args.workers}")
     results = settle_many([scene for _, scene in readable], config=config, export_config=export_config,
-                          paths=[label for label, _ in readable], workers=args.workers, progress=True)
+                          paths=[label for label, _ in readable], workers=args.workers,
+                          progress=not args.quiet)
     rate, object_rate = stability_rate(results), object_stability_rate(results)
     for error in errors:  # named on stderr; the readable scenes are still reported
         print(f"physcene settle: error: {error}", file=sys.stderr)

@@ -15,6 +15,7 @@ from physcene.config import load_config
 
 NAME = "train"
 HELP = "train the layout model: sft, anchors (SFT output + TTO), pada (grpo|pada_star|pada), ablation"
+SETTINGS = "configs/train/<--config>.yaml over configs/train/base.yaml (docs/training.md)"
 
 STAGES = ("sft", "anchors", "pada", "ablation")
 

@@ -3,8 +3,11 @@ the chains whose in/on edge the first pass broke."""
 
 from __future__ import annotations
 
+import sys
 from collections.abc import Sequence
 from dataclasses import replace
+
+from tqdm import tqdm
 
 from physcene.graph import build_hierarchy, ensure_hierarchy
 from physcene.scene import Scene
@@ -17,7 +20,7 @@ __all__ = ["repair"]
 
 
 def repair(scenes: Sequence[Scene], config: TTOConfig | None = None, engine=None,
-           freeze: Sequence[set[str]] | None = None) -> list[TTOResult]:
+           freeze: Sequence[set[str]] | None = None, progress: bool = False) -> list[TTOResult]:
     """Project each scene onto the collision-free set without breaking its hierarchy.
 
     ``scenes`` may carry a hierarchy (parent/relation, e.g. from CTRC) or not (it is built with
@@ -25,7 +28,7 @@ def repair(scenes: Sequence[Scene], config: TTOConfig | None = None, engine=None
     input has them (their subtrees still follow them; a scene with held objects is not
     re-attached), e.g. every object but the ones a reward blamed. Returns one :class:`TTOResult`
     per scene, in order; the returned scene is the input with new poses (annotations as in the
-    input).
+    input). ``progress``: a bar on stderr over the scenes, when there is more than one batch.
     """
     config = config or TTOConfig.load()
     if engine is None:
@@ -40,6 +43,8 @@ def repair(scenes: Sequence[Scene], config: TTOConfig | None = None, engine=None
     for i, sc in enumerate(scenes):
         if len(sc) == 0:
             results[i] = empty_result(sc)
+    bar = tqdm(total=len(todo), desc="repair", unit="scene", file=sys.stderr,
+               disable=not progress or len(todo) <= config.batch_size)
     for start in range(0, len(todo), config.batch_size):
         chunk = todo[start:start + config.batch_size]
         hier = [ensure_hierarchy(scenes[i]) for i in chunk]
@@ -50,6 +55,8 @@ def repair(scenes: Sequence[Scene], config: TTOConfig | None = None, engine=None
                                                  engine, config)):
             results[chunk[k]] = result
         _second_pass(chunk, hier, scenes, results, engine, config, held)
+        bar.update(len(chunk))
+    bar.close()
     return results
 
 
