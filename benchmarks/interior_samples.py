@@ -65,7 +65,8 @@ def main() -> None:
     engines = {}
     for n in args.sizes:
         engines[n] = PhysicsEngine(config=PhysicsConfig(interior_per_axis=n))
-        exact = PhysicsEngine(PrimitiveLibrary(), config=PhysicsConfig(interior_per_axis=n, depth_cap_ratio=0.0))
+        uncapped = PhysicsConfig(interior_per_axis=n, depth_cap_ratio=0.0)
+        exact = PhysicsEngine(PrimitiveLibrary(), config=uncapped)
         result["sizes"][n] = sweep(exact)
     batch = {n: e.pack(bench_scenes(128, 16, 0)) for n, e in engines.items()}
     samples = {n: int(e.packed_assets()["pt_count"].float().mean()) for n, e in engines.items()}
@@ -79,7 +80,6 @@ def main() -> None:
                 e.evaluate(batch[n], with_grad=g)
                 times[(n, g)].append(time.perf_counter() - t)
     for n in engines:
-        base = engines[args.sizes[0]]
         result["sizes"][n].update({
             "samples_per_asset_mean": samples[n],
             "forward_ms": 1e3 * statistics.median(times[(n, False)]),
@@ -87,7 +87,6 @@ def main() -> None:
             "forward_vs_surface_only": statistics.median(
                 b / a for a, b in zip(times[(args.sizes[0], False)], times[(n, False)])),
         })
-        del base
     print(json.dumps(result, indent=1) if args.json else result)
 
 
