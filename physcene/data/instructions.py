@@ -79,8 +79,8 @@ _GOALS: dict[str, tuple[tuple[str, ...], tuple[str, ...], tuple[str, ...]]] = {
     "office table": (
         ("desk", "office desk", "workstation", "study desk"),
         (
-            "a focused coding session",
-            "a late-night study session",
+            "a focused stretch of coding",
+            "a late night of studying",
             "a day of video calls",
             "writing a report",
             "sketching ideas",
