@@ -20,14 +20,14 @@ import tempfile
 from pathlib import Path
 
 import torch
-from physcene.train import constrained
-from physcene.train.tokenizer import build_tokenizer
 from transformers import LogitsProcessorList
 
 from physcene.ctrc import completion_text
 from physcene.data import synthesize
 from physcene.graph import build_hierarchy
 from physcene.layout import load_layout
+from physcene.train import constrained
+from physcene.train.tokenizer import build_tokenizer
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -17,6 +17,7 @@ import statistics
 import time
 
 import torch
+
 from physcene.train.models import load_model, load_tokenizer
 
 

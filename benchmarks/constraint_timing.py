@@ -16,8 +16,9 @@ import cProfile
 import pstats
 import time
 
-import physcene.train.constrained as constrained
 import torch
+
+import physcene.train.constrained as constrained
 from physcene.train.generate import generate_token_ids, load_for_generation
 from physcene.train.records import load_records
 

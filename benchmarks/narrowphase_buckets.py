@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import torch
 import warp as wp
+
 from physcene.kernels.boxes import boxes_meet, rotate_z
 from physcene.kernels.broadphase import decode_pair
 from physcene.kernels.launch import Launcher, torch_view
@@ -27,7 +28,6 @@ from physcene.kernels.penetration import DEFAULT_LANES, _allocate, _outputs, _pa
 from physcene.kernels.reduce import reduce_objects, reduce_pairs, reduce_scenes
 from physcene.kernels.sdf_field import world_phi
 from physcene.kernels.support import table_contact
-
 from physcene.physics import PhysicsEngine, SceneBatch
 
 wp.set_module_options({"enable_backward": False})

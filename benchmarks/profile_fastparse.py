@@ -16,12 +16,12 @@ import statistics
 import time
 
 import torch
-from physcene.kernels.ctrc_reader import launch_scan
 from profile_engine import kernel_times
 
 from physcene.assets import AssetLibrary
 from physcene.commands.bench import bench_scenes
 from physcene.ctrc import completion_text
+from physcene.kernels.ctrc_reader import launch_scan
 from physcene.physics import PhysicsEngine
 from physcene.reward import PhysicsReward, RewardConfig, TextPacker
 from physcene.reward.text_batch import READER_LIMITS

@@ -12,9 +12,9 @@ from __future__ import annotations
 
 import pytest
 import trimesh
-from physcene.kernels.sdf_bake import bake_sdf
 
 from physcene.assets import normalise_mesh, procedural_mesh, sign_method_for
+from physcene.kernels.sdf_bake import bake_sdf
 
 CASES = ["mug", "bowl", "basket", "teapot", "plant", "icosphere"]
 RESOLUTION = 64

@@ -22,12 +22,12 @@ import time
 
 import pytest
 import torch
-from physcene.train import constrained
-from physcene.train.constrained import CTRCConstraint
-from physcene.train.tokenizer import build_tokenizer
 from transformers import LogitsProcessorList
 
 from physcene.data import synthesize
+from physcene.train import constrained
+from physcene.train.constrained import CTRCConstraint
+from physcene.train.tokenizer import build_tokenizer
 
 MODES = {"greedy": (128, {"greedy": True}), "candidates": (64, {"greedy": False}),
          "draw": (64, {"greedy": False, "warpers": LogitsProcessorList()})}

@@ -22,9 +22,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+
 from physcene.eval.judges import EvalCase, JudgeError
 from physcene.eval.metrics import CRITERIA, ScenePhysics
-
 from physcene.scene import Scene
 
 __all__ = ["SYSTEM_PROMPT", "USER_PROMPT", "EndpointJudge", "chat_url", "parse_judge_reply", "post_chat",

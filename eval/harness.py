@@ -18,6 +18,11 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+from tqdm.auto import tqdm
+
+from physcene.ctrc import ParseError, parse
+from physcene.data import synthesize
+from physcene.data.splits import DEFAULT_SIZES
 from physcene.eval.baselines import heuristic_place, zero_shot_prompt
 from physcene.eval.endpoint import EndpointJudge, chat_url, post_chat, reply_text
 from physcene.eval.judges import EvalCase, LayoutStats, RuleJudge
@@ -31,11 +36,6 @@ from physcene.eval.metrics import (
 )
 from physcene.eval.render import render_views
 from physcene.eval.report import write_report
-from tqdm.auto import tqdm
-
-from physcene.ctrc import ParseError, parse
-from physcene.data import synthesize
-from physcene.data.splits import DEFAULT_SIZES
 from physcene.layout import load_layout, read_layout, write_layout
 from physcene.scene import Scene
 from physcene.tto import TTOConfig, relation_preservation, repair

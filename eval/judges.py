@@ -18,9 +18,9 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
-from physcene.eval.metrics import CRITERIA, ScenePhysics
 
 from physcene.assets import CATEGORY_PRIORS, canonical_category
+from physcene.eval.metrics import CRITERIA, ScenePhysics
 from physcene.graph import build_hierarchy
 from physcene.scene import TABLE, Scene
 

@@ -14,7 +14,6 @@ from pathlib import Path
 
 from physcene.eval.metrics import CRITERIA, DIFFICULTY_LEVELS, QPR_TAUS, THRESHOLDS_CM
 from physcene.eval.render import png_bytes, render_comparison
-
 from physcene.layout import read_layout
 
 __all__ = ["diversity_table", "level_table", "main_table", "method_slug", "plot_qpr_by_level",

@@ -14,6 +14,7 @@ direction-0 item), so results do not depend on it.
 from __future__ import annotations
 
 import warp as wp
+
 from physcene.kernels.boxes import boxes_meet
 
 wp.set_module_options({"enable_backward": False})

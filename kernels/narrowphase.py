@@ -23,6 +23,7 @@ so results are bit-for-bit repeatable although the list's order is arbitrary on 
 from __future__ import annotations
 
 import warp as wp
+
 from physcene.kernels.boxes import rotate_z
 from physcene.kernels.sdf_field import world_phi
 

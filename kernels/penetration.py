@@ -37,6 +37,7 @@ from collections import OrderedDict
 
 import torch
 import warp as wp
+
 from physcene.kernels.broadphase import broadphase_items
 from physcene.kernels.launch import Launcher, torch_view, warp_array
 from physcene.kernels.narrowphase import BUCKETS, narrowphase_items

@@ -9,6 +9,7 @@ No atomics on values: every sum is a fixed-order loop, so results are bit-for-bi
 from __future__ import annotations
 
 import warp as wp
+
 from physcene.kernels.boxes import rotate_z
 
 wp.set_module_options({"enable_backward": False})

@@ -28,6 +28,7 @@ import threading
 
 import numpy as np
 import warp as wp
+
 from physcene.kernels.launch import init_warp
 
 __all__ = ["SIGN_METHODS", "bake_sdf", "winding_ambiguity"]

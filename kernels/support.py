@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import torch
 import warp as wp
+
 from physcene.kernels.boxes import footprint_gap
 from physcene.kernels.launch import Launcher, torch_view
 

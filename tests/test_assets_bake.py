@@ -5,7 +5,6 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import trimesh
-from physcene.kernels.sdf_bake import bake_sdf
 
 from physcene.assets import (
     CATEGORY_PRIORS,
@@ -17,6 +16,7 @@ from physcene.assets import (
     sign_method_for,
 )
 from physcene.assets.primitives import box_sdf, cylinder_sdf, sphere_sdf
+from physcene.kernels.sdf_bake import bake_sdf
 
 R = 64
 VOXEL = 2.0 / (R - 1)

@@ -26,6 +26,7 @@ import torch
 from accelerate import PartialState
 from accelerate.utils import gather_object
 from omegaconf import DictConfig, OmegaConf
+
 from physcene.train.anchors import run_anchors
 from physcene.train.generate import generate as checkpoint_generate
 from physcene.train.models import RUN_INFO, TrainingSetupError, read_run_info
@@ -113,7 +114,6 @@ def _evaluate(cfg: DictConfig, models: dict[str, Path], budget_s: float) -> list
         save_layouts,
         score_scenes,
     )
-
     from physcene.physics import PhysicsEngine
 
     a = cfg.ablation

@@ -25,12 +25,12 @@ from pathlib import Path
 from accelerate import PartialState
 from accelerate.utils import gather_object
 from omegaconf import DictConfig
-from physcene.train.generate import generate_token_ids, load_for_generation
-from physcene.train.records import load_records, write_records
 
 from physcene.ctrc import ParseError, completion_text, parse
 from physcene.layout import load_layout
 from physcene.scene import SceneError
+from physcene.train.generate import generate_token_ids, load_for_generation
+from physcene.train.records import load_records, write_records
 from physcene.tto import TTOConfig, repair
 
 __all__ = ["anchor_prompts", "anchor_records", "anchor_summary", "completion_length", "run_anchors"]

@@ -13,13 +13,13 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 from omegaconf import OmegaConf
-from physcene.train.generate import check_cache
-from physcene.train.sft import _precision, accumulation_steps, world_size
-from physcene.train.targets import GEOMETRY_KEYS, object_credit_scope_checked
 from trl import GRPOConfig
 
 from physcene.ctrc import MAX_DECIMALS
 from physcene.reward import object_terms_checked, penetration_charge_checked
+from physcene.train.generate import check_cache
+from physcene.train.sft import _precision, accumulation_steps, world_size
+from physcene.train.targets import GEOMETRY_KEYS, object_credit_scope_checked
 
 __all__ = ["VARIANTS", "PADAConfig", "pada_arguments"]
 

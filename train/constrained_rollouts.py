@@ -21,13 +21,14 @@ no cost to what is sampled, and its KL term to the reference grows without bound
 from __future__ import annotations
 
 import torch
-from physcene.train.constrained import CTRCConstraint, sampling_warpers
-from physcene.train.extension import PADAExtension
 from transformers import LogitsProcessorList
 from trl import GRPOTrainer
 from trl.extras.profiling import profiling_context
 from trl.models import unwrap_model_for_generation
 from trl.trainer.utils import pad
+
+from physcene.train.constrained import CTRCConstraint, sampling_warpers
+from physcene.train.extension import PADAExtension
 
 __all__ = ["ConstrainedRollouts", "generate_with_processors", "mask_overruled"]
 

@@ -38,11 +38,11 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 import torch
-from physcene.train.extension import PADAExtension
-from physcene.train.targets import object_line_spans, padded_targets, tokenize_target
 
 from physcene.ctrc import encode, parse, usual_decimals
 from physcene.scene import TABLE, ZONE_TOLERANCE_CM, Scene, SceneError, zone_overshoot
+from physcene.train.extension import PADAExtension
+from physcene.train.targets import object_line_spans, padded_targets, tokenize_target
 from physcene.tto import TTOConfig, repair
 
 __all__ = ["Denoise", "DenoiseTarget", "denoise_targets", "rewrite_boxes"]

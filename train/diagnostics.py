@@ -14,9 +14,10 @@ import logging
 from pathlib import Path
 
 import torch
+from trl import GRPOTrainer
+
 from physcene.train.extension import PADAExtension
 from physcene.train.sft import nonfinite_gradients
-from trl import GRPOTrainer
 
 __all__ = ["NonfiniteProbe"]
 

@@ -26,9 +26,10 @@ from collections.abc import Sequence
 from pathlib import Path
 
 import torch
+from transformers import CompileConfig, LogitsProcessorList, PreTrainedModel, PreTrainedTokenizerBase
+
 from physcene.train.constrained import CTRCConstraint, sampling_warpers
 from physcene.train.models import TrainingSetupError, load_model, load_tokenizer, read_run_info, torch_dtype
-from transformers import CompileConfig, LogitsProcessorList, PreTrainedModel, PreTrainedTokenizerBase
 
 __all__ = ["CACHE_MODES", "cache_generate_kwargs", "check_cache", "generate", "generate_token_ids",
            "generate_with", "load_for_generation", "longest_prompt_tokens", "set_trainer_cache"]

@@ -17,7 +17,6 @@ from pathlib import Path
 
 import torch
 from omegaconf import DictConfig, OmegaConf
-from physcene.train.tokenizer import build_tokenizer, train_tokenizer
 from transformers import (
     AutoConfig,
     AutoModelForCausalLM,
@@ -29,6 +28,8 @@ from transformers import (
     Qwen3ForCausalLM,
 )
 from transformers.models.auto.modeling_auto import MODEL_FOR_IMAGE_TEXT_TO_TEXT_MAPPING_NAMES
+
+from physcene.train.tokenizer import build_tokenizer, train_tokenizer
 
 __all__ = [
     "RUN_INFO",

@@ -19,11 +19,11 @@ import functools
 
 import numpy as np
 import torch
-from physcene.train.extension import PADAExtension
-from physcene.train.targets import object_text_spans
 from transformers import PreTrainedTokenizerBase
 
 from physcene.reward import ChargeConfig, PhysicsReward, RewardBatch
+from physcene.train.extension import PADAExtension
+from physcene.train.targets import object_text_spans
 
 __all__ = ["ChargedReward", "ObjectCredit", "credit_reward", "object_token_depths"]
 

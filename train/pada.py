@@ -37,6 +37,10 @@ from pathlib import Path
 import torch
 from accelerate import PartialState
 from omegaconf import OmegaConf
+from transformers.trainer_utils import get_last_checkpoint
+from trl import GRPOTrainer
+
+from physcene.reward.trl import PhysicsRewardFunction
 from physcene.train.config import VARIANTS, PADAConfig, pada_arguments
 from physcene.train.constrained_rollouts import ConstrainedRollouts, generate_with_processors
 from physcene.train.denoise import Denoise
@@ -55,10 +59,6 @@ from physcene.train.object_credit import ObjectCredit, credit_reward
 from physcene.train.records import load_records, training_dataset
 from physcene.train.sft import SkipNonFiniteSteps, lora_config, skipped_steps, time_budget_callbacks
 from physcene.train.targets import numeric_spans, padded_targets, tokenize_anchor, tokenize_target
-from transformers.trainer_utils import get_last_checkpoint
-from trl import GRPOTrainer
-
-from physcene.reward.trl import PhysicsRewardFunction
 
 __all__ = [
     "VARIANTS",

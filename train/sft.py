@@ -22,6 +22,10 @@ import torch
 import torch.distributed as dist
 from omegaconf import DictConfig, OmegaConf
 from peft import LoraConfig
+from transformers import TrainerCallback
+from transformers.trainer_utils import get_last_checkpoint
+from trl import SFTConfig, SFTTrainer
+
 from physcene.train.models import (
     TrainingSetupError,
     prepare_model_and_tokenizer,
@@ -30,9 +34,6 @@ from physcene.train.models import (
     write_run_info,
 )
 from physcene.train.records import load_records, training_dataset
-from transformers import TrainerCallback
-from transformers.trainer_utils import get_last_checkpoint
-from trl import SFTConfig, SFTTrainer
 
 __all__ = ["SkipNonFiniteSteps", "accumulation_steps", "lora_config", "run_sft", "skipped_steps"]
 

@@ -6,6 +6,7 @@
 from __future__ import annotations
 
 import warp as wp
+
 from physcene.kernels.ctrc_reader.codes import (
     E_NONE,
     K_BBOX,

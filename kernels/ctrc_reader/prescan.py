@@ -7,6 +7,7 @@
 from __future__ import annotations
 
 import warp as wp
+
 from physcene.kernels.ctrc_reader.codes import CHUNK, MAX_ENTRIES
 
 # Small CUDA blocks: a text's work is serial, latency-bound (512 texts -> 128 blocks on an

@@ -36,6 +36,7 @@ from __future__ import annotations
 
 import torch
 import warp as wp
+
 from physcene.kernels.ctrc_reader.codes import MAX_ENTRIES, ReaderLimits
 from physcene.kernels.ctrc_reader.entries import entries
 from physcene.kernels.ctrc_reader.prescan import emit, prescan

@@ -7,6 +7,7 @@ copies the scanned objects into the engine's padded batch."""
 from __future__ import annotations
 
 import warp as wp
+
 from physcene.kernels.ctrc_reader.codes import (
     DEG,
     K_OBJECTS,

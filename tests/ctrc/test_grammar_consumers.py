@@ -15,15 +15,15 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from physcene.train.constrained import CTRCConstraint, constraint_rule, listed_instance_ids, prompt_zone
-from physcene.train.constrained import grammar as constraint_grammar
-from physcene.train.tokenizer import build_tokenizer
 
 from physcene.ctrc import ParseError, completion_text, grammar, parse, spans
 from physcene.data import synthesize
 from physcene.layout import load_layout
 from physcene.physics import PhysicsEngine
 from physcene.reward.text_batch import TextPacker
+from physcene.train.constrained import CTRCConstraint, constraint_rule, listed_instance_ids, prompt_zone
+from physcene.train.constrained import grammar as constraint_grammar
+from physcene.train.tokenizer import build_tokenizer
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -43,7 +43,6 @@ def fast_path_reads(texts: list[str]) -> np.ndarray:
 def test_the_compiled_reader_compares_against_the_grammar_s_words():
     """The reader's keyword table is built from the grammar's names, in the reader's role order."""
     from physcene.kernels.ctrc_reader.codes import ENTRY_ROLES, TOP_ROLES, WORD_ROLES
-
     from physcene.reward import text_batch
 
     assert text_batch.ENTRY_KEYS == ENTRY_ROLES and text_batch.TOP_KEYS == TOP_ROLES

@@ -6,10 +6,10 @@ from __future__ import annotations
 import json
 
 import pytest
-from physcene.eval.analysis import crowding
 
 from physcene.data.benchmark import DataConfig, build_record, build_scenes
 from physcene.data.splits import plan_split
+from physcene.eval.analysis import crowding
 from physcene.layout import write_layout
 from physcene.scene import TABLE
 

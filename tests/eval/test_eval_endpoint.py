@@ -9,9 +9,9 @@ from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from pathlib import Path
 
 import pytest
+
 from physcene.eval.endpoint import SYSTEM_PROMPT, EndpointJudge, parse_judge_reply
 from physcene.eval.judges import EvalCase
-
 from physcene.layout import read_layout
 
 EXAMPLE = Path(__file__).resolve().parents[2] / "examples" / "office_table.layout.json"

@@ -5,6 +5,11 @@ from __future__ import annotations
 import json
 
 import pytest
+
+from physcene.cli import main
+from physcene.commands.eval import model_generators
+from physcene.config import load_config
+from physcene.ctrc import ParseError
 from physcene.eval.harness import (
     EvalError,
     generate,
@@ -15,11 +20,6 @@ from physcene.eval.harness import (
     save_layouts,
     score_scenes,
 )
-
-from physcene.cli import main
-from physcene.commands.eval import model_generators
-from physcene.config import load_config
-from physcene.ctrc import ParseError
 
 
 @pytest.fixture(scope="module")
@@ -89,7 +89,6 @@ def test_model_generator_feeds_ctrc_prompts_and_parses_completions(items, monkey
     """``model:PATH`` calls physcene.train.generate.generate on the benchmark's CTRC prompts; here
     the 'model' answers with the reference completions (and one garbage answer)."""
     import physcene.train.generate as train_generate
-
     from physcene.data import synthesize
 
     completions = {r["prompt"]: r["completion"] for r in synthesize("test", n=len(items))}
@@ -134,9 +133,8 @@ def test_eval_on_cuda_matches_cpu(tmp_path):
 
 
 def test_parse_error_kinds_group_a_models_failure_modes():
-    from physcene.eval.metrics import parse_error_kinds
-
     from physcene.ctrc import parse
+    from physcene.eval.metrics import parse_error_kinds
 
     texts = ['{"objects": [{"instance_id": "1_cup_0", "category": "cup", "parent_id": "root_zone", '
              '"relation_type": "near", "relative_bbox": [0, 10, 0, 10, 0, 12], "relative_rotation_deg": 0}',

@@ -7,6 +7,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+
 from physcene.eval.judges import EvalCase, LayoutStats, RuleJudge, layout_features
 from physcene.eval.metrics import (
     ScenePhysics,
@@ -19,7 +20,6 @@ from physcene.eval.metrics import (
     qpr,
     summarize,
 )
-
 from physcene.layout import read_layout
 from physcene.scene import TABLE, SceneObject
 

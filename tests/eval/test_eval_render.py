@@ -6,8 +6,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from physcene.eval.render import _category_color, render_image, render_views
 
+from physcene.eval.render import _category_color, render_image, render_views
 from physcene.layout import read_layout
 from physcene.scene import Scene, SceneObject, Zone
 
@@ -110,7 +110,6 @@ def test_the_comparison_sheet_sets_variants_side_by_side_with_their_depths():
 
 def test_the_report_shows_a_comparison_sheet_per_rendered_scene(tmp_path):
     from physcene.eval.report import method_slug, write_comparisons
-
     from physcene.layout import write_layout
 
     scene = read_layout(EXAMPLE)

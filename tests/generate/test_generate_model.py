@@ -44,7 +44,6 @@ def test_the_checkpoint_decodes_under_the_constraint_and_its_layouts_are_written
     tokens, so its decoded text is replaced by the plan's completion (what a trained model writes) to
     follow the layouts through parse, check and the files."""
     import physcene.train.generate as train_generate
-
     from physcene.generation import generate
 
     plans = [s.scene for s in generate(TEXT, n=2, render=False)]

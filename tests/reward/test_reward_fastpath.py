@@ -16,7 +16,6 @@ import numpy as np
 import pytest
 import torch
 from hypothesis import HealthCheck, given, settings
-from physcene.kernels.ctrc_reader import MAX_ENTRIES, category_hash
 from test_ctrc import layouts
 from test_ctrc_fuzz import ALPHABET, _base_completions, _mutate, _random_json, _split
 
@@ -25,6 +24,7 @@ from physcene.commands.bench import bench_scenes
 from physcene.ctrc import ParseError, completion_text, parse
 from physcene.data import synthesize
 from physcene.graph import build_hierarchy
+from physcene.kernels.ctrc_reader import MAX_ENTRIES, category_hash
 from physcene.layout import load_layout
 from physcene.physics import PhysicsEngine
 from physcene.reward import PhysicsReward, RewardConfig, TextPacker

@@ -142,9 +142,8 @@ def test_a_pair_count_charge_does_not_fall_when_the_objects_are_written_thinner(
 
 
 def test_pada_takes_the_penetration_charge_from_its_config():
-    from physcene.train.pada import pada_arguments
-
     from physcene.config import load_config
+    from physcene.train.pada import pada_arguments
 
     assert pada_arguments(load_config("train_tiny"), "pada").object_credit_penetration == "depth"
     pairs = pada_arguments(load_config("train_tiny", ["pada.object_credit_penetration=pairs"]), "pada")

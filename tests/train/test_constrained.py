@@ -5,6 +5,10 @@ import random
 
 import pytest
 import torch
+from transformers import GenerationConfig, LogitsProcessorList
+
+from physcene.ctrc import ParseError, parse
+from physcene.data import synthesize
 from physcene.train.constrained import (
     CTRCConstraint,
     Rule,
@@ -16,10 +20,6 @@ from physcene.train.constrained import (
 from physcene.train.constrained.grammar import may_end_anchor
 from physcene.train.constrained.sampling import TokenIndex, vocabulary
 from physcene.train.tokenizer import build_tokenizer
-from transformers import GenerationConfig, LogitsProcessorList
-
-from physcene.ctrc import ParseError, parse
-from physcene.data import synthesize
 
 PROMPT_TAIL = "**Object List**: mirror (1), tray (1), comb (2)\n\nFirst write"
 
@@ -209,10 +209,9 @@ def test_left_padded_batches_keep_each_rows_text(records, tokenizer):
 def test_generate_runs_constrained_and_parses_a_forced_completion(records, tokenizer):
     """HF generate with the processor: a model that always prefers repeating the first entry's id
     still writes a layout with every listed id once (the processor overrules it)."""
+    from physcene.config import load_config
     from physcene.train.generate import generate_token_ids
     from physcene.train.models import build_scratch_model
-
-    from physcene.config import load_config
 
     cfg = load_config("train_tiny")
     model = build_scratch_model(cfg.model.arch, tokenizer, seed=0, dtype="float32").eval()

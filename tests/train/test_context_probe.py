@@ -8,12 +8,12 @@ import sys
 
 import pytest
 import torch
-from physcene.train.analysis import context_probe as probe
-from physcene.train.models import build_scratch_model
-from physcene.train.tokenizer import build_tokenizer
 
 from physcene.ctrc import parse
 from physcene.data import synthesize
+from physcene.train.analysis import context_probe as probe
+from physcene.train.models import build_scratch_model
+from physcene.train.tokenizer import build_tokenizer
 
 ARCH = dict(hidden_size=48, intermediate_size=96, num_hidden_layers=2, num_attention_heads=4,
             num_key_value_heads=2, head_dim=12, max_position_embeddings=4096)

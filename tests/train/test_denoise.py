@@ -11,15 +11,15 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 import torch
-from physcene.train.denoise import Denoise, _place_table_level, denoise_targets, free_spot, rewrite_boxes
-from physcene.train.object_credit import ChargedReward
-from physcene.train.targets import object_line_spans, tokenize_target
-from physcene.train.tokenizer import build_tokenizer
 from shapely.geometry import Polygon
 
 from physcene.ctrc import completion_text, decimals_of, parse, usual_decimals
 from physcene.reward import ChargeConfig, PhysicsReward, RewardConfig
 from physcene.scene import TABLE, ZONE_TOLERANCE_CM, zone_overshoot
+from physcene.train.denoise import Denoise, _place_table_level, denoise_targets, free_spot, rewrite_boxes
+from physcene.train.object_credit import ChargedReward
+from physcene.train.targets import object_line_spans, tokenize_target
+from physcene.train.tokenizer import build_tokenizer
 from physcene.tto import TTOConfig
 
 TTO = TTOConfig.load(["lambda_zone=100.0", "report_relations=false"])
@@ -219,11 +219,11 @@ def test_pada_with_denoise_trains_and_logs_it(tmp_path, monkeypatch):
 
     The tiny model's 16-token completions never parse, so the targets are stood in for: each rollout's
     own text with its first characters supervised (the real targets are tested above)."""
-    import physcene.train.denoise as denoise
-    from physcene.train.pada import run_pada
     from test_train_pipeline import _sft_for_pada
 
+    import physcene.train.denoise as denoise
     from physcene.config import load_config
+    from physcene.train.pada import run_pada
 
     torch.set_num_threads(1)
     cfg = _sft_for_pada(tmp_path, 4, 4, "pada.max_steps=2", "pada.denoise=1.0")
@@ -277,9 +277,8 @@ def test_offline_check_supervises_the_rewritten_numbers_and_reads_the_originals(
 
 
 def test_denoise_settings_are_checked():
-    from physcene.train.pada import pada_arguments
-
     from physcene.config import load_config
+    from physcene.train.pada import pada_arguments
 
     args = pada_arguments(load_config("train_tiny", ["pada.denoise=1.0", "pada.denoise_decimals=2"]), "pada")
     assert args.denoise == 1.0 and args.denoise_decimals == 2

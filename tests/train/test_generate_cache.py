@@ -9,6 +9,9 @@ from pathlib import Path
 import pytest
 import torch
 from datasets import Dataset
+
+from physcene.config import load_config
+from physcene.data import synthesize
 from physcene.train.generate import (
     CACHE_MODES,
     cache_generate_kwargs,
@@ -17,9 +20,6 @@ from physcene.train.generate import (
 )
 from physcene.train.models import TrainingSetupError, build_scratch_model
 from physcene.train.tokenizer import build_tokenizer
-
-from physcene.config import load_config
-from physcene.data import synthesize
 
 ARCH = dict(hidden_size=48, intermediate_size=96, num_hidden_layers=2, num_attention_heads=4,
             num_key_value_heads=2, head_dim=12, max_position_embeddings=2048)
@@ -146,9 +146,8 @@ def test_anchors_cache_reaches_generate_with(tmp_path, monkeypatch, model, token
 
 def test_eval_cache_reaches_the_model_generator(monkeypatch):
     import physcene.train.generate as train_generate
-    from physcene.eval.harness import generate, load_benchmark
-
     from physcene.commands.eval import model_generators
+    from physcene.eval.harness import generate, load_benchmark
 
     items = load_benchmark("test", n=1, progress=False)
     seen = {}

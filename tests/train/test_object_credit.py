@@ -9,13 +9,13 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 import torch
-from physcene.train.object_credit import ChargedReward, ObjectCredit, object_token_depths
-from physcene.train.targets import numeric_spans, object_line_spans, object_text_spans
-from physcene.train.tokenizer import build_tokenizer
 
 from physcene.ctrc import completion_text, parse
 from physcene.reward import ChargeConfig, PhysicsReward, RewardConfig
 from physcene.scene import TABLE
+from physcene.train.object_credit import ChargedReward, ObjectCredit, object_token_depths
+from physcene.train.targets import numeric_spans, object_line_spans, object_text_spans
+from physcene.train.tokenizer import build_tokenizer
 
 
 @pytest.fixture(scope="module")
@@ -160,7 +160,6 @@ def test_floating_and_out_of_zone_objects_are_charged_when_asked(texts):
     its yawed footprint reaches past it: the objects the floating and out-of-zone metrics flag, read
     by the compiled scanner and by the parser alike."""
     from physcene.eval.metrics import out_of_zone
-
     from physcene.scene import ZONE_TOLERANCE_CM
 
     clean = parse(texts[0])
@@ -191,9 +190,8 @@ def test_floating_and_out_of_zone_objects_are_charged_when_asked(texts):
 
 
 def test_unknown_object_terms_are_named():
-    from physcene.train.pada import pada_arguments
-
     from physcene.config import load_config
+    from physcene.train.pada import pada_arguments
 
     with pytest.raises(ValueError, match=r"got \['penetration', 'flying'\]"):
         ChargeConfig(terms=("penetration", "flying"))

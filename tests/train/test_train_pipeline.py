@@ -19,17 +19,17 @@ from pathlib import Path
 import pytest
 import torch
 from omegaconf import OmegaConf
-from physcene.train.anchors import anchor_records, anchor_summary, run_anchors
-from physcene.train.generate import generate
-from physcene.train.pada import run_pada
-from physcene.train.records import load_records, write_records
-from physcene.train.sft import run_sft
 
 from physcene.config import load_config
 from physcene.ctrc import ParseError, build_prompt, completion_text, parse
 from physcene.data.noisy import noisy_scenes
 from physcene.layout import layout_to_dict
 from physcene.reward import ChargeConfig, PhysicsReward, RewardConfig
+from physcene.train.anchors import anchor_records, anchor_summary, run_anchors
+from physcene.train.generate import generate
+from physcene.train.pada import run_pada
+from physcene.train.records import load_records, write_records
+from physcene.train.sft import run_sft
 from physcene.tto import TTOConfig
 
 TTO_FAST = ["steps=20", "report_relations=false"]

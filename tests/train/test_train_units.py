@@ -8,6 +8,8 @@ from types import SimpleNamespace
 import pytest
 import torch
 from datasets import Dataset
+
+from physcene.config import load_config
 from physcene.train.constrained_rollouts import mask_overruled
 from physcene.train.models import build_scratch_model, count_parameters
 from physcene.train.pada import (
@@ -20,8 +22,6 @@ from physcene.train.pada import (
 )
 from physcene.train.sft import TrainingSetupError, accumulation_steps
 from physcene.train.tokenizer import build_tokenizer
-
-from physcene.config import load_config
 
 ANCHOR = ('**Sub-instruction:**\n1. Place pen_0 in holder_1.\n\n**Scene Layout:**\n{"objects": [\n'
           '{"layer": 1, "instance_id": "holder_1", "parent_id": "root_zone", "relation_type": "near", '
@@ -247,9 +247,10 @@ def test_sft_resumes_from_last_checkpoint(tmp_path, step_counter):
 def test_sft_continues_an_earlier_scratch_checkpoint(tmp_path):
     """model.init_from: a second SFT run on new data starts from the first run's weights (fp32) and
     vocabulary, and saves in model.dtype like a scratch run."""
+    from transformers import TrainerCallback
+
     from physcene.train.models import TrainingSetupError, load_model
     from physcene.train.sft import run_sft
-    from transformers import TrainerCallback
 
     data = tmp_path / "train.jsonl"
     data.write_text("".join(json.dumps({"id": f"r{i}", "prompt": f"Instruction {i}: place a pen.\nLayout:",
@@ -287,8 +288,9 @@ def test_a_step_with_a_nan_gradient_is_dropped_not_applied(tmp_path, caplog):
     the warning names the tensor that held the NaN."""
     import logging
 
-    from physcene.train.sft import run_sft
     from transformers import TrainerCallback
+
+    from physcene.train.sft import run_sft
 
     data = tmp_path / "train.jsonl"
     data.write_text("".join(json.dumps({"id": f"r{i}", "prompt": f"Instruction {i}: place a pen.\nLayout:",
@@ -417,10 +419,9 @@ def test_generation_rounds_map_to_trl_micro_steps():
 
 @pytest.mark.cuda
 def test_reward_function_on_the_rank_device_matches_cpu():
-    from physcene.train.pada import PhysicsRewardFunction
-
     from physcene.ctrc import completion_text
     from physcene.data.noisy import noisy_scenes
+    from physcene.train.pada import PhysicsRewardFunction
 
     texts = [completion_text(s) for s in noisy_scenes(6, n_objects=6, seed=3)] + ["not a layout"]
     logged = {}
@@ -441,10 +442,9 @@ def test_completion_length_tells_truncated_rows_from_finished_ones():
 
 
 def test_anchors_are_made_only_for_the_levels_pada_trains_on(tmp_path):
+    from physcene.data import synthesize
     from physcene.train.anchors import anchor_prompts
     from physcene.train.records import write_records
-
-    from physcene.data import synthesize
 
     records = list(synthesize("train", 60, seed=4))
     assert {1, 2} <= {r["level"] for r in records} and max(r["level"] for r in records) > 2
@@ -465,10 +465,9 @@ def test_a_complete_anchor_file_needs_no_training_data(tmp_path):
     """run_anchors keeps an anchor file holding anchors.n_records rows even where data.train is absent
     (the RL and eval stages on a machine that got only the SFT model and the anchors); a short file
     still needs the data to be completed."""
+    from physcene.data import synthesize
     from physcene.train.anchors import run_anchors
     from physcene.train.records import write_records
-
-    from physcene.data import synthesize
 
     anchors = tmp_path / "anchors.jsonl"
     write_records([{**r, "anchor": r["completion"]} for r in synthesize("train", 3, seed=1)], anchors)
@@ -526,6 +525,7 @@ def test_attention_gradient_over_left_padded_rows_is_finite_with_the_training_ke
     """The PADA anchor forward's shape: a causal batch whose first row is left-padded (its pad queries
     attend to nothing). Under the kernels training allows, the backward of SDPA stays finite."""
     import torch.nn.functional as F
+
     from physcene.train.models import set_attention_kernels
 
     set_attention_kernels({})
@@ -559,8 +559,9 @@ def test_an_extensions_logits_processor_reaches_generate_unpatched(tokenizer, tm
     """The CTRC constraint's way into TRL's generation: an extension's logits processor is passed to
     ``generate`` (``model.generate`` is never replaced), and the completions are TRL's own for the
     same seed when the processor leaves the scores as they are."""
-    from physcene.train.extension import PADAExtension
     from transformers import LogitsProcessor
+
+    from physcene.train.extension import PADAExtension
 
     class Identity(LogitsProcessor):
         calls = 0

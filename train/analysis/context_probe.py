@@ -22,6 +22,7 @@ import statistics
 from pathlib import Path
 
 import torch
+
 from physcene.train.generate import load_for_generation
 from physcene.train.records import load_records
 

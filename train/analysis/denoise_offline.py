@@ -23,6 +23,7 @@ import time
 from pathlib import Path
 
 import torch
+
 from physcene.train.analysis import context_probe
 
 _NUMBER = re.compile(r"-?\d+(?:\.\d+)?(?:[eE][-+]?\d+)?")
@@ -101,11 +102,11 @@ def main() -> None:
     parser.add_argument("--out", help="write the result as JSON here")
     args = parser.parse_args()
     from peft import LoraConfig, get_peft_model
+
+    from physcene.reward import ChargeConfig, PhysicsReward, RewardConfig
     from physcene.train.denoise import denoise_targets
     from physcene.train.models import load_model, load_tokenizer
     from physcene.train.records import load_records
-
-    from physcene.reward import ChargeConfig, PhysicsReward, RewardConfig
     from physcene.tto import TTOConfig
 
     torch.manual_seed(args.seed)

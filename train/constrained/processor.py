@@ -10,6 +10,8 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import torch
+from transformers import LogitsProcessor, LogitsProcessorList, PreTrainedTokenizerBase
+
 from physcene.train.constrained.grammar import (
     Rule,
     active_rule,
@@ -20,7 +22,6 @@ from physcene.train.constrained.grammar import (
     within_rule,
 )
 from physcene.train.constrained.sampling import rejection_draw, vocabulary
-from transformers import LogitsProcessor, LogitsProcessorList, PreTrainedTokenizerBase
 
 __all__ = ["CTRCConstraint", "ConstraintStats"]
 

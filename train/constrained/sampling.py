@@ -6,8 +6,9 @@ from __future__ import annotations
 import bisect
 
 import torch
-from physcene.train.constrained.grammar import Rule
 from transformers import GenerationConfig, LogitsProcessorList, PreTrainedTokenizerBase
+
+from physcene.train.constrained.grammar import Rule
 
 __all__ = ["TokenIndex", "rejection_draw", "sampling_warpers", "vocabulary"]
 
