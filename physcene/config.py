@@ -47,13 +47,29 @@ def config_path(name: str) -> Path:
     raise ConfigError(f"unknown config {name!r}; known: {', '.join(known)}")
 
 
-def load_config(name: str, overrides: Sequence[str] = ()) -> DictConfig:
+def _has_key(cfg: DictConfig, key: str) -> bool:
+    """Whether the dotted ``key`` names an entry of ``cfg`` (a required ``???`` value included)."""
+    node = cfg
+    for part in key.split("."):
+        if not isinstance(node, DictConfig) or part not in node.keys():
+            return False
+        node = node._get_node(part)
+    return True
+
+
+def load_config(name: str, overrides: Sequence[str] = (), *, known: Sequence[str] = ()) -> DictConfig:
     """The config ``name`` (over the files its ``defaults`` key names), with ``key=value`` overrides
-    merged over it."""
-    cfg = _composed(config_path(name))
+    merged over it. An override whose key the config does not have (nor ``known`` names) is a
+    :class:`ConfigError` naming the key and the file it was looked up in."""
+    path = config_path(name)
+    cfg = _composed(path)
     bad = [o for o in overrides if "=" not in o]
     if bad:
         raise ConfigError(f"overrides must be key=value, got {bad}")
+    keys = [o.split("=", 1)[0].strip() for o in overrides]
+    unknown = [k for k in keys if k not in known and not _has_key(cfg, k)]
+    if unknown:
+        raise ConfigError(f"{path}: unknown keys {unknown} (settings are key=value over this file)")
     try:
         return OmegaConf.merge(cfg, OmegaConf.from_dotlist(list(overrides)))
     except Exception as exc:  # omegaconf raises several types for malformed overrides
@@ -117,7 +133,8 @@ def load_dataclass(cls, name: str, overrides: Sequence[str] = ()):
     the field's default. An unknown key, or a value of the wrong type, is a :class:`ConfigError`
     naming the file, the key and the value.
     """
-    cfg = OmegaConf.to_container(load_config(name, overrides), resolve=True)
+    fields = [f.name for f in dataclasses.fields(cls)]
+    cfg = OmegaConf.to_container(load_config(name, overrides, known=fields), resolve=True)
     known = {f.name: f for f in dataclasses.fields(cls)}
     unknown = sorted(set(cfg) - set(known))
     if unknown:

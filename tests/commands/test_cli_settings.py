@@ -1,0 +1,44 @@
+"""key=value settings: an unknown key is one clear error naming the key and the config file
+(issue 31, item 1), through the CLI, with no traceback and no output written."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from physcene.config import ConfigError, load_config
+
+ROOT = Path(__file__).resolve().parents[2]
+EXAMPLE = ROOT / "examples" / "office_table.layout.json"
+
+
+@pytest.mark.parametrize("argv", [
+    ["demo", "nn=5"],
+    ["eval", "judgee=rule", "--n", "1"],
+    ["export", str(EXAMPLE), "--format", "glb", "foo=1"],
+    ["train", "sft", "--config", "tiny", "sft.max_stepz=1"],
+])
+def test_an_unknown_setting_is_one_error_naming_key_and_file(argv, tmp_path):
+    out = tmp_path / "out"
+    if argv[0] == "export":
+        argv = [*argv, "-o", str(out)]
+    run = subprocess.run([sys.executable, "-m", "physcene.cli", *argv], capture_output=True, text=True,
+                         cwd=tmp_path, timeout=300)
+    key = argv[-1].split("=")[0] if argv[0] != "export" else "foo"
+    if argv[0] == "eval":
+        key = "judgee"
+    assert run.returncode != 0
+    assert f".yaml: unknown keys ['{key}']" in run.stderr
+    assert "Traceback" not in run.stderr
+    assert not out.exists() and not (tmp_path / "physcene-demo").exists()
+
+
+def test_known_and_dataclass_keys_still_load():
+    assert load_config("eval", ["n=3", "render_labels=true"]).n == 3
+    assert load_config("train_tiny", ["sft.max_steps=1"]).sft.max_steps == 1
+    with pytest.raises(ConfigError, match=r"unknown keys \['sft.max_stepz'\]"):
+        load_config("train_tiny", ["sft.max_stepz=1"])
+    assert load_config("reward", ["max_overlapping_pairs=5"], known=["max_overlapping_pairs"]) is not None
