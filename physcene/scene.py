@@ -16,7 +16,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 __all__ = ["RELATIONS", "Scene", "SceneError", "SceneObject", "Zone", "TABLE", "ZONE_TOLERANCE_CM",
-           "wrap_angle", "zone_overshoot"]
+           "footprint_half_extents", "wrap_angle", "zone_overshoot"]
 
 # Parent id used for objects that rest on (or near) the table itself.
 TABLE = "root_zone"
@@ -27,6 +27,13 @@ RELATIONS = ("in", "on", "near")
 ZONE_TOLERANCE_CM = 0.5
 
 
+def footprint_half_extents(wd: np.ndarray, yaw: np.ndarray) -> np.ndarray:
+    """(..., 2) cm: half extents of the axis-aligned box around yawed w × d footprints (``wd``
+    (..., 2), ``yaw`` (...) rad)."""
+    c, s = np.abs(np.cos(yaw)), np.abs(np.sin(yaw))
+    return 0.5 * np.stack([c * wd[..., 0] + s * wd[..., 1], s * wd[..., 0] + c * wd[..., 1]], -1)
+
+
 def zone_overshoot(xy: np.ndarray, wd: np.ndarray, yaw: np.ndarray, zone: np.ndarray) -> np.ndarray:
     """How far (cm) yawed boxes reach past a zone: the largest of the four sides, 0 inside.
 
@@ -34,9 +41,8 @@ def zone_overshoot(xy: np.ndarray, wd: np.ndarray, yaw: np.ndarray, zone: np.nda
     xmin, xmax, ymin, ymax (broadcast against the boxes). The out-of-zone metric
     (``physcene.eval.metrics.out_of_zone``) and PADA's per-object charge (``SceneBatch.zone_overshoot``).
     """
-    c, s = np.abs(np.cos(yaw)), np.abs(np.sin(yaw))
-    hx = 0.5 * (c * wd[..., 0] + s * wd[..., 1])  # half extents of the yawed footprint's bounding box
-    hy = 0.5 * (s * wd[..., 0] + c * wd[..., 1])
+    half = footprint_half_extents(wd, yaw)
+    hx, hy = half[..., 0], half[..., 1]
     past = np.stack([zone[..., 0] - (xy[..., 0] - hx), xy[..., 0] + hx - zone[..., 1],
                      zone[..., 2] - (xy[..., 1] - hy), xy[..., 1] + hy - zone[..., 3]], -1)
     return np.maximum(past.max(-1), 0.0)

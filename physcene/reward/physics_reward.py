@@ -37,7 +37,7 @@ from physcene.ctrc import ParseError, parse
 from physcene.physics import PhysicsEngine
 from physcene.reward.size_prior import low_ratio, outside_cm, prior_bands
 from physcene.reward.text_batch import TextPacker
-from physcene.scene import ZONE_TOLERANCE_CM, Scene
+from physcene.scene import ZONE_TOLERANCE_CM, Scene, footprint_half_extents
 
 __all__ = ["OBJECT_TERMS", "PENETRATION_CHARGES", "VALID_TERMS", "ChargeConfig", "PhysicsReward",
            "RewardBatch", "RewardConfig", "completion_text_of", "object_terms_checked",
@@ -120,8 +120,7 @@ def overlapping_box_pairs(scene: Scene) -> int:
     centre = np.array([o.center for o in scene.objects], dtype=np.float64)
     size = np.array([o.size for o in scene.objects], dtype=np.float64)
     yaw = np.array([o.yaw for o in scene.objects], dtype=np.float64)
-    c, s = np.abs(np.cos(yaw)), np.abs(np.sin(yaw))
-    half = 0.5 * np.stack([c * size[:, 0] + s * size[:, 1], s * size[:, 0] + c * size[:, 1], size[:, 2]], 1)
+    half = np.concatenate([footprint_half_extents(size[:, :2], yaw), 0.5 * size[:, 2:]], 1)
     lo, hi = centre - half, centre + half
     meet = np.ones((len(centre), len(centre)), bool)
     for axis in range(3):

@@ -24,7 +24,7 @@ import torch
 
 from physcene.graph import GraphConfig, footprint_overlap, near_references
 from physcene.relations import DIRECTION_AXES
-from physcene.scene import TABLE, Scene, SceneObject
+from physcene.scene import TABLE, Scene, SceneObject, footprint_half_extents
 from physcene.tto.config import TTOConfig
 
 __all__ = ["CM", "IN", "LIFT_CM", "ON", "ROOT", "TTOProblem", "build_problem", "forward_kinematics",
@@ -299,12 +299,12 @@ def separate_deep_pairs(engine, problem: TTOProblem, rounds: int = 8) -> None:
         return
     for _ in range(rounds):
         poses = forward_kinematics(problem, problem.xi0)
-        depth = engine.evaluate(problem.batch, poses)["pair_energy"].detach().cpu().numpy()
+        energy = engine.evaluate(problem.batch, poses)["pair_energy"].detach().cpu().numpy()
         pose = poses.detach().cpu().numpy().astype(np.float64)
         shift = np.zeros(pose.shape[:2] + (2,))
         moved = np.zeros(pose.shape[:2], bool)
         rank: dict[tuple[int, int], int] = {}
-        for s, i, j in slots[candidate & (depth > 0)]:
+        for s, i, j in slots[candidate & (energy > 0)]:
             if moved[s, j]:
                 continue
             lo_i, hi_i = _footprint_box(pose[s, i], sizes[s, i])
@@ -333,8 +333,7 @@ def separate_deep_pairs(engine, problem: TTOProblem, rounds: int = 8) -> None:
 
 def _footprint_box(pose: np.ndarray, size: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The axis-aligned box (lo (2,), hi (2,)) cm of an object's yawed footprint."""
-    c, s = abs(math.cos(pose[3])), abs(math.sin(pose[3]))
-    half = 0.5 * np.array([c * size[0] + s * size[1], s * size[0] + c * size[1]])
+    half = footprint_half_extents(size[:2], pose[3])
     return pose[:2] - half, pose[:2] + half
 
 
