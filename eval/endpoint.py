@@ -11,11 +11,15 @@ from __future__ import annotations
 
 import base64
 import hashlib
+import http.client
+import ipaddress
 import json
 import math
 import os
+import sys
 import time
 import urllib.error
+import urllib.parse
 import urllib.request
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -27,8 +31,9 @@ from physcene.eval.judges import EvalCase, JudgeError
 from physcene.eval.metrics import CRITERIA, ScenePhysics
 from physcene.scene import Scene
 
-__all__ = ["SYSTEM_PROMPT", "USER_PROMPT", "EndpointJudge", "chat_url", "parse_judge_reply", "post_chat",
-           "reply_text"]
+__all__ = ["SYSTEM_PROMPT", "USER_PROMPT", "AuthStrippingRedirectHandler", "EndpointError", "EndpointJudge",
+           "chat_url", "is_loopback", "parse_judge_reply", "post_chat", "reply_text", "should_strip_auth",
+           "warn_if_plain_http"]
 
 SYSTEM_PROMPT = """You are an expert evaluator for 3D desktop scene layouts. Your task is to analyze desktop scenes and provide a detailed assessment based on specific criteria. Please carefully examine the provided front and perspective views of the desktop scene, along with the task description. 
 Analyze how well the scene layout aligns with the intended task. Consider both the visible objects and their arrangement in relation to the task requirements. 
@@ -107,68 +112,157 @@ _CRITERION_KEYS = {"consistency with task": "CwT", "object size reasonableness":
                    "object visibility": "OV"}
 
 
-def parse_judge_reply(text: str) -> dict:
+def _no_score(reason: str) -> dict:
+    return {"error": reason, "avg": float("nan")}
+
+
+def parse_judge_reply(text) -> dict:
     """Scores from a judge reply in Prompt 5's JSON format (code fences and chatter tolerated).
-    Returns the five criteria and ``avg``, or ``{"error": reason, "avg": nan}``; never raises."""
+    Returns the five criteria and ``avg``, or ``{"error": reason, "avg": nan}`` (no score: a failed
+    judgement) for any reply that is not that: not a string, no JSON, JSON of another shape, a
+    score that is not a finite number. Never raises."""
+    if not isinstance(text, str):
+        return _no_score(f"judge reply is not text but {type(text).__name__}")
     start, end = text.find("{"), text.rfind("}")
     if start < 0 or end <= start:
-        return {"error": "no JSON object in the judge reply", "avg": float("nan")}
+        return _no_score("no JSON object in the judge reply")
     try:
         data = json.loads(text[start:end + 1])
     except json.JSONDecodeError as exc:
-        return {"error": f"judge reply is not valid JSON: {exc.msg} at char {exc.pos}", "avg": float("nan")}
+        return _no_score(f"judge reply is not valid JSON: {exc.msg} at char {exc.pos}")
+    except (ValueError, RecursionError) as exc:  # a 5,000-digit integer; brackets nested past the stack
+        return _no_score(f"judge reply is not readable JSON: {type(exc).__name__}")
     items = data.get("Evaluation") if isinstance(data, dict) else None
     if not isinstance(items, list):
-        return {"error": "judge reply has no 'Evaluation' list", "avg": float("nan")}
+        return _no_score("judge reply has no 'Evaluation' list")
     out = {}
     for item in items:
         if not isinstance(item, dict):
             continue
         key = _CRITERION_KEYS.get(str(item.get("criterion", "")).strip().lower())
+        score = item.get("score")
+        if isinstance(score, bool) or not isinstance(score, (int, float, str)):
+            continue
         try:
-            score = float(item.get("score"))
-        except (TypeError, ValueError):
+            score = float(score)
+        except (ValueError, OverflowError):  # "eight"; an integer beyond the float range
             continue
         if key and math.isfinite(score):
             out[key] = float(np.clip(score, 1.0, 10.0))
     missing = [c for c in CRITERIA if c not in out]
     if missing:
-        return {"error": f"judge reply lacks scores for {missing}", "avg": float("nan")}
+        return _no_score(f"judge reply lacks scores for {missing}")
     out["avg"] = round(float(np.mean([out[c] for c in CRITERIA])), 4)
     return out
 
 
 def chat_url(base_url: str) -> str:
-    url = base_url.rstrip("/")
-    if not url.startswith(("http://", "https://")):
-        raise JudgeError(f"endpoint URL must start with http:// or https://, got {base_url!r}")
+    """``base_url``'s chat-completions address (``/chat/completions`` appended unless present). A
+    plain-http address off this machine gets one warning on stderr (:func:`warn_if_plain_http`)."""
+    url = str(base_url).strip().rstrip("/")
+    if not url.startswith(("http://", "https://")) or not urllib.parse.urlsplit(url).hostname:
+        raise JudgeError(f"endpoint URL must be http://host[:port]/... or https://..., got {base_url!r}")
+    warn_if_plain_http(url)
     return url if url.endswith("/chat/completions") else url + "/chat/completions"
+
+
+_WARNED: set[str] = set()
+
+
+def is_loopback(host: str | None) -> bool:
+    """Whether ``host`` names this machine (``localhost``, 127.0.0.0/8, ::1)."""
+    if not host:
+        return False
+    if host.rstrip(".").lower() == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False
+
+
+def warn_if_plain_http(url: str) -> bool:
+    """One line on stderr (once per host and port) when ``url`` is plain http to another machine:
+    its prompts, renders and API key cross the network unencrypted. Returns whether it warned."""
+    parts = urllib.parse.urlsplit(url)
+    where = f"{parts.hostname}:{parts.port or 80}"
+    if parts.scheme != "http" or is_loopback(parts.hostname) or where in _WARNED:
+        return False
+    _WARNED.add(where)
+    print(f"physcene: warning: endpoint {url} is plain http on another machine: requests and the API key "
+          "travel unencrypted (use https://)", file=sys.stderr)
+    return True
+
+
+def should_strip_auth(old_url: str, new_url: str) -> bool:
+    """Whether a redirect from ``old_url`` to ``new_url`` must drop the Authorization header: the
+    scheme, host or port changed (requests' ``SessionRedirectMixin.should_strip_auth``, with its two
+    allowances: http -> https on the default ports, and an explicit default port is no change)."""
+    old, new = urllib.parse.urlsplit(old_url), urllib.parse.urlsplit(new_url)
+    if old.hostname != new.hostname:
+        return True
+    if old.scheme == "http" and old.port in (80, None) and new.scheme == "https" and new.port in (443, None):
+        return False
+    default = ({"http": 80, "https": 443}.get(old.scheme), None)
+    if old.scheme == new.scheme and old.port in default and new.port in default:
+        return False
+    return old.port != new.port or old.scheme != new.scheme
+
+
+class AuthStrippingRedirectHandler(urllib.request.HTTPRedirectHandler):
+    """urllib's redirect handler copies every header, the API key included, to wherever the
+    server points: this one drops Authorization when the redirect leaves the scheme, host and port
+    the key was meant for (:func:`should_strip_auth`)."""
+
+    def redirect_request(self, req, fp, code, msg, headers, newurl):
+        new = super().redirect_request(req, fp, code, msg, headers, newurl)
+        if new is not None and should_strip_auth(req.full_url, new.full_url):
+            new.remove_header("Authorization")
+        return new
+
+
+_OPENER = urllib.request.build_opener(AuthStrippingRedirectHandler)
+
+
+class EndpointError(OSError):
+    """A chat-completions request that got no answer. ``reached``: False when no server answered
+    at all (connection refused, unknown host, timeout), True when one answered with an error."""
+
+    def __init__(self, message: str, *, reached: bool):
+        super().__init__(message)
+        self.reached = reached
 
 
 def post_chat(url: str, payload: dict, *, api_key: str | None = None, timeout_s: float = 120.0,
               retries: int = 4, backoff_s: float = 1.0) -> dict:
     """POST a chat-completions request; retry on 429/5xx and network errors with exponential
-    backoff (``backoff_s``·2^k). Returns the decoded response JSON; raises ``OSError`` when every
-    try failed or the server refused the request (4xx other than 429)."""
+    backoff (``backoff_s``·2^k). Returns the decoded response JSON; raises :class:`EndpointError`
+    (an ``OSError``) when every try failed or the server refused the request (4xx other than 429).
+    The API key goes only to ``url``'s scheme, host and port, never to where a redirect points."""
     body = json.dumps(payload).encode()
     headers = {"Content-Type": "application/json"}
     if api_key:
         headers["Authorization"] = f"Bearer {api_key}"
-    last: Exception | None = None
+    reason, reached = "", False
     for attempt in range(retries + 1):
         if attempt:
             time.sleep(backoff_s * 2 ** (attempt - 1))
         req = urllib.request.Request(url, data=body, headers=headers, method="POST")
         try:
-            with urllib.request.urlopen(req, timeout=timeout_s) as resp:
+            with _OPENER.open(req, timeout=timeout_s) as resp:
                 return json.loads(resp.read().decode())
         except urllib.error.HTTPError as exc:
-            last = exc
+            reason, reached = f"HTTP {exc.code} {exc.reason}", True
             if exc.code != 429 and exc.code < 500:
-                raise OSError(f"{url}: HTTP {exc.code}: {exc.read()[:200]!r}") from exc
-        except (urllib.error.URLError, TimeoutError, ConnectionError, json.JSONDecodeError) as exc:
-            last = exc
-    raise OSError(f"{url}: no answer after {retries + 1} tries: {last}")
+                raise EndpointError(f"{url}: {reason}: {exc.read()[:200]!r}", reached=True) from None
+        except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+            reason, reached = f"the answer is not JSON ({exc})", True
+        except urllib.error.URLError as exc:
+            reason, reached = f"no server answered ({exc.reason})", False
+        except (TimeoutError, ConnectionError, http.client.HTTPException) as exc:
+            reason, reached = f"no answer ({type(exc).__name__}: {exc})", False
+    tries = "1 try" if retries == 0 else f"{retries + 1} tries"
+    raise EndpointError(f"{url}: {reason} after {tries}", reached=reached)
 
 
 def reply_text(response: dict) -> str:
@@ -178,7 +272,7 @@ def reply_text(response: dict) -> str:
     except (KeyError, IndexError, TypeError):
         return ""
     if isinstance(content, list):  # some servers return content parts
-        return "".join(p.get("text", "") for p in content if isinstance(p, dict))
+        return "".join(p["text"] for p in content if isinstance(p, dict) and isinstance(p.get("text"), str))
     return content if isinstance(content, str) else ""
 
 
@@ -187,7 +281,9 @@ class EndpointJudge:
     """VLM judge over an OpenAI-compatible ``/chat/completions`` endpoint (paper Prompts 4-5).
 
     ``base_url`` like ``http://127.0.0.1:8000/v1`` (``/chat/completions`` is appended unless
-    present). The API key is read from the environment variable named ``api_key_env``.
+    present). The API key is read from the environment variable named ``api_key_env``. A request
+    that gets no answer is ``{"error": .., "avg": nan, "request_failed": True}``; a reply without
+    scores ``{"error": .., "avg": nan}``.
     Answers are cached in ``cache_dir`` under the SHA-256 of the request body.
     """
 
@@ -219,9 +315,7 @@ class EndpointJudge:
     def _cached(self, key: str) -> Path | None:
         if self.cache_dir is None:
             return None
-        d = Path(self.cache_dir)
-        d.mkdir(parents=True, exist_ok=True)
-        return d / f"{key}.json"
+        return Path(self.cache_dir) / f"{key}.json"
 
     def ask(self, task_description: str, images: Sequence[bytes]) -> dict:
         """Scores for one (description, images) pair, from the cache when the same request was
@@ -230,17 +324,24 @@ class EndpointJudge:
         key = hashlib.sha256(json.dumps(payload, sort_keys=True).encode()).hexdigest()
         path = self._cached(key)
         if path is not None and path.is_file():
-            self.stats["cache_hits"] += 1
-            return parse_judge_reply(json.loads(path.read_text())["reply"])
+            try:
+                cached = json.loads(path.read_text())["reply"]
+            except (OSError, ValueError, KeyError, TypeError):  # an unreadable entry is asked again
+                cached = None
+            if isinstance(cached, str):
+                self.stats["cache_hits"] += 1
+                return parse_judge_reply(cached)
         self.stats["requests"] += 1
         try:
             response = post_chat(self.url, payload, api_key=os.environ.get(self.api_key_env),
                                  timeout_s=self.timeout_s, retries=self.retries, backoff_s=self.backoff_s)
-        except OSError as exc:
-            return {"error": str(exc), "avg": float("nan")}
+        except EndpointError as exc:
+            # ``request_failed`` (not a reply that does not parse): the harness stops on the first one
+            return {"error": str(exc), "avg": float("nan"), "request_failed": True}
         text = reply_text(response)
         scores = parse_judge_reply(text)
         if path is not None and "error" not in scores:  # only good answers are worth keeping
+            path.parent.mkdir(parents=True, exist_ok=True)  # only once there is an answer to keep
             tmp = path.with_suffix(".tmp")
             tmp.write_text(json.dumps({"model": self.model, "reply": text}))
             os.replace(tmp, path)

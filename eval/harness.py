@@ -24,7 +24,7 @@ from physcene.ctrc import ParseError, parse
 from physcene.data import synthesize
 from physcene.data.splits import DEFAULT_SIZES
 from physcene.eval.baselines import heuristic_place, zero_shot_prompt
-from physcene.eval.endpoint import EndpointJudge, chat_url, post_chat, reply_text
+from physcene.eval.endpoint import EndpointError, EndpointJudge, chat_url, post_chat, reply_text
 from physcene.eval.judges import EvalCase, LayoutStats, RuleJudge
 from physcene.eval.metrics import (
     ScenePhysics,
@@ -40,9 +40,9 @@ from physcene.layout import load_layout, read_layout, write_layout
 from physcene.scene import Scene
 from physcene.tto import TTOConfig, relation_preservation, repair
 
-__all__ = ["BenchmarkItem", "EvalError", "Generate", "evaluate_method", "generate", "load_benchmark",
-           "make_judge", "method_name", "method_names", "method_report", "repair_outputs", "run_evaluation",
-           "save_layouts", "score_scenes", "write_json"]
+__all__ = ["BenchmarkItem", "EvalError", "Generate", "GenerationFailure", "evaluate_method", "generate",
+           "load_benchmark", "make_judge", "method_name", "method_names", "method_report", "repair_outputs",
+           "run_evaluation", "save_layouts", "score_scenes", "write_json"]
 
 GENERATOR_KINDS = ("reference", "tto", "heuristic", "file:", "model:", "endpoint:")
 
@@ -107,20 +107,31 @@ def _load_dir(items: Sequence[BenchmarkItem], directory: Path) -> list:
     return out
 
 
+@dataclass(frozen=True)
+class GenerationFailure(ParseError):
+    """No output for an item: the generator's request failed (an endpoint's error after its retries).
+    Not a model output: it is counted as a failed generation (``generation_failures``), never
+    parsed, repaired or scored; it fails QPR like an unparsable output."""
+
+
 def _zero_shot(items: Sequence[BenchmarkItem], url: str, model: str, api_key_env: str,
-               progress: bool) -> list:
-
-
-
+               progress: bool, retries: int = 4) -> list:
+    """The endpoint's Prompt-3 replies, parsed. The first request failing (after its retries) is an
+    EvalError: the endpoint is down or wrongly named, and a table of failures would look like a
+    result. A later failed request is a :class:`GenerationFailure` for its item."""
     endpoint = chat_url(url)
     out = []
     for it in tqdm(items, desc="zero-shot LLM", disable=not progress, unit="scene"):
         payload = {"model": model, "temperature": 0.0,
                    "messages": [{"role": "user", "content": zero_shot_prompt(it.reference)}]}
         try:
-            text = reply_text(post_chat(endpoint, payload, api_key=os.environ.get(api_key_env)))
-        except OSError as exc:
-            text = f"<endpoint error: {exc}>"
+            text = reply_text(post_chat(endpoint, payload, api_key=os.environ.get(api_key_env),
+                                        retries=retries))
+        except EndpointError as exc:
+            if all(isinstance(o, GenerationFailure) for o in out):  # nothing has answered yet
+                raise EvalError(f"generator endpoint:{url}: {exc}") from None
+            out.append(GenerationFailure(f"endpoint request failed: {exc}"))
+            continue
         out.append(parse(text, zone=it.reference.zone))
     return out
 
@@ -132,8 +143,9 @@ or a completion text (parsed against the item's zone)."""
 
 def generate(items: Sequence[BenchmarkItem], generator: str, *, seed: int = 0, model: str = "gpt-4o",
              api_key_env: str = "PHYSCENE_GENERATOR_API_KEY", progress: bool = True,
-             generators: Mapping[str, Generate] | None = None) -> list:
-    """One output per item: a Scene or a ParseError (model output that did not parse).
+             generators: Mapping[str, Generate] | None = None, retries: int = 4) -> list:
+    """One output per item: a Scene, a ParseError (model output that did not parse) or a
+    :class:`GenerationFailure` (an ``endpoint:URL`` request that failed after ``retries`` retries).
 
     ``generators``: callables by generator argument (``"model:runs/sft"``), looked up before the
     built-in kinds; a ``model:PATH`` generator must be one of them.
@@ -152,7 +164,7 @@ def generate(items: Sequence[BenchmarkItem], generator: str, *, seed: int = 0, m
         raise EvalError(f"generator {generator}: no model generator was passed (generators=...); "
                         "physcene eval builds one from the checkpoint")
     elif generator.startswith("endpoint:"):
-        out = _zero_shot(items, generator[9:], model, api_key_env, progress)
+        out = _zero_shot(items, generator[9:], model, api_key_env, progress, retries)
     else:
         raise EvalError(f"unknown generator {generator!r}; expected one of reference, tto, heuristic, "
                         "file:DIR, model:PATH, endpoint:URL")
@@ -192,23 +204,27 @@ def repair_outputs(outputs: list, *, tto_overrides: Sequence[str] = (), engine=N
 
 
 def make_judge(kind: str, references: Sequence[Scene], *, url: str | None = None, model: str = "gpt-4o",
-               cache_dir: str | None = None, image_size: Sequence[int] = (512, 384)):
+               cache_dir: str | None = None, image_size: Sequence[int] = (512, 384), retries: int = 4):
     """``rule`` (fitted on ``references``) or ``endpoint`` (needs ``url``; renders of
-    ``image_size`` = (width, height) px)."""
+    ``image_size`` = (width, height) px; a failed request is retried ``retries`` times)."""
     if kind == "rule":
         return RuleJudge(LayoutStats.fit(references))
     if kind == "endpoint":
         if not url:
             raise EvalError("judge=endpoint needs judge_url=http://host:port/v1")
         size = (int(image_size[0]), int(image_size[1]))
-        return EndpointJudge(url, model=model, cache_dir=cache_dir, image_size=size)
+        return EndpointJudge(url, model=model, cache_dir=cache_dir, image_size=size, retries=retries)
     raise EvalError(f"unknown judge {kind!r}; expected rule or endpoint")
 
 
 def score_scenes(items: Sequence[BenchmarkItem], outputs: Sequence, judge, engine=None, *,
                  batch_size: int = 16, settle: bool = False, extras: Sequence[dict] | None = None,
                  progress: bool = True, desc: str = "score") -> list[SceneResult]:
-    """Physics (engine, batched) + judge (+ optional MuJoCo settling) for every output."""
+    """Physics (engine, batched) + judge (+ optional MuJoCo settling) for every output.
+
+    A judge request that fails before any judgement succeeded, or every judgement failing, is an
+    EvalError naming the judge (its endpoint is down, or answers no scores); a judgement failing
+    later is a value (``{"error": ..}``), counted as ``judge_failures``."""
     if engine is None:
         from physcene.physics import PhysicsEngine  # here: Warp loads only when an engine is needed
 
@@ -224,8 +240,14 @@ def score_scenes(items: Sequence[BenchmarkItem], outputs: Sequence, judge, engin
             physics[k] = ph
         bar.update(len(chunk))
     results = []
+    judged, judge_errors = 0, []
     for k, (it, out) in enumerate(zip(items, outputs)):
         extra = dict(extras[k])
+        if isinstance(out, GenerationFailure):
+            extra["generation_error"] = out.reason
+            failed = {"error": f"generation failed: {out.reason}", "avg": float("nan")}
+            results.append(SceneResult(it.id, it.scene_type, it.level, ScenePhysics(0), failed, extra))
+            continue
         if isinstance(out, ParseError):
             extra["parse_error"] = out.reason
             failed = {"error": f"unparsable output: {out.reason}", "avg": float("nan")}
@@ -238,8 +260,18 @@ def score_scenes(items: Sequence[BenchmarkItem], outputs: Sequence, judge, engin
             from physcene.settle import settle as settle_scene  # here: MuJoCo only for the stability column
 
             extra["stable"] = bool(settle_scene(out).stable)
-        results.append(SceneResult(it.id, it.scene_type, it.level, ph, judge.score(out, it.case, ph), extra))
+        scores = judge.score(out, it.case, ph)
+        if "error" not in scores:
+            judged += 1
+        elif scores.get("request_failed") and not judged:
+            raise EvalError(f"judge {judge.name}: {scores['error']}")
+        else:
+            judge_errors.append(scores["error"])
+        results.append(SceneResult(it.id, it.scene_type, it.level, ph, scores, extra))
     bar.close()
+    if judge_errors and not judged:
+        raise EvalError(f"judge {judge.name}: none of {len(judge_errors)} judgements gave scores; the "
+                        f"first: {judge_errors[0]}")
     return results
 
 
@@ -330,12 +362,15 @@ def run_evaluation(cfg, *, command: str = "", title: str = "physcene evaluation"
     if cfg.split not in ("train", "test", "ood"):
         raise EvalError(f"unknown split {cfg.split!r}; expected test, ood or train")
     out = Path(cfg.out)
+    retries = cfg.get("endpoint_retries", 4)
+    if isinstance(retries, bool) or not isinstance(retries, int) or retries < 0:
+        raise EvalError(f"endpoint_retries must be an integer >= 0, got {retries!r}")
     items = load_benchmark(cfg.split, n=cfg.n, seed=cfg.seed, progress=progress)
     if not items:
         raise EvalError(f"split {cfg.split!r} gave no scenes")
     judge = make_judge(cfg.judge, [it.reference for it in items], url=cfg.judge_url,
                        model=cfg.judge_model, cache_dir=cfg.judge_cache or str(out / "judge_cache"),
-                       image_size=cfg.get("judge_image_size", (512, 384)))
+                       image_size=cfg.get("judge_image_size", (512, 384)), retries=retries)
     device = str(cfg.get("device", "cpu"))
     engine = PhysicsEngine(device=device)
     # TTO optimises on the engine's device unless the tto overrides say otherwise.
@@ -349,7 +384,7 @@ def run_evaluation(cfg, *, command: str = "", title: str = "physcene evaluation"
         report, outputs = evaluate_method(items, gen, judge, engine=engine, repair=bool(cfg.repair),
                                           tto_overrides=tto_overrides, settle=bool(cfg.settle),
                                           seed=cfg.seed, progress=progress, model=cfg.generator_model,
-                                          generators=generators)
+                                          generators=generators, retries=retries)
         methods[name] = report
         slug = name.lower().replace(" + ", "_").replace(" ", "_").replace("(", "").replace(")", "")
         if cfg.get("save_layouts", False):  # re-score later with --generator file:<out>/layouts/<slug>

@@ -196,13 +196,14 @@ def summarize(results: Sequence[SceneResult], thresholds: Iterable[float] = THRE
               taus: Iterable[float] = QPR_TAUS) -> dict:
     """The table row of one method: QPR(τ), mean criteria and their average, SCR/ACR at every
     threshold, floating and out-of-zone rates, and the optional columns present in ``extra``."""
-    # Unparsable outputs fail QPR (no judge average) but have no geometry for the physics rates.
-    parsed = [r for r in results if not r.extra.get("parse_error")]
+    # Unparsable outputs and failed generations fail QPR (no judge average) but have no geometry
+    # for the physics rates.
+    parsed = [r for r in results if not (r.extra.get("parse_error") or r.extra.get("generation_error"))]
     phys = [r.physics for r in parsed]
     row = {"n": len(results),
            "QPR": qpr([r.judge_avg for r in results], [r.physics for r in results], taus),
            "judge": {c: _mean(r.judge.get(c) for r in parsed) for c in (*CRITERIA, "avg")},
-           "judge_failures": sum(1 for r in results if r.judge.get("error")),
+           "judge_failures": sum(1 for r in parsed if r.judge.get("error")),
            "collision": collision_rates(phys, thresholds),
            "floating": floating_rate(phys),
            "out_of_zone": out_of_zone_rate(phys)}
@@ -212,6 +213,9 @@ def summarize(results: Sequence[SceneResult], thresholds: Iterable[float] = THRE
     rel = [r.extra["relation_preservation"] for r in results if "relation_preservation" in r.extra]
     if rel:
         row["relation_preservation"] = _mean(rel)
+    failed = sum(1 for r in results if r.extra.get("generation_error"))
+    if failed:
+        row["generation_failures"] = failed
     reasons = [r.extra["parse_error"] for r in results if r.extra.get("parse_error")]
     if reasons:
         row["parse_errors"] = len(reasons)

@@ -16,8 +16,9 @@ from physcene.eval.metrics import CRITERIA, DIFFICULTY_LEVELS, QPR_TAUS, THRESHO
 from physcene.eval.render import png_bytes, render_comparison
 from physcene.layout import read_layout
 
-__all__ = ["diversity_table", "level_table", "main_table", "method_slug", "plot_qpr_by_level",
-           "plot_type_radar", "threshold_table", "type_table", "write_comparisons", "write_report"]
+__all__ = ["diversity_table", "failure_lines", "level_table", "main_table", "method_slug",
+           "plot_qpr_by_level", "plot_type_radar", "threshold_table", "type_table", "write_comparisons",
+           "write_report"]
 
 
 def _pct(x, digits: int = 1) -> str:
@@ -64,6 +65,28 @@ def main_table(methods: Mapping[str, Mapping]) -> str:
         row += [_pct(s.get(c)) for c in extra_cols]
         rows.append(row)
     return _table(header, rows)
+
+
+def failure_lines(methods: Mapping[str, Mapping]) -> list[str]:
+    """One line per method where a scene went unscored: generations that failed (an endpoint
+    request with no answer), outputs that did not parse, judgements that gave no scores. Each of
+    those scenes fails QPR; the physics columns are over the parsed layouts only."""
+    lines = []
+    for name, m in methods.items():
+        s = m["summary"]
+        n = int(s.get("n", 0))
+        gen, unparsed, judge = (int(s.get(k, 0)) for k in ("generation_failures", "parse_errors",
+                                                             "judge_failures"))
+        parts = []
+        if gen:
+            parts.append(f"{gen} of {n} generations failed (no answer from the endpoint)")
+        if unparsed:
+            parts.append(f"{unparsed} of {n} outputs did not parse")
+        if judge:
+            parts.append(f"{judge} of {n - gen - unparsed} judgements gave no scores")
+        if parts:
+            lines.append(f"{name}: " + "; ".join(parts))
+    return lines
 
 
 def threshold_table(methods: Mapping[str, Mapping]) -> str:
@@ -206,8 +229,12 @@ def write_report(out_dir, methods: Mapping[str, Mapping], *, title: str, command
         parts += ["Produced by:", "", "```bash", command, "```", ""]
     parts += [f"{n} scenes per method. QPR(τ) = share of scenes with judge average ≥ τ and no pair "
               "penetrating deeper than 0 cm; SCR/ACR at 0 cm (paper appendix).", "",
-              "## Main results", "", main_table(methods), "",
-              "## Per difficulty level", "", level_table(methods), "",
+              "## Main results", "", main_table(methods), ""]
+    failures = failure_lines(methods)
+    if failures:
+        parts += ["**Not every scene was scored** (each such scene fails QPR; the physics columns are "
+                  "over the parsed layouts):", "", *[f"- {line}" for line in failures], ""]
+    parts += ["## Per difficulty level", "", level_table(methods), "",
               "![QPR by level](qpr_by_level.png)", "",
               "## Per scene type", "", type_table(methods), "", "![QPR by type](qpr_by_type_radar.png)", "",
               "## Robustness to collision thresholds", "", threshold_table(methods), "",

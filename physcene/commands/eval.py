@@ -8,7 +8,7 @@ import sys
 from physcene.commands import add_json, add_quiet, print_json
 from physcene.config import load_config
 from physcene.eval.harness import EvalError, run_evaluation
-from physcene.eval.report import main_table
+from physcene.eval.report import failure_lines, main_table
 
 NAME = "eval"
 HELP = "evaluate layout generators on the test/OOD benchmark (SCR, ACR, judge scores, QPR)"
@@ -73,5 +73,9 @@ def run(args) -> int:
                     "methods": tables})
         return 0
     print(main_table(tables))
+    failures = failure_lines(tables)
+    if failures:
+        print("\nnot every scene was scored (each fails QPR):")
+        print("\n".join(f"  {line}" for line in failures))
     print(f"\nreport: {path}\nresults: {path.parent / 'results.json'}")
     return 0

@@ -3,7 +3,8 @@
 The request is the paper's Prompt 3 (:func:`physcene.ctrc.zero_shot_prompt`) filled with the
 instruction, the placement zone and the object list of the procedural plan; the reply (MesaTask
 flat JSON between ``<json>`` tokens) is read by :func:`physcene.ctrc.parse`. The HTTP client is the
-eval judges' (:func:`physcene.eval.judges.post_chat`). A local vLLM or llama.cpp server serving an
+eval judges' (:func:`physcene.eval.endpoint.post_chat`: retries, and an API key that never follows a
+redirect to another host). A local vLLM or llama.cpp server serving an
 open model works as well as a hosted API (docs/generate.md).
 """
 
@@ -14,7 +15,7 @@ from collections.abc import Sequence
 
 from tqdm.auto import tqdm
 
-from physcene.eval.endpoint import post_chat, reply_text
+from physcene.eval.endpoint import post_chat, reply_text, warn_if_plain_http
 from physcene.generation.procedural import GenerationError
 
 __all__ = ["API_KEY_ENV", "chat_url", "endpoint_replies"]
@@ -24,11 +25,13 @@ API_KEY_ENV = "PHYSCENE_GENERATOR_API_KEY"
 
 
 def chat_url(url: str) -> str:
-    """``url``'s chat-completions address (``/chat/completions`` appended unless present)."""
+    """``url``'s chat-completions address (``/chat/completions`` appended unless present); plain http
+    to another machine gets one warning on stderr (:func:`physcene.eval.endpoint.warn_if_plain_http`)."""
     base = url.strip().rstrip("/")
     if not base.startswith(("http://", "https://")):
         raise GenerationError(f"generator endpoint:{url}: the URL must start with http:// or https:// "
                               "(e.g. endpoint:http://127.0.0.1:8000/v1)")
+    warn_if_plain_http(base)
     return base if base.endswith("/chat/completions") else base + "/chat/completions"
 
 
