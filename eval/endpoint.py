@@ -225,12 +225,13 @@ _OPENER = urllib.request.build_opener(AuthStrippingRedirectHandler)
 
 
 class EndpointError(OSError):
-    """A chat-completions request that got no answer. ``reached``: False when no server answered
-    at all (connection refused, unknown host, timeout), True when one answered with an error."""
+    """A chat-completions request that got no answer: ``"{url}: {reason}"``. ``reached``: False when
+    no server answered at all (connection refused, unknown host, timeout), True when one answered
+    with an error."""
 
-    def __init__(self, message: str, *, reached: bool):
-        super().__init__(message)
-        self.reached = reached
+    def __init__(self, url: str, reason: str, *, reached: bool):
+        super().__init__(f"{url}: {reason}")
+        self.url, self.reason, self.reached = url, reason, reached
 
 
 def post_chat(url: str, payload: dict, *, api_key: str | None = None, timeout_s: float = 120.0,
@@ -254,7 +255,7 @@ def post_chat(url: str, payload: dict, *, api_key: str | None = None, timeout_s:
         except urllib.error.HTTPError as exc:
             reason, reached = f"HTTP {exc.code} {exc.reason}", True
             if exc.code != 429 and exc.code < 500:
-                raise EndpointError(f"{url}: {reason}: {exc.read()[:200]!r}", reached=True) from None
+                raise EndpointError(url, f"{reason}: {exc.read()[:200]!r}", reached=True) from None
         except (json.JSONDecodeError, UnicodeDecodeError) as exc:
             reason, reached = f"the answer is not JSON ({exc})", True
         except urllib.error.URLError as exc:
@@ -262,7 +263,7 @@ def post_chat(url: str, payload: dict, *, api_key: str | None = None, timeout_s:
         except (TimeoutError, ConnectionError, http.client.HTTPException) as exc:
             reason, reached = f"no answer ({type(exc).__name__}: {exc})", False
     tries = "1 try" if retries == 0 else f"{retries + 1} tries"
-    raise EndpointError(f"{url}: {reason} after {tries}", reached=reached)
+    raise EndpointError(url, f"{reason} after {tries}", reached=reached)
 
 
 def reply_text(response: dict) -> str:

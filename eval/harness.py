@@ -129,7 +129,7 @@ def _zero_shot(items: Sequence[BenchmarkItem], url: str, model: str, api_key_env
                                         retries=retries))
         except EndpointError as exc:
             if all(isinstance(o, GenerationFailure) for o in out):  # nothing has answered yet
-                raise EvalError(f"generator endpoint:{url}: {exc}") from None
+                raise EvalError(f"generator endpoint:{url}: {exc.reason}") from None
             out.append(GenerationFailure(f"endpoint request failed: {exc}"))
             continue
         out.append(parse(text, zone=it.reference.zone))

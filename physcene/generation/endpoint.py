@@ -15,7 +15,7 @@ from collections.abc import Sequence
 
 from tqdm.auto import tqdm
 
-from physcene.eval.endpoint import post_chat, reply_text, warn_if_plain_http
+from physcene.eval.endpoint import EndpointError, post_chat, reply_text, warn_if_plain_http
 from physcene.generation.procedural import GenerationError
 
 __all__ = ["API_KEY_ENV", "chat_url", "endpoint_replies"]
@@ -48,7 +48,7 @@ def endpoint_replies(url: str, prompts: Sequence[str], *, model: str = "default"
         try:
             response = post_chat(endpoint, payload, api_key=os.environ.get(API_KEY_ENV), timeout_s=timeout_s,
                                  retries=retries, backoff_s=0.5)
-        except OSError as exc:
-            raise GenerationError(f"generator endpoint:{url}: {exc}") from None
+        except EndpointError as exc:
+            raise GenerationError(f"generator endpoint:{url}: {exc.reason}") from None
         out.append(reply_text(response))
     return out

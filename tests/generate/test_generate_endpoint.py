@@ -74,3 +74,17 @@ def test_an_unparsable_reply_is_reported_per_sample(tmp_path, monkeypatch):
     assert (tmp_path / "sample_0" / "error.txt").is_file()
     assert main(["generate", "a desk with a laptop", "--generator", "endpoint:http://127.0.0.1:9/v1",
                  "-o", str(tmp_path), "--no-render", "--quiet"]) == 1
+
+
+def test_an_unreachable_endpoint_is_one_line_and_exit_2(tmp_path, capsys):
+    import socket
+
+    with socket.socket() as s:  # a loopback port nothing listens on
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    url = f"http://127.0.0.1:{port}/v1"
+    code = main(["generate", "a desk with a laptop", "--generator", f"endpoint:{url}", "-o",
+                 str(tmp_path / "out"), "--no-render", "--quiet"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err) == 1, err
+    assert f"generator endpoint:{url}: no server answered" in err[0] and "after 2 tries" in err[0]
