@@ -33,6 +33,9 @@ UNICODE = ["\u00a0", "\u200b", "\u202e", "\ufeff", "１", "−", "，", "：", "
 HUGE = ["1e309", "-1e309", "9" * 400, "1" + "0" * 5000, "1e-400", "-0", "NaN", "Infinity", "-Infinity",
         "1e5", "100000.0001", "0.0000000000000000000001", "1" * 30 + ".5", "0x10", "1_000", "+5", ".5", "5.",
         "00012"]
+# Numbers at the grammar's edges (4 integer digits, 8 decimals, |x| <= 1e5 cm) and past them.
+EDGE = ["9999.99999999", "-9999.99999999", "99999.99999999", "100000", "100000.00000001", "-100000",
+        "0.00000001", "0.000000001", "1.123456789", "-0", "-0.0", "0.0", "0", "1e-5", "9999", "10000"]
 ALPHABET = '{}[]":,.-0123456789eE \n"objects" "relative_bbox" instance_id parent_id **Scene Layout:**'
 # JSON that Python reads one way and a hand-written scanner may read another: a key given twice, a
 # string spelled with escapes, whitespace where the canonical text has none.
@@ -61,7 +64,7 @@ def _span(rng: random.Random, text: str) -> tuple[int, int]:
 def _mutate_once(rng: random.Random, text: str, bases: list[str]) -> tuple[str, str]:
     """One mutation of ``text``: (its name, the new text)."""
     kind = rng.choice(["truncate", "delete", "duplicate", "swap", "bytes", "unicode", "number", "huge",
-                       "brackets", "splice", "digits", "json", "json"])
+                       "brackets", "splice", "digits", "json", "json", "edge", "edge"])
     if not text and kind not in ("bytes", "unicode", "brackets"):
         kind = "bytes"
     if kind == "truncate":
@@ -108,10 +111,12 @@ def _mutate_once(rng: random.Random, text: str, bases: list[str]) -> tuple[str, 
             return "json-escape", text[:k] + f"\\u{ord(text[k]):04x}" + text[k + 1:]
         return "json-space", text[:m.end() - 1] + rng.choice(["\n", "\t", "   ", "\r\n"]) + text[m.end() - 1:]
     numbers = list(NUMBER.finditer(text))
-    if kind in ("number", "huge", "digits") and numbers:
+    if kind in ("number", "huge", "digits", "edge") and numbers:
         m = rng.choice(numbers)
         if kind == "huge":
             new = rng.choice(HUGE)
+        elif kind == "edge":
+            new = rng.choice(EDGE)
         elif kind == "digits":  # another plausible value: the layout may stay valid
             new = str(round(rng.uniform(-200, 200), rng.randrange(6)))
         else:
