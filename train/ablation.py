@@ -200,7 +200,9 @@ def run_ablation(cfg: DictConfig, budget_min: float | None = None) -> dict:
     reuse = bool(a.get("reuse", True))
 
     def finished(out_dir) -> bool:  # a stage that already wrote its final model (reuse=true)
-        return reuse and (Path(str(out_dir)) / RUN_INFO).is_file()
+        # an RL run records its base at the start with complete=false (train/models.py base_checked)
+        done = (Path(str(out_dir)) / RUN_INFO).is_file() and read_run_info(out_dir).get("complete", True)
+        return reuse and done
 
     sft_dir = Path(str(cfg.sft.output_dir))
     if finished(sft_dir):
