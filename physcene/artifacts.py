@@ -28,8 +28,8 @@ from dataclasses import dataclass
 from pathlib import Path
 
 __all__ = ["MANIFEST", "RESTORED", "Artifact", "ArtifactError", "add_artifact", "checkpoint_digest",
-           "file_sha256", "is_restored", "load_manifest", "pin_artifact", "repo_root", "resolve_model",
-           "restore_artifact", "restored_dir"]
+           "file_sha256", "is_restored", "load_manifest", "pin_artifact", "repo_root", "resolve_generators",
+           "resolve_model", "restore_artifact", "restored_dir"]
 
 MANIFEST = "artifacts.json"
 # Where ``restore`` writes an artifact by default (ignored by .gitignore), and the marker it leaves there.
@@ -261,13 +261,15 @@ def restored_dir(root: Path, name: str) -> Path:
 def is_restored(folder: Path, artifact: Artifact) -> bool:
     """Whether ``folder`` holds ``artifact`` as :func:`restore_artifact` wrote it (its marker names
     the same digest and every file has its size)."""
-    marker = folder / _MARKER
     try:
-        if json.loads(marker.read_text()).get("digest") != artifact.digest:
-            return False
+        marker = json.loads((folder / _MARKER).read_text())
     except (OSError, ValueError):
         return False
-    return all((folder / f["path"]).is_file() and (folder / f["path"]).stat().st_size == f["size"]
+    if marker.get("digest") != artifact.digest:
+        return False
+    rewritten = set(marker.get("rewritten", ()))  # an adapter pointed at its restored base
+    return all((folder / f["path"]).is_file() and
+               (f["path"] in rewritten or (folder / f["path"]).stat().st_size == f["size"])
                for f in artifact.files)
 
 
@@ -313,7 +315,35 @@ def resolve_model(target: str, *, cwd: str | Path | None = None) -> str:
     if target not in artifacts:
         return target
     try:
-        return str(restore_artifact(target, cwd=cwd))
+        folder = restore_artifact(target, cwd=cwd)
+        base = artifacts[target].base
+        if base is not None and (folder / "adapter_config.json").is_file():
+            _point_adapter_at(folder, restore_artifact(base, cwd=cwd))
     except ArtifactError as exc:
         raise ArtifactError(f"model:{target}: {exc} (restore it with `physcene artifacts restore "
                             f"{target}`)") from None
+    return str(folder)
+
+
+def _point_adapter_at(folder: Path, base_folder: Path) -> None:
+    """A LoRA adapter names its base by the absolute path it was trained from, which need not exist
+    where the artifact is restored: point it at the restored base (noted in the marker)."""
+    config_path = folder / "adapter_config.json"
+    config = json.loads(config_path.read_text())
+    if Path(str(config.get("base_model_name_or_path", ""))).is_dir():
+        return
+    config["base_model_name_or_path"] = str(base_folder)
+    _write_atomic(config_path, json.dumps(config, indent=2).encode())
+    marker = json.loads((folder / _MARKER).read_text())
+    marker["rewritten"] = sorted({*marker.get("rewritten", ()), "adapter_config.json"})
+    _write_atomic(folder / _MARKER, json.dumps(marker).encode())
+
+
+def resolve_generators(generators: str, *, cwd: str | Path | None = None) -> str:
+    """A comma-separated ``--generator`` argument with every ``model:NAME`` that names an artifact (and
+    no folder) replaced by ``model:<its restored folder>``; the others as given."""
+    out = []
+    for spec in generators.split(","):
+        kind, _, target = spec.strip().partition(":")
+        out.append(f"model:{resolve_model(target, cwd=cwd)}" if kind == "model" and target else spec)
+    return ",".join(out)

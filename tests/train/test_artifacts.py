@@ -13,8 +13,10 @@ from physcene.artifacts import (
     ArtifactError,
     add_artifact,
     checkpoint_digest,
+    is_restored,
     load_manifest,
     pin_artifact,
+    resolve_generators,
     resolve_model,
     restore_artifact,
 )
@@ -136,3 +138,26 @@ def test_a_resume_on_another_base_is_refused(repo, tmp_path):
     (repo / "runs/sft/model.safetensors").write_bytes(b"other weights")
     with pytest.raises(TrainingSetupError, match=f"trained from a base with sha256 {digest}"):
         base_checked(out, repo / "runs/sft")
+
+
+def test_a_generator_names_an_artifact_and_an_adapter_finds_its_restored_base(repo):
+    committed_and_pinned(repo)
+    pada = repo / "runs" / "pada"
+    pada.mkdir()
+    (pada / "adapter_config.json").write_text(json.dumps({"base_model_name_or_path": "/gone/runs/sft"}))
+    (pada / "adapter_model.safetensors").write_bytes(b"\x00lora\x01")
+    add_artifact("small-pada", "runs/pada", made_by="physcene train pada --config tiny", base="small-sft",
+                 cwd=repo)
+    git(repo, "add", "-f", "runs/pada", "artifacts.json")
+    git(repo, "commit", "-qm", "artifact small-pada")
+    pin_artifact("small-pada", cwd=repo)
+    git(repo, "commit", "-qam", "out of the tree")
+    spec = resolve_generators("reference,model:small-pada,model:runs", cwd=repo)
+    folder = repo / "artifacts" / "small-pada"
+    assert spec == f"reference,model:{folder},model:runs"  # a folder stays a folder
+    config = json.loads((folder / "adapter_config.json").read_text())
+    assert config["base_model_name_or_path"] == str(repo / "artifacts" / "small-sft")
+    assert (repo / "artifacts" / "small-sft" / "model.safetensors").is_file()
+    assert is_restored(folder, load_manifest(repo)["small-pada"])  # the rewrite is not a corruption
+    with pytest.raises(ArtifactError, match="--base 'nope' is not in"):
+        add_artifact("x", "README.md", made_by="x", base="nope", cwd=repo)
