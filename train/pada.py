@@ -41,7 +41,7 @@ from transformers.trainer_utils import get_last_checkpoint
 from trl import GRPOTrainer
 
 from physcene.reward.trl import PhysicsRewardFunction
-from physcene.train.config import VARIANTS, PADAConfig, pada_arguments
+from physcene.train.config import VARIANTS, PADAConfig, pada_arguments, reward_overrides
 from physcene.train.constrained_rollouts import ConstrainedRollouts, generate_with_processors
 from physcene.train.denoise import Denoise
 from physcene.train.diagnostics import NonfiniteProbe
@@ -253,7 +253,7 @@ def run_pada(cfg, variant: str | None = None, reward=None, callbacks=()) -> Path
     set_attention_kernels(cfg.model)  # cuDNN attention's backward NaNs on left-padded rows (torch 2.11)
     model = load_model(model_dir.resolve(), dtype=dtype, freeze_vision=bool(cfg.model.freeze_vision))
     tokenizer = load_tokenizer(model_dir)
-    reward_fn = PhysicsRewardFunction(state.device, reward=reward, overrides=list(cfg.pada.get("reward", [])))
+    reward_fn = PhysicsRewardFunction(state.device, reward=reward, overrides=reward_overrides(cfg, variant))
     trainer = PADATrainer(
         model=model,
         reward_funcs=[reward_fn],
