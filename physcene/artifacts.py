@@ -198,23 +198,57 @@ def _committed_path(artifact: Artifact, f: dict) -> str:
     return f["path"] if artifact.root in ("", ".") else f"{artifact.root}/{f['path']}"
 
 
-def _read_blobs(root: Path, commit: str, paths: Sequence[str]) -> list[bytes | None]:
-    """The contents of ``commit:path`` for each path through one ``git cat-file --batch``; None
-    where the commit does not hold the path."""
-    request = "".join(f"{commit}:{p}\n" for p in paths).encode()
-    out = _git(root, "cat-file", "--batch", stdin=request)
-    blobs, at = [], 0
-    for _ in paths:
-        end = out.index(b"\n", at)
-        header = out[at:end].decode(errors="replace").split()
-        at = end + 1
-        if len(header) < 3 or header[1] != "blob":  # "<object> missing" (or not a file)
-            blobs.append(None)
-            continue
-        size = int(header[2])
-        blobs.append(out[at:at + size])
-        at += size + 1  # the content is followed by a newline
-    return blobs
+def _blob_digests(root: Path, commit: str, paths: Sequence[str],
+                  targets: Sequence[Path | None] | None = None) -> list[str | None]:
+    """The sha256 of ``commit:path`` for each path, streamed through one ``git cat-file --batch``
+    (binary-safe, a block at a time: a checkpoint of many GB never sits in memory); None where the
+    commit holds no file at that path. With ``targets`` each blob is also written to its target."""
+    targets = list(targets) if targets is not None else [None] * len(paths)
+    try:
+        proc = subprocess.Popen(["git", "cat-file", "--batch"], cwd=root, stdin=subprocess.PIPE,
+                                stdout=subprocess.PIPE, stderr=subprocess.DEVNULL)
+    except FileNotFoundError:
+        raise ArtifactError("git is not installed: artifacts live in the repository's history") from None
+    digests: list[str | None] = []
+    try:
+        for path, target in zip(paths, targets):
+            proc.stdin.write(f"{commit}:{path}\n".encode())
+            proc.stdin.flush()
+            header = proc.stdout.readline().decode(errors="replace").split()
+            if len(header) < 3:  # "<object> missing"
+                digests.append(None)
+                continue
+            blob = header[1] == "blob"
+            h = hashlib.sha256()
+            with open(target, "wb") if blob and target is not None else _Discard() as out:
+                remaining = int(header[2])
+                while remaining:
+                    chunk = proc.stdout.read(min(remaining, 1 << 20))
+                    if not chunk:
+                        raise ArtifactError(f"git cat-file stopped inside {commit[:12]}:{path}")
+                    h.update(chunk)
+                    out.write(chunk)
+                    remaining -= len(chunk)
+            proc.stdout.read(1)  # the newline after the content
+            digests.append(h.hexdigest() if blob else None)  # a folder at that path is no file
+    finally:
+        proc.stdin.close()
+        proc.stdout.close()
+        proc.wait()
+    return digests
+
+
+class _Discard:
+    """A sink for blobs that are only hashed."""
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        return False
+
+    def write(self, data: bytes) -> None:
+        pass
 
 
 def _commit_present(root: Path, commit: str, name: str) -> None:
@@ -235,11 +269,10 @@ def pin_artifact(name: str, commit: str = "HEAD", *, cwd: str | Path | None = No
     artifact = _entry(root, name)
     sha = _git(root, "rev-parse", "--verify", f"{commit}^{{commit}}").decode().strip()
     paths = [_committed_path(artifact, f) for f in artifact.files]
-    for f, path, blob in zip(artifact.files, paths, _read_blobs(root, sha, paths)):
-        if blob is None:
+    for f, path, got in zip(artifact.files, paths, _blob_digests(root, sha, paths)):
+        if got is None:
             raise ArtifactError(f"artifact {name}: commit {sha[:12]} does not hold {path}; commit the files "
                                 f"first (`git add -f {artifact.root} {MANIFEST} && git commit`)")
-        got = hashlib.sha256(blob).hexdigest()
         if got != f["sha256"]:
             raise ArtifactError(f"artifact {name}: {path} in commit {sha[:12]} has sha256 {got}, the "
                                 f"manifest says {f['sha256']} (add and commit it again)")
@@ -287,16 +320,23 @@ def restore_artifact(name: str, to: str | Path | None = None, *, cwd: str | Path
         return folder
     _commit_present(root, artifact.commit, name)
     paths = [_committed_path(artifact, f) for f in artifact.files]
-    blobs = _read_blobs(root, artifact.commit, paths)
-    for f, path, blob in zip(artifact.files, paths, blobs):
-        if blob is None:
-            raise ArtifactError(f"artifact {name}: commit {artifact.commit[:12]} does not hold {path}")
-        got = hashlib.sha256(blob).hexdigest()
-        if got != f["sha256"]:
-            raise ArtifactError(f"artifact {name}: {path} at {artifact.commit[:12]} has sha256 {got}, the "
-                                f"manifest says {f['sha256']}: refusing to restore it")
-    for f, blob in zip(artifact.files, blobs):
-        _write_atomic(folder / f["path"], blob)
+    finals = [folder / f["path"] for f in artifact.files]
+    temps = [p.with_name(f".{p.name}.tmp-{os.getpid()}") for p in finals]
+    for p in temps:
+        p.parent.mkdir(parents=True, exist_ok=True)
+    try:  # every file checked before any is renamed into place: a mismatch writes nothing
+        for f, path, got in zip(artifact.files, paths, _blob_digests(root, artifact.commit, paths, temps)):
+            if got is None:
+                raise ArtifactError(f"artifact {name}: commit {artifact.commit[:12]} does not hold {path}")
+            if got != f["sha256"]:
+                raise ArtifactError(f"artifact {name}: {path} at {artifact.commit[:12]} has sha256 {got}, "
+                                    f"the manifest says {f['sha256']}: refusing to restore it")
+    except BaseException:
+        for p in temps:
+            p.unlink(missing_ok=True)
+        raise
+    for tmp, final in zip(temps, finals):
+        os.replace(tmp, final)
     _write_atomic(folder / _MARKER, json.dumps({"name": name, "commit": artifact.commit,
                                                 "digest": artifact.digest}).encode())
     return folder
