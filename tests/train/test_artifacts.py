@@ -129,6 +129,15 @@ def test_clear_errors_outside_a_checkout_and_for_a_missing_commit(repo, tmp_path
         restore_artifact("again", cwd=repo)
 
 
+def test_a_shallow_clone_is_told_to_unshallow(repo, tmp_path):
+    committed_and_pinned(repo)  # the files live in HEAD~1, which a depth-1 clone lacks
+    clone = tmp_path / "clone"
+    subprocess.run(["git", "clone", "-q", "--depth", "1", f"file://{repo}", str(clone)], check=True)
+    with pytest.raises(ArtifactError, match=r"is not in this repository; this clone is shallow: run "
+                                            r"`git fetch --unshallow`"):
+        restore_artifact("small-sft", cwd=clone)
+
+
 def test_a_resume_on_another_base_is_refused(repo, tmp_path):
     out = tmp_path / "pada"
     digest = base_checked(out, repo / "runs/sft", stage="pada")
