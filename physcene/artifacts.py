@@ -9,19 +9,21 @@ small and the bytes stay reachable. ``artifacts.json`` at the repository root li
                                  "digest": "...", "made_by": "physcene train sft --config small",
                                  "data": ["data/train.jsonl"], "base": null}}}
 
-``add`` hashes the files and writes the entry (``commit`` null); after the commit that holds them,
-``pin`` records that commit, checks every file in it against its hash and takes the files out of the
-index (the next commit removes them from the tree). ``restore`` reads each file back from the commit
-with ``git cat-file --batch`` (binary-safe), checks its sha256 and writes it atomically under
-``artifacts/NAME`` (ignored). Paths in the manifest are relative to the repository root (``root``) and
+``add`` hashes the files, writes the entry (``commit`` null) and stages both; after the commit that
+holds them, ``pin`` records that commit, checks every file in it against its hash and takes the files
+out of the index (the next commit removes them from the tree). ``restore`` reads each file back from
+the commit with ``git cat-file --batch`` (binary-safe), checks its sha256 and writes it atomically
+under ``artifacts/NAME`` (ignored). Paths in the manifest are relative to the repository root (``root``) and
 to the artifact's root (``files``). docs/training.md, "Artifacts", gives the workflow.
 """
 
 from __future__ import annotations
 
+import fnmatch
 import hashlib
 import json
 import os
+import re
 import subprocess
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
@@ -163,12 +165,17 @@ def _entry(root: Path, name: str) -> Artifact:
 
 
 def add_artifact(name: str, path: str | Path, *, made_by: str, data: Sequence[str] = (),
-                 base: str | None = None, cwd: str | Path | None = None) -> Artifact:
-    """Hash every file under ``path`` (a file or a folder inside the checkout) and write the manifest
-    entry ``name`` with no commit yet. Re-adding a name is allowed until it is pinned."""
+                 base: str | None = None, exclude: Sequence[str] = (),
+                 cwd: str | Path | None = None) -> Artifact:
+    """Hash every file under ``path`` (a file or a folder inside the checkout) but those with a path
+    component matching an ``exclude`` glob (``checkpoint-*``: an SFT base without its intermediate
+    checkpoints), write the manifest entry ``name`` with no commit yet and stage exactly those files
+    and the manifest (``git add -f``: they may lie in an ignored folder such as ``runs/``), ready for
+    the commit that holds them. Re-adding a name is allowed until it is pinned."""
     root = repo_root(cwd)
-    if not name or "/" in name or name.startswith(".") or name != name.strip():
-        raise ArtifactError(f"artifact name {name!r}: use letters, digits, '-', '_' or '.' (no '/')")
+    if not re.fullmatch(r"[A-Za-z0-9][A-Za-z0-9._-]*", name):
+        raise ArtifactError(f"artifact name {name!r}: use letters, digits, '-', '_' and '.', starting with "
+                            "a letter or digit")
     target = (Path(cwd or ".") / path).resolve()
     if not target.exists():
         raise ArtifactError(f"artifact {name}: {path} does not exist")
@@ -183,6 +190,8 @@ def add_artifact(name: str, path: str | Path, *, made_by: str, data: Sequence[st
         raise ArtifactError(f"artifact {name}: --base {base!r} is not in {MANIFEST}")
     folder = target if target.is_dir() else target.parent
     paths = sorted(p for p in target.rglob("*") if p.is_file()) if target.is_dir() else [target]
+    paths = [p for p in paths if not any(fnmatch.fnmatch(part, pattern) for pattern in exclude
+                                         for part in p.relative_to(folder).parts)]
     if not paths:
         raise ArtifactError(f"artifact {name}: {path} holds no files")
     files = tuple({"path": p.relative_to(folder).as_posix(), "sha256": file_sha256(p),
@@ -191,6 +200,7 @@ def add_artifact(name: str, path: str | Path, *, made_by: str, data: Sequence[st
                         made_by=made_by, data=tuple(data), base=base, digest=_digest(files))
     artifacts[name] = artifact
     _save_manifest(root, artifacts)
+    _git(root, "add", "-f", "--", *(_committed_path(artifact, f) for f in files), MANIFEST)
     return artifact
 
 

@@ -1,9 +1,9 @@
 """``physcene artifacts list|add|pin|restore``: checkpoints kept in the repository's history
 (docs/training.md, "Artifacts").
 
-    physcene artifacts add small-sft runs/small/sft --made-by "physcene train sft --config small" \\
-        --data data/train.jsonl
-    git add -f runs/small/sft artifacts.json && git commit -m "artifact small-sft"
+    physcene artifacts add small-sft runs/small/sft --exclude 'checkpoint-*' \\
+        --made-by "physcene train sft --config small" --data data/train.jsonl
+    git commit -m "artifact small-sft"        # add staged the files and artifacts.json
     physcene artifacts pin small-sft          # records HEAD, takes the files out of the index
     git commit -am "artifact small-sft: out of the tree"
     physcene artifacts restore small-sft      # -> artifacts/small-sft/ (ignored), sha256-checked
@@ -32,12 +32,15 @@ def add_arguments(parser) -> None:
     sub.required = True
     listing = sub.add_parser("list", help="the manifest's artifacts, pinned or not, restored or not")
     add_json(listing, "the manifest with each artifact's restored state")
-    add = sub.add_parser("add", help="hash a checkpoint folder and write its manifest entry")
+    add = sub.add_parser("add", help="hash a checkpoint folder, write its manifest entry, stage both")
     add.add_argument("name", help="the artifact's name, e.g. small-sft")
     add.add_argument("path", help="the file or folder (inside the repository) to keep")
     add.add_argument("--made-by", required=True, help="the command that made it")
     add.add_argument("--data", action="append", default=[], help="data it was made from (repeatable)")
     add.add_argument("--base", help="the artifact it was trained from, by name")
+    add.add_argument("--exclude", action="append", default=[], metavar="GLOB",
+                     help="leave out files with a path component matching GLOB, e.g. 'checkpoint-*' "
+                          "(repeatable)")
     pin = sub.add_parser("pin", help="record the commit holding an artifact's files and take them out of "
                                      "the index (commit again afterwards)")
     pin.add_argument("name")
@@ -70,9 +73,10 @@ def run(args) -> int:
     if args.action == "list":
         return _list(args)
     if args.action == "add":
-        a = add_artifact(args.name, args.path, made_by=args.made_by, data=args.data, base=args.base)
-        print(f"{a.name}: {len(a.files)} file(s) under {a.root}, digest {a.digest[:12]}; next: "
-              f"`git add -f {a.root} {MANIFEST} && git commit`, then `physcene artifacts pin {a.name}`")
+        a = add_artifact(args.name, args.path, made_by=args.made_by, data=args.data, base=args.base,
+                         exclude=args.exclude)
+        print(f"{a.name}: {len(a.files)} file(s) under {a.root}, digest {a.digest[:12]}, staged with "
+              f"{MANIFEST}; next: `git commit`, then `physcene artifacts pin {a.name}`")
     elif args.action == "pin":
         a = pin_artifact(args.name, args.commit)
         print(f"{a.name}: pinned at {a.commit[:12]}, its files are out of the index; next: "

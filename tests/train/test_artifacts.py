@@ -48,9 +48,13 @@ def repo(tmp_path):
 
 
 def committed_and_pinned(root, name="small-sft"):
+    (root / "runs/sft/checkpoint-2").mkdir()
+    (root / "runs/sft/checkpoint-2/optimizer.pt").write_bytes(b"left out")
     add_artifact(name, "runs/sft", made_by="physcene train sft --config tiny", data=["synth:train:16"],
-                 cwd=root)
-    git(root, "add", "-f", "runs/sft", "artifacts.json")
+                 exclude=["checkpoint-*"], cwd=root)
+    staged = git(root, "diff", "--cached", "--name-only").split()
+    assert staged == ["artifacts.json", "runs/sft/config.json", "runs/sft/model.safetensors",
+                      "runs/sft/tokenizer/tokenizer.json"]  # not the excluded checkpoint
     git(root, "commit", "-qm", f"artifact {name}")
     pin_artifact(name, cwd=root)
     git(root, "commit", "-qam", f"artifact {name}: out of the tree")
@@ -61,6 +65,7 @@ def test_add_commit_pin_remove_restore_gives_the_same_bytes(repo):
     original = {p.relative_to(repo / "runs/sft").as_posix(): p.read_bytes()
                 for p in (repo / "runs/sft").rglob("*") if p.is_file()}
     artifact = committed_and_pinned(repo)
+    assert (repo / "runs/sft/model.safetensors").is_file()  # an ignored working copy stays
     assert artifact.commit == git(repo, "rev-parse", "HEAD~1").strip()
     assert {f["path"] for f in artifact.files} == set(original)
     assert git(repo, "ls-files", "runs") == ""  # out of the tree; the history holds it
@@ -157,7 +162,6 @@ def test_a_generator_names_an_artifact_and_an_adapter_finds_its_restored_base(re
     (pada / "adapter_model.safetensors").write_bytes(b"\x00lora\x01")
     add_artifact("small-pada", "runs/pada", made_by="physcene train pada --config tiny", base="small-sft",
                  cwd=repo)
-    git(repo, "add", "-f", "runs/pada", "artifacts.json")
     git(repo, "commit", "-qm", "artifact small-pada")
     pin_artifact("small-pada", cwd=repo)
     git(repo, "commit", "-qam", "out of the tree")
