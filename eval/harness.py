@@ -2,7 +2,8 @@
 :class:`~physcene.eval.metrics.SceneResult` per scene -> reports.
 
 Generators (``--generator``): ``reference`` (the split's layouts), ``tto`` (reference + TTO),
-``heuristic`` (non-learned placer), ``file:DIR`` (layouts on disk), ``model:PATH`` (a trained
+``heuristic`` (non-learned placer), ``file:DIR`` (layouts on disk; or ``file:FILE.jsonl[.gz]``, one
+``{"id", "layout"}`` record per scene as the training ablation writes them), ``model:PATH`` (a trained
 checkpoint: the caller passes its :data:`Generate` callable, e.g. ``physcene eval`` builds one on
 :func:`physcene.train.generate.generate`; the harness never imports the training code),
 ``endpoint:URL`` (zero-shot LLM with the paper's Prompt 3 over an OpenAI-compatible endpoint). Any
@@ -36,8 +37,8 @@ from physcene.eval.metrics import (
 )
 from physcene.eval.render import render_views
 from physcene.eval.report import write_report
-from physcene.layout import load_layout, read_layout, write_layout
-from physcene.scene import Scene
+from physcene.layout import layout_record_lines, load_layout, read_layout, write_layout
+from physcene.scene import Scene, SceneError
 from physcene.tto import TTOConfig, relation_preservation, repair
 
 __all__ = ["BenchmarkItem", "EvalError", "Generate", "GenerationFailure", "evaluate_method", "generate",
@@ -114,6 +115,39 @@ class GenerationFailure(ParseError):
     parsed, repaired or scored; it fails QPR like an unparsable output."""
 
 
+def _load_records(items: Sequence[BenchmarkItem], path: Path) -> list:
+    """Layouts from a JSONL file (gzipped when it ends in ``.gz``) of ``{"id", "layout"}`` records; a
+    record whose ``layout`` is null is the completion that did not parse (its ``parse_error``)."""
+    if not path.is_file():
+        raise EvalError(f"generator file:{path}: no such file")
+    try:
+        lines = layout_record_lines(path)
+    except (OSError, UnicodeDecodeError, EOFError) as exc:
+        raise EvalError(f"generator file:{path}: cannot be read ({exc})") from None
+    by_id = {}
+    for number, line in lines:
+        try:
+            record = json.loads(line)
+        except json.JSONDecodeError as exc:
+            raise EvalError(f"generator file:{path}:{number}: not JSON ({exc})") from None
+        if not isinstance(record, dict) or "id" not in record:
+            raise EvalError(f"generator file:{path}:{number}: a layout record needs an 'id'")
+        by_id[str(record["id"])] = (number, record)
+    out = []
+    for it in items:
+        if it.id not in by_id:
+            raise EvalError(f"generator file:{path}: no layout for benchmark id {it.id!r}")
+        number, record = by_id[it.id]
+        if record.get("layout") is None:
+            out.append(ParseError(str(record.get("parse_error") or "no layout in the record")))
+            continue
+        try:
+            out.append(load_layout(record["layout"], source=f"{path}:{number}"))
+        except (SceneError, TypeError, ValueError) as exc:
+            raise EvalError(f"generator file:{path}:{number}: {exc}") from None
+    return out
+
+
 def _zero_shot(items: Sequence[BenchmarkItem], url: str, model: str, api_key_env: str,
                progress: bool, retries: int = 4) -> list:
     """The endpoint's Prompt-3 replies, parsed. The first request failing (after its retries) is an
@@ -159,7 +193,9 @@ def generate(items: Sequence[BenchmarkItem], generator: str, *, seed: int = 0, m
 
         out = [heuristic_place(it.reference, seed=seed * 100003 + k) for k, it in enumerate(items)]
     elif generator.startswith("file:"):
-        out = _load_dir(items, Path(generator[5:]))
+        target = Path(generator[5:])
+        records = target.name.endswith((".jsonl", ".jsonl.gz"))
+        out = _load_records(items, target) if records else _load_dir(items, target)
     elif generator.startswith("model:"):
         raise EvalError(f"generator {generator}: no model generator was passed (generators=...); "
                         "physcene eval builds one from the checkpoint")

@@ -23,6 +23,7 @@ Every error is a :class:`~physcene.scene.SceneError` naming the file, the object
 
 from __future__ import annotations
 
+import gzip
 import json
 import math
 import os
@@ -38,12 +39,14 @@ __all__ = [
     "category_from_instance",
     "dumps_layout",
     "iter_layout_tree",
+    "layout_record_lines",
     "layout_to_dict",
     "load_layout",
     "quaternion_tilt",
     "quaternion_to_yaw",
     "read_layout",
     "write_layout",
+    "write_layout_records",
     "yaw_to_quaternion",
 ]
 
@@ -352,3 +355,31 @@ def iter_layout_tree(root, *, skip_errors: bool = False) -> Iterator[tuple[Path,
                 continue
             raise
         yield path, scene
+
+
+def layout_record_lines(path) -> list[tuple[int, str]]:
+    """(line number, text) of every non-blank line of a JSONL file of layout records, gzipped when
+    its name ends in ``.gz`` (``physcene check`` and the eval harness's ``file:`` generator read
+    ablation layouts so). Unreadable files raise OSError (a bad gzip stream is one)."""
+    path = Path(path)
+    opened = gzip.open(path, "rt", encoding="utf-8") if path.suffix == ".gz" else path.open(encoding="utf-8")
+    with opened as f:
+        return [(number, line) for number, line in enumerate(f, start=1) if line.strip()]
+
+
+def write_layout_records(records, path) -> Path:
+    """One JSON object per line (gzipped when the name ends in ``.gz``, byte-identical for the same
+    records: no timestamp in the header), written atomically (temp file, then rename)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    body = "".join(json.dumps(r, ensure_ascii=False, allow_nan=False) + "\n" for r in records).encode()
+    data = gzip.compress(body, mtime=0) if path.suffix == ".gz" else body
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "wb") as fh:
+            fh.write(data)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    return path

@@ -14,7 +14,8 @@ stage does not load TRL for another):
   :mod:`~physcene.train.object_credit`, :mod:`~physcene.train.denoise`,
   :mod:`~physcene.train.diagnostics`; β adapted by :mod:`~physcene.train.kl`;
 - :mod:`~physcene.train.generate` generation from a checkpoint; :mod:`~physcene.train.constrained`
-  the CTRC decoding constraint; :mod:`~physcene.train.ablation` the paper's ablation end to end.
+  the CTRC decoding constraint; :mod:`~physcene.train.ablation` the paper's ablation end to end,
+  :mod:`~physcene.train.ablation_plot` its learning curves.
 """
 
 __all__: list[str] = []

@@ -1,22 +1,27 @@
 """The paper's ablation (Table "CTRC / +GRPO / +TTO / +PADA* / +PADA") end to end, within a time budget.
 
 ``run_ablation(cfg, budget_min)`` runs SFT -> anchors -> ``grpo``, ``pada_star``, ``pada`` -> eval of
-SFT, SFT + TTO, GRPO, PADA* and PADA on the test split with the eval harness (rule judge), and writes
-``ablation.json`` ``{"rows": [{name, scr, acr, qpr7, judge_avg, parse_rate, n, floating, by_level}], "gpu",
-"commands", "stages"}`` plus Markdown tables (all levels; SCR / ACR per level). ``ablation.variants``
+the reference, SFT, SFT + TTO, GRPO, PADA* and PADA on the test split with the eval harness (rule
+judge), and writes ``ablation.json`` ``{"rows": [{name, seed, rl_steps, scr, acr, qpr7, qpr8, qpr9,
+judge_avg, parse_rate, floating, shrunk, out_of_zone, layouts, n, by_level}], "gpu", "commands",
+"stages"}`` (:data:`ROW_KEYS`; rates and shares as fractions) plus Markdown tables (all levels; SCR /
+ACR per level) and the learning curves (:mod:`physcene.train.ablation_plot`). ``ablation.variants``
 picks the RL rows; ``ablation.checkpoints`` adds a row per kept intermediate checkpoint of them
-(``"pada@12"``, under ``checkpoint_rows``: the metrics against RL steps); ``ablation.layouts`` keeps
-every row's parsed layouts for re-scoring. Each stage gets a share of the budget (``ablation.shares``); a
-training stage that runs out of time stops at its next optimizer step and saves (``TimeBudget``), so
-the table always comes out, with the time each stage took recorded under ``stages`` (and the steps
-it ran in each model's ``physcene_run.json``). With ``ablation.reuse`` (default) a stage whose final
-model exists is not rerun, so the pipeline can be driven by repeated commands under a job time limit.
+(``"pada@12"``, under ``checkpoint_rows``, ``rl_steps`` 12: the metrics against RL steps);
+``ablation.layouts`` keeps every row's layouts as ``<layouts>/<row>.jsonl.gz`` (one ``{"id", "layout"}``
+record per scene, ``layout`` null and ``parse_error`` set where the output did not parse), which
+``physcene check`` and ``physcene eval --generator file:...`` read to recompute the row
+(``ablation.reference`` adds the reference layouts' row). Each stage gets a share of the budget
+(``ablation.shares``); a training stage that runs out of time stops at its next optimizer step and
+saves (``TimeBudget``), so the table always comes out, with the time each stage took recorded under
+``stages`` (and the steps it ran in each model's ``physcene_run.json``). With ``ablation.reuse``
+(default) a stage whose final model exists is not rerun, so the pipeline can be driven by repeated
+commands under a job time limit.
 """
 
 from __future__ import annotations
 
 import json
-import shutil
 import sys
 import time
 from functools import partial
@@ -27,16 +32,25 @@ from accelerate import PartialState
 from accelerate.utils import gather_object
 from omegaconf import DictConfig, OmegaConf
 
+from physcene.layout import layout_to_dict, write_layout_records
+from physcene.reward import RewardConfig, band_low_ratio
+from physcene.scene import Scene
+from physcene.train.ablation_plot import write_learning_curves
 from physcene.train.anchors import run_anchors
 from physcene.train.generate import generate as checkpoint_generate
 from physcene.train.models import RUN_INFO, TrainingSetupError, read_run_info
 from physcene.train.pada import NoAnchorsError, run_pada
 from physcene.train.sft import TimeBudget, run_sft
 
-__all__ = ["ROW_NAMES", "TimeBudget", "ablation_row", "checkpoint_models", "level_table", "markdown_table",
-           "run_ablation"]
+__all__ = ["ROW_KEYS", "ROW_NAMES", "TimeBudget", "ablation_row", "check_ablation", "checkpoint_models",
+           "layout_records", "level_table", "markdown_table", "row_file", "run_ablation", "shrunk_share",
+           "table_figures", "table_row"]
 
-ROW_NAMES = ("sft", "sft+tto", "grpo", "pada*", "pada")
+ROW_NAMES = ("reference", "sft", "sft+tto", "grpo", "pada*", "pada")
+# Every row of ablation.json has these (shares and rates as fractions, null where nothing parsed).
+ROW_KEYS = ("name", "seed", "rl_steps", "scr", "acr", "qpr7", "qpr8", "qpr9", "judge_avg", "parse_rate",
+            "floating", "shrunk", "out_of_zone", "layouts")
+_FRACTIONS = ("scr", "acr", "qpr7", "qpr8", "qpr9", "parse_rate", "floating", "shrunk", "out_of_zone")
 DEFAULT_SHARES = {"sft": 0.45, "anchors": 0.10, "grpo": 0.10, "pada_star": 0.10, "pada": 0.10, "eval": 0.15}
 
 
@@ -70,6 +84,99 @@ def ablation_row(name: str, report: dict) -> dict:
     return row
 
 
+def _finite(x):
+    return None if x is None or x != x else float(x)
+
+
+def shrunk_share(scenes: list, engine, config: RewardConfig | None = None) -> float | None:
+    """The share of the objects of ``scenes`` that reward.valid_terms' ``shrunk`` names: a dimension
+    below ``shrink_ratio`` x the low edge of its category's size band (None without objects)."""
+    config = config or RewardConfig()
+    scenes = [s for s in scenes if len(s)]
+    if not scenes:
+        return None
+    batch = engine.pack(scenes)
+    mask = batch.mask.cpu().numpy()
+    shrunk = (band_low_ratio(batch, config.size_tolerance) < config.shrink_ratio) & mask
+    return float(shrunk.sum() / mask.sum())
+
+
+def table_figures(report: dict, outputs: list, engine) -> dict:
+    """What :func:`ablation_row` leaves out of the table's schema: QPR at τ = 8 and 9 and the shares
+    of out-of-zone and shrunk objects."""
+    s = report["summary"]
+    qpr = {float(k): v for k, v in s["QPR"].items()}
+    return {"qpr8": _finite(qpr.get(8.0)), "qpr9": _finite(qpr.get(9.0)),
+            "out_of_zone": _finite(s.get("out_of_zone", {}).get("objects")),
+            "shrunk": shrunk_share([o for o in outputs if isinstance(o, Scene)], engine)}
+
+
+def layout_records(items, outputs) -> list[dict]:
+    """One ``{"id", "level", "scene_type", "layout"}`` record per benchmark item (MesaTask layout;
+    null with ``parse_error`` where the output did not parse), the form ``file:X.jsonl.gz`` reads."""
+    out = []
+    for it, o in zip(items, outputs):
+        record = {"id": it.id, "level": it.level, "scene_type": it.scene_type}
+        if isinstance(o, Scene):
+            record["layout"] = layout_to_dict(o)
+        else:
+            record.update(layout=None, parse_error=str(o))
+        out.append(record)
+    return out
+
+
+def row_file(name: str) -> str:
+    """The file name of a row's layouts: ``pada*`` -> ``pada_star.jsonl.gz``, ``sft+tto`` ->
+    ``sft_tto.jsonl.gz``, ``pada@12`` -> ``pada-12.jsonl.gz``."""
+    return name.replace("*", "_star").replace("+", "_").replace("@", "-") + ".jsonl.gz"
+
+
+def _repository_path(path: Path) -> str:
+    """``path`` relative to the checkout it lies in (the row's ``layouts``), else as given."""
+    path = path.resolve()
+    for parent in path.parents:
+        if (parent / ".git").exists():
+            return path.relative_to(parent).as_posix()
+    return str(path)
+
+
+def table_row(name: str, items, outputs: list, results, engine, *, seed: int, rl_steps: int,
+              layouts: Path | None = None) -> dict:
+    """One row of the table (:data:`ROW_KEYS`, with ``n``, ``by_level`` and the parse error kinds) from
+    the eval harness's results of ``outputs``; with ``layouts`` (a folder) the outputs are written
+    to ``<layouts>/<row>.jsonl.gz`` and the row names that file by its repository path."""
+    from physcene.eval.harness import method_report
+
+    report = method_report(results, outputs)
+    row = {**ablation_row(name, report), "seed": seed, "rl_steps": rl_steps,
+           **table_figures(report, outputs, engine), "layouts": None}
+    if layouts is not None:
+        path = write_layout_records(layout_records(items, outputs), Path(layouts) / row_file(name))
+        row["layouts"] = _repository_path(path)
+    return row
+
+
+def check_ablation(data: dict, source: str = "ablation.json") -> dict:
+    """``data`` if it has the table's schema (``rows`` of :data:`ROW_KEYS`, ``gpu``, ``commands``),
+    else a ValueError naming the row and the key."""
+    for key in ("rows", "gpu", "commands"):
+        if key not in data:
+            raise ValueError(f"{source}: no {key!r}")
+    for k, row in enumerate([*data["rows"], *data.get("checkpoint_rows", [])]):
+        where = f"{source}: row {k} ({row.get('name', '?')})"
+        if "skipped" in row:
+            continue
+        missing = [key for key in ROW_KEYS if key not in row]
+        if missing:
+            raise ValueError(f"{where} lacks {missing}")
+        if row["name"].split("@")[0] not in ROW_NAMES:
+            raise ValueError(f"{where}: name must be one of {list(ROW_NAMES)} (@N for a checkpoint)")
+        for key in _FRACTIONS:
+            if row[key] is not None and not 0.0 <= row[key] <= 1.0:
+                raise ValueError(f"{where}: {key} must be a fraction in [0, 1] or null, got {row[key]}")
+    return data
+
+
 def checkpoint_models(models: dict[str, Path]) -> dict[str, Path]:
     """``{"pada@12": .../pada/checkpoint-12, ...}``: every kept intermediate checkpoint of the RL rows
     (``ablation.checkpoints``), in step order; the final model's own step is its row already."""
@@ -96,10 +203,20 @@ def _gpu() -> str:
     return f"{torch.cuda.device_count()} x {torch.cuda.get_device_name(0)}"
 
 
+def _rl_steps(name: str, path: Path) -> int:
+    """The RL optimizer steps behind a row: 0 for the SFT model, N for ``name@N``, else the steps its
+    run info records."""
+    if name == "sft":
+        return 0
+    if "@" in name:
+        return int(name.split("@")[1])
+    return int(read_run_info(path).get("steps") or 0)
+
+
 def _evaluate(cfg: DictConfig, models: dict[str, Path], budget_s: float) -> list[dict]:
     """Rows for every model, in ``models``' order: generate once per model, TTO the SFT output for
-    ``sft+tto``. With ``ablation.layouts`` each row's parsed layouts are written to
-    ``<layouts>/<row>/<id>.json`` (re-score with ``physcene eval --generator file:DIR``).
+    ``sft+tto``, after a row for the reference layouts. With ``ablation.layouts`` each row's layouts are
+    written to ``<layouts>/<row>.jsonl.gz`` (re-score with ``physcene eval --generator file:FILE``).
 
     Under accelerate the test prompts are split between the processes for generation (the slow
     part) and gathered in input order; the main process scores, repairs and reports, the others
@@ -109,9 +226,7 @@ def _evaluate(cfg: DictConfig, models: dict[str, Path], budget_s: float) -> list
         generate,
         load_benchmark,
         make_judge,
-        method_report,
         repair_outputs,
-        save_layouts,
         score_scenes,
     )
     from physcene.physics import PhysicsEngine
@@ -124,11 +239,13 @@ def _evaluate(cfg: DictConfig, models: dict[str, Path], budget_s: float) -> list
     layouts = a.get("layouts")
     rows, start = [], time.monotonic()
 
-    def add_row(name, outputs, results):
-        rows.append(ablation_row(name, method_report(results, outputs)))
-        if layouts:  # this run's layouts only: a scene that no longer parses leaves no stale file
-            shutil.rmtree(Path(str(layouts)) / name, ignore_errors=True)
-            save_layouts(items, outputs, Path(str(layouts)) / name)
+    def add_row(name, outputs, results, rl_steps=0):
+        rows.append(table_row(name, items, outputs, results, engine, seed=int(cfg.seed), rl_steps=rl_steps,
+                              layouts=Path(str(layouts)) if layouts else None))
+
+    if a.get("reference", False) and state.is_main_process:
+        references = [it.reference for it in items]
+        add_row("reference", references, score_scenes(items, references, judge, engine, progress=False))
 
     for name, path in models.items():
         with state.split_between_processes(list(range(len(items)))) as shard:
@@ -140,7 +257,8 @@ def _evaluate(cfg: DictConfig, models: dict[str, Path], budget_s: float) -> list
         outputs = gather_object(part)  # rank order = shard order = input order
         if not state.is_main_process:
             continue
-        add_row(name, outputs, score_scenes(items, outputs, judge, engine, progress=False))
+        results = score_scenes(items, outputs, judge, engine, progress=False)
+        add_row(name, outputs, results, _rl_steps(name, path))
         if name == "sft":
             repaired, extras = repair_outputs(outputs, tto_overrides=list(cfg.anchors.tto), engine=engine,
                                               progress=False)
@@ -200,7 +318,9 @@ def run_ablation(cfg: DictConfig, budget_min: float | None = None) -> dict:
     reuse = bool(a.get("reuse", True))
 
     def finished(out_dir) -> bool:  # a stage that already wrote its final model (reuse=true)
-        return reuse and (Path(str(out_dir)) / RUN_INFO).is_file()
+        # an RL run records its base at the start with complete=false (train/models.py base_checked)
+        done = (Path(str(out_dir)) / RUN_INFO).is_file() and read_run_info(out_dir).get("complete", True)
+        return reuse and done
 
     sft_dir = Path(str(cfg.sft.output_dir))
     if finished(sft_dir):
@@ -231,7 +351,9 @@ def run_ablation(cfg: DictConfig, budget_min: float | None = None) -> dict:
         stages[variant]["stopped_by_budget"] = budget.stopped_early
     extra = checkpoint_models(models) if a.get("checkpoints", False) else {}
     evaluated = timed("eval", _evaluate, cfg, {**models, **extra}, shares["eval"] * budget_s)
-    rows = [r for r in evaluated if r["name"] not in extra] + skipped
+    rows = [r for r in evaluated if r["name"] not in extra and r["name"] != "reference"] + skipped
+    reference = [r for r in evaluated if r["name"] == "reference"]
+    rows = reference + rows
     checkpoint_rows = [r for r in evaluated if r["name"] in extra]
     anchors_summary = Path(str(cfg.anchors.output)).with_suffix(".summary.json")
     result = {
@@ -255,4 +377,5 @@ def run_ablation(cfg: DictConfig, budget_min: float | None = None) -> dict:
         out.write_text(json.dumps(result, indent=1))
         every = rows + checkpoint_rows
         out.with_suffix(".md").write_text(markdown_table(every) + "\n" + level_table(every))
+        write_learning_curves(result, out.with_suffix(".svg"))
     return result

@@ -20,6 +20,7 @@ own GPU; the shards are gathered in order and rank 0 writes the JSONL and a summ
 from __future__ import annotations
 
 import json
+import sys
 from pathlib import Path
 
 from accelerate import PartialState
@@ -30,7 +31,8 @@ from physcene.ctrc import ParseError, completion_text, parse
 from physcene.layout import load_layout
 from physcene.scene import SceneError
 from physcene.train.generate import generate_token_ids, load_for_generation
-from physcene.train.records import load_records, write_records
+from physcene.train.models import load_tokenizer
+from physcene.train.records import load_records, prompt_pool, write_records
 from physcene.tto import TTOConfig, repair
 
 __all__ = ["anchor_prompts", "anchor_records", "anchor_summary", "completion_length", "run_anchors"]
@@ -125,11 +127,17 @@ def completion_length(ids: list[int], tokenizer) -> tuple[int, bool]:
 def anchor_prompts(cfg) -> list[dict]:
     """The training records that get an anchor: levels <= ``anchors.max_level`` (by default
     ``pada.max_level``: no anchor is made for a prompt PADA never sees) and ``data.max_level``, then the
-    first ``anchors.n_records``."""
+    first ``anchors.n_records``; or with ``anchors.pool_size`` a pool of that many whose reference fits
+    ``pada.max_completion_length`` tokens, spread over the levels (:func:`.records.prompt_pool`)."""
     a = cfg.anchors
     levels = [x for x in (cfg.data.get("max_level"), a.get("max_level")) if x is not None]
     records = load_records(str(cfg.data.train), seed=int(cfg.seed), max_level=min(levels) if levels else None)
-    if a.get("n_records") is not None:
+    if a.get("pool_size") is not None:
+        records, counts = prompt_pool(records, load_tokenizer(str(a.model)), size=int(a.pool_size),
+                                      max_tokens=int(cfg.pada.max_completion_length))
+        print("prompt pool: " + "; ".join(f"level {lv}: {c['picked']} of {c['fit']} that fit ({c['records']})"
+                                          for lv, c in counts.items()), file=sys.stderr)
+    elif a.get("n_records") is not None:
         records = records[:int(a.n_records)]
     return records
 
@@ -145,7 +153,8 @@ def run_anchors(cfg: DictConfig) -> Path:
     a = cfg.anchors
     out = Path(str(a.output))
     have = len(load_records(str(out))) if out.is_file() and not a.get("overwrite", False) else None
-    if have is not None and a.get("n_records") is not None and have == int(a.n_records):
+    wanted = a.get("pool_size") if a.get("pool_size") is not None else a.get("n_records")
+    if have is not None and wanted is not None and have == int(wanted):
         return out  # complete: no need for the training data (a later stage on another machine)
     records = anchor_prompts(cfg)
     if have == len(records):

@@ -21,10 +21,14 @@ from physcene.train.generate import check_cache
 from physcene.train.sft import _precision, accumulation_steps, world_size
 from physcene.train.targets import GEOMETRY_KEYS, object_credit_scope_checked
 
-__all__ = ["VARIANTS", "PADAConfig", "pada_arguments"]
+__all__ = ["SCALE_REWARDS", "VARIANTS", "PADAConfig", "pada_arguments", "reward_overrides"]
 
 # variant -> (anchor column, numeric tokens masked out of the CE); grpo has no anchor (α = 0)
 VARIANTS = {"pada": ("anchor", False), "pada_star": ("anchor_raw", True), "grpo": (None, False)}
+# TRL's reward scaling of the advantages (GRPOConfig.scale_rewards): the std of each prompt's group (the
+# paper's GRPO), of the whole generation batch, or none. With G = 4 and few clean rollouts per group,
+# group scaling spends ~70 % of the advantage mass ranking colliding rollouts by depth; batch ~1.4 %.
+SCALE_REWARDS = ("group", "batch", "none")
 
 
 @dataclass(kw_only=True)
@@ -42,6 +46,10 @@ class PADAConfig(GRPOConfig):
         metadata={"help": "JSON keys whose numeric values the PADA* mask removes from the CE."})
     beta: float = field(default=0.04, metadata={"help": "Initial KL coefficient (AdaptiveKLCallback)."})
     num_generations: int | None = field(default=4, metadata={"help": "Group size G."})
+    scale_rewards: str = field(
+        default="group", metadata={"help": "Divide the advantages by the reward std of each group (group, "
+                                           "the paper's GRPO), of the generation batch (batch) or not "
+                                           "(none); TRL's GRPOConfig.scale_rewards."})
 
     # --- generation (how the groups are sampled; the objective is unchanged) ---
     generation_compile: bool = field(
@@ -97,6 +105,14 @@ class PADAConfig(GRPOConfig):
 
     def __post_init__(self):
         # The messages name the YAML key (pada.<field>): the fields are the pada: section's keys.
+        scale = {True: "group", False: "none"}.get(self.scale_rewards, self.scale_rewards)
+        if scale not in SCALE_REWARDS:
+            raise ValueError(f"pada.scale_rewards must be one of {list(SCALE_REWARDS)}, "
+                             f"got {self.scale_rewards!r}")
+        self.scale_rewards = scale
+        g = self.num_generations
+        if not (isinstance(g, int) and not isinstance(g, bool) and g >= 2):
+            raise ValueError(f"pada.num_generations (the group size G) must be an integer >= 2, got {g!r}")
         if self.num_iterations < 1:
             raise ValueError(f"pada.num_iterations must be a positive integer, got {self.num_iterations}")
         if self.object_credit < 0:
@@ -123,7 +139,13 @@ class PADAConfig(GRPOConfig):
         except ValueError as exc:
             raise ValueError(f"pada.object_credit_terms: {exc}") from None
         self.denoise_tto = [str(x) for x in self.denoise_tto or []]
-        super().__post_init__()
+        try:
+            super().__post_init__()
+        except ValueError as exc:  # TRL's check that a generation round holds whole groups
+            if "num_generations" not in str(exc):
+                raise
+            raise ValueError(f"pada.num_generations={g} must divide the completions of a generation round "
+                             f"(pada.global_batch_size x pada.generation_batches): {exc}") from None
 
 
 def _listed(value) -> list:
@@ -150,6 +172,7 @@ def pada_arguments(cfg, variant: str) -> PADAConfig:
         anchor_numeric_mask=numeric_mask,
         beta=float(p.beta),
         num_generations=int(p.num_generations),
+        scale_rewards=str(p.get("scale_rewards", "group")),
         max_completion_length=int(p.max_completion_length),
         temperature=float(p.temperature),
         # TRL passes it to GenerationConfig (HF generate, use_vllm=False); None = HF's dynamic cache
@@ -190,3 +213,16 @@ def pada_arguments(cfg, variant: str) -> PADAConfig:
         ddp_find_unused_parameters=False,
         **_precision(cfg),
     )
+
+
+def reward_overrides(cfg, variant: str) -> list[str]:
+    """The configs/reward.yaml overrides of ``variant``'s reward: ``pada.reward``, then its entry of
+    ``pada.variant_reward`` (e.g. the validity terms on for one variant, the paper's bare reward for
+    another)."""
+    per_variant = cfg.pada.get("variant_reward") or {}
+    unknown = sorted(set(per_variant) - set(VARIANTS))
+    if unknown:
+        raise ValueError(f"pada.variant_reward: unknown variant(s) {unknown}; "
+                         f"expected some of {sorted(VARIANTS)}")
+    shared, own = _listed(cfg.pada.get("reward") or []), _listed(per_variant.get(variant) or [])
+    return [str(o) for o in [*shared, *own]]

@@ -29,11 +29,13 @@ from transformers import (
 )
 from transformers.models.auto.modeling_auto import MODEL_FOR_IMAGE_TEXT_TO_TEXT_MAPPING_NAMES
 
+from physcene.artifacts import checkpoint_digest
 from physcene.train.tokenizer import build_tokenizer, train_tokenizer
 
 __all__ = [
     "RUN_INFO",
     "TrainingSetupError",
+    "base_checked",
     "build_scratch_model",
     "count_parameters",
     "freeze_vision_tower",
@@ -206,3 +208,19 @@ def read_run_info(model_dir: str | Path) -> dict:
     """The :data:`RUN_INFO` of a checkpoint, or ``{}`` for a foreign checkpoint."""
     path = Path(model_dir) / RUN_INFO
     return json.loads(path.read_text()) if path.is_file() else {}
+
+
+def base_checked(out_dir: str | Path, base_dir: str | Path, **info) -> str:
+    """The digest of the base checkpoint an RL run at ``out_dir`` starts from
+    (:func:`physcene.artifacts.checkpoint_digest`: weights, config, tokenizer), checked against the one
+    its run info recorded: resuming an adapter on another base trains it on weights it was not made
+    for. A new run records it (``base_sha256``, ``complete: false`` until the run saves its model)."""
+    digest = checkpoint_digest(base_dir)
+    recorded = read_run_info(out_dir).get("base_sha256")
+    if recorded is not None and recorded != digest:
+        raise TrainingSetupError(f"{out_dir} was trained from a base with sha256 {recorded}; {base_dir} has "
+                                 f"sha256 {digest}: restore the base it was trained on, or start a new "
+                                 "output_dir")
+    if not (Path(out_dir) / RUN_INFO).is_file():
+        write_run_info(out_dir, **info, base_sha256=digest, complete=False)
+    return digest

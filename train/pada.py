@@ -41,7 +41,7 @@ from transformers.trainer_utils import get_last_checkpoint
 from trl import GRPOTrainer
 
 from physcene.reward.trl import PhysicsRewardFunction
-from physcene.train.config import VARIANTS, PADAConfig, pada_arguments
+from physcene.train.config import VARIANTS, PADAConfig, pada_arguments, reward_overrides
 from physcene.train.constrained_rollouts import ConstrainedRollouts, generate_with_processors
 from physcene.train.denoise import Denoise
 from physcene.train.diagnostics import NonfiniteProbe
@@ -49,6 +49,7 @@ from physcene.train.extension import PADAExtension
 from physcene.train.generate import set_trainer_cache
 from physcene.train.kl import AdaptiveKLCallback
 from physcene.train.models import (
+    base_checked,
     load_model,
     load_tokenizer,
     read_run_info,
@@ -236,6 +237,10 @@ def run_pada(cfg, variant: str | None = None, reward=None, callbacks=()) -> Path
     model_dir = Path(str(cfg.pada.model))
     info = read_run_info(model_dir)
     chat = bool(info.get("chat_format", cfg.model.chat_format))
+    state = PartialState()
+    # refuse to resume an adapter on a base other than the one it was trained from (its weights' sha256)
+    base_sha256 = base_checked(args.output_dir, model_dir, stage="pada", variant=variant, chat_format=chat,
+                               base_model=str(model_dir.resolve())) if state.is_main_process else None
     records = load_records(str(cfg.pada.anchors), max_level=cfg.pada.get("max_level"))
     if not records:
         raise ValueError(f"no records in anchor file {cfg.pada.anchors!r}")
@@ -248,8 +253,7 @@ def run_pada(cfg, variant: str | None = None, reward=None, callbacks=()) -> Path
     set_attention_kernels(cfg.model)  # cuDNN attention's backward NaNs on left-padded rows (torch 2.11)
     model = load_model(model_dir.resolve(), dtype=dtype, freeze_vision=bool(cfg.model.freeze_vision))
     tokenizer = load_tokenizer(model_dir)
-    state = PartialState()
-    reward_fn = PhysicsRewardFunction(state.device, reward=reward, overrides=list(cfg.pada.get("reward", [])))
+    reward_fn = PhysicsRewardFunction(state.device, reward=reward, overrides=reward_overrides(cfg, variant))
     trainer = PADATrainer(
         model=model,
         reward_funcs=[reward_fn],
@@ -274,5 +278,6 @@ def run_pada(cfg, variant: str | None = None, reward=None, callbacks=()) -> Path
                        stopped_by_budget=any(getattr(c, "stopped_early", False)
                                              for c in trainer.callback_handler.callbacks),
                        nonfinite_steps_dropped=skipped_steps(trainer),
-                       base_model=str(model_dir.resolve()), n_records=len(records))
+                       base_model=str(model_dir.resolve()), base_sha256=base_sha256, n_records=len(records),
+                       complete=True)
     return out

@@ -14,7 +14,10 @@ from pathlib import Path
 
 from datasets import Dataset
 
-__all__ = ["load_records", "to_chat", "training_dataset", "write_records"]
+__all__ = ["LEVELS", "load_records", "prompt_pool", "to_chat", "training_dataset", "write_records"]
+
+# The difficulty levels of physcene.data (1: 1-4 objects ... 5: the most crowded tables).
+LEVELS = (1, 2, 3, 4, 5)
 
 
 def load_records(spec: str, *, seed: int = 0, max_level: int | None = None) -> list[dict]:
@@ -61,6 +64,39 @@ def write_records(records: list[dict], path: str | Path) -> None:
         for r in records:
             f.write(json.dumps(r) + "\n")
     tmp.replace(path)
+
+
+def prompt_pool(records: list[dict], tokenizer, *, size: int, max_tokens: int,
+                levels: tuple[int, ...] = LEVELS, reserve: int = 1) -> tuple[list[dict], dict[int, dict]]:
+    """Up to ``size`` RL training prompts whose reference completion fits a rollout of ``max_tokens``
+    tokens under ``tokenizer`` (``reserve`` of them kept for the end of text), taken from every level
+    in turn so that the levels the rollout length allows share the pool; returns (the records in the
+    order of ``records``, ``{level: {"records", "fit", "picked"}}``). A rollout too short for a level's
+    layouts is cut before it parses: such prompts teach the policy nothing but the unparsable reward."""
+    if size < 1 or max_tokens < 1:
+        raise ValueError(f"prompt pool: size and max_tokens must be >= 1, got {size}, {max_tokens}")
+    kept = [k for k, r in enumerate(records) if int(r.get("level", 1)) in levels]
+    texts = [records[k]["completion"] for k in kept]
+    ids = tokenizer(texts, add_special_tokens=False)["input_ids"] if texts else []
+    fitting: dict[int, list[int]] = {level: [] for level in levels}
+    counts = {level: {"records": 0, "fit": 0, "picked": 0} for level in levels}
+    for k, tokens in zip(kept, ids):
+        level = int(records[k].get("level", 1))
+        counts[level]["records"] += 1
+        if len(tokens) + reserve <= max_tokens:
+            fitting[level].append(k)
+            counts[level]["fit"] += 1
+    picked: list[int] = []
+    queues = {level: iter(fitting[level]) for level in levels}
+    while len(picked) < size and queues:
+        for level in list(queues):  # one prompt of each level per round, until the pool is full
+            k = next(queues[level], None)
+            if k is None:
+                del queues[level]
+            elif len(picked) < size:
+                picked.append(k)
+                counts[level]["picked"] += 1
+    return [records[k] for k in sorted(picked)], counts
 
 
 def to_chat(prompt: str) -> list[dict]:

@@ -3,6 +3,7 @@
     physcene check scene/layout.json                    # one MesaTask layout
     physcene check Layout_info/ --json                  # every layout.json under a tree
     physcene check data.jsonl --device cuda             # a JSONL dataset (field "layout")
+    physcene check docs/results/ablation/pada.jsonl.gz  # gzipped JSONL too (an ablation row's layouts)
     physcene check a.json b.json margin_cm=0.2          # configs/physics.yaml overrides
 
 Every scene is scored in one engine call. Exit status 0 whatever the collisions; 2 when an input
@@ -19,7 +20,7 @@ from pathlib import Path
 from tqdm import tqdm
 
 from physcene.commands import add_quiet
-from physcene.layout import load_layout
+from physcene.layout import layout_record_lines, load_layout
 from physcene.scene import Scene
 
 NAME = "check"
@@ -44,7 +45,7 @@ class _Item:
 def add_arguments(parser) -> None:
     parser.add_argument("paths", nargs="+", metavar="PATH",
                         help="layout.json files, directories (searched recursively) or JSONL files "
-                             "whose records carry a 'layout' object")
+                             "(.jsonl or .jsonl.gz) whose records carry a 'layout' object")
     parser.add_argument("--device", default="cpu", help="engine device: cpu (default), cuda, cuda:N")
     parser.add_argument("--json", action="store_true", help="print one JSON document")
     add_quiet(parser)
@@ -62,19 +63,19 @@ def _load_json_file(path: Path) -> _Item:
 
 def _load_jsonl(path: Path) -> list[_Item]:
     try:
-        lines = path.read_text(encoding="utf-8").splitlines()
-    except (OSError, UnicodeDecodeError) as exc:
+        lines = layout_record_lines(path)
+    except (OSError, UnicodeDecodeError, EOFError) as exc:
         return [_Item(str(path), error=f"{path}: {exc}")]
     items = []
-    for number, line in enumerate(lines, start=1):
-        if not line.strip():
-            continue
+    for number, line in lines:
         where = f"{path}:{number}"
         try:
             record = json.loads(line)
             layout = record.get("layout") if isinstance(record, dict) else None
             if isinstance(layout, str):
                 layout = json.loads(layout)
+            if layout is None and isinstance(record, dict) and record.get("parse_error"):
+                raise ValueError(f"the completion did not parse: {record['parse_error']}")
             if not isinstance(layout, dict):
                 raise ValueError("the record has no 'layout' object")
             items.append(_Item(where, scene=load_layout(layout, source=where)))
@@ -94,7 +95,7 @@ def collect(paths) -> list[_Item]:
             if not files:
                 items.append(_Item(str(path), error=f"{path}: no .json layouts under this directory"))
             items.extend(_load_json_file(p) for p in (named or files))
-        elif path.suffix == ".jsonl":
+        elif path.name.endswith((".jsonl", ".jsonl.gz")):
             missing = [_Item(str(path), error=f"{path}: no such file")]
             items.extend(_load_jsonl(path) if path.is_file() else missing)
         elif path.is_file():

@@ -5,6 +5,7 @@ from __future__ import annotations
 import shlex
 import sys
 
+from physcene.artifacts import resolve_generators
 from physcene.commands import add_json, add_quiet, print_json
 from physcene.config import load_config
 from physcene.eval.harness import EvalError, run_evaluation
@@ -18,7 +19,7 @@ SETTINGS = "configs/eval.yaml, or the --config file (docs/eval.md)"
 def add_arguments(parser) -> None:
     parser.add_argument("--split", choices=("test", "ood", "train"), help="benchmark split (default: test)")
     parser.add_argument("--generator", help="comma-separated: reference, tto, heuristic, file:DIR, "
-                        "model:PATH, endpoint:URL (default: reference)")
+                        "model:PATH (or an artifact's name), endpoint:URL (default: reference)")
     parser.add_argument("--judge", choices=("rule", "endpoint"), help="judge (default: rule)")
     parser.add_argument("--out", help="output directory (default: physcene-eval)")
     parser.add_argument("--n", type=int, help="evaluate only the first N scenes of the split")
@@ -35,6 +36,8 @@ def _config(args):
             cfg[key] = getattr(args, key)
     if getattr(args, "repair", False):
         cfg.repair = True
+    if cfg.get("generator"):  # model:NAME of an artifact -> its restored folder
+        cfg.generator = resolve_generators(str(cfg.generator))
     if cfg.n is not None and int(cfg.n) < 1:
         raise ValueError(f"--n must be >= 1, got {cfg.n}")
     return cfg

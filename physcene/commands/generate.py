@@ -18,6 +18,7 @@ from __future__ import annotations
 import json
 import sys
 
+from physcene.artifacts import resolve_generators
 from physcene.commands import add_quiet
 
 NAME = "generate"
@@ -30,7 +31,7 @@ def add_arguments(parser) -> None:
     parser.add_argument("--generator", default="procedural",
                         help="procedural (default, offline), endpoint:URL (OpenAI-compatible chat server, "
                              "key in $PHYSCENE_GENERATOR_API_KEY) or model:PATH (a checkpoint of "
-                             "physcene train)")
+                             "physcene train, or an artifact's name: docs/training.md)")
     parser.add_argument("--n", type=int, default=1, help="number of samples (default 1)")
     parser.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     parser.add_argument("--repair", action="store_true", help="also repair every sample by TTO")
@@ -66,7 +67,8 @@ def run(args) -> int:
 
     if args.n < 1:
         raise ValueError(f"--n must be >= 1, got {args.n}")
-    result = generate(args.instruction, generator=args.generator, n=args.n, seed=args.seed,
+    generator = resolve_generators(args.generator)  # model:NAME of an artifact -> its restored folder
+    result = generate(args.instruction, generator=generator, n=args.n, seed=args.seed,
                       repair=args.repair, out=args.output, export=args.export, render=not args.no_render,
                       scene_type=args.scene_type, device=args.device, endpoint_model=args.endpoint_model,
                       max_new_tokens=args.max_new_tokens, progress=not args.quiet)

@@ -1,4 +1,5 @@
-"""``physcene train sft|anchors|pada|ablation --config NAME [key=value ...]`` (docs/training.md).
+"""``physcene train sft|anchors|pada|ablation|ablation-plot --config NAME [key=value ...]``
+(docs/training.md).
 
 ``--config tiny`` reads ``configs/train/tiny.yaml`` over ``configs/train/base.yaml`` (``small``,
 ``qwen3_vl_8b`` likewise; the older names ``train_tiny`` ... too; a YAML path is read as given).
@@ -14,10 +15,11 @@ import json
 from physcene.config import load_config
 
 NAME = "train"
-HELP = "train the layout model: sft, anchors (SFT output + TTO), pada (grpo|pada_star|pada), ablation"
+HELP = ("train the layout model: sft, anchors (SFT output + TTO), pada (grpo|pada_star|pada), ablation, "
+        "ablation-plot")
 SETTINGS = "configs/train/<--config>.yaml over configs/train/base.yaml (docs/training.md)"
 
-STAGES = ("sft", "anchors", "pada", "ablation")
+STAGES = ("sft", "anchors", "pada", "ablation", "ablation-plot")
 
 
 def add_arguments(parser) -> None:
@@ -84,6 +86,10 @@ def _run_stage(args) -> int:
         out = run_pada(cfg)
         if _main_process():
             print(f"{cfg.pada.variant} adapter: {out}")
+    elif args.stage == "ablation-plot":  # the learning curves of ablation.output, beside it (.svg)
+        from physcene.train.ablation_plot import write_learning_curves
+
+        print(f"learning curves: {write_learning_curves(str(cfg.ablation.output))}")
     else:
         from physcene.train.ablation import run_ablation
 

@@ -52,7 +52,7 @@ OBJECT_TERMS = ("penetration", "floating", "out_of_zone", "size")
 # falls with the objects' thickness (a flat box cannot be penetrated deeply), a pair count does not.
 PENETRATION_CHARGES = ("depth", "pairs")
 # What ``RewardConfig.valid_terms`` may ask of a layout before it is paid for its penetration.
-VALID_TERMS = ("floating", "shrunk")
+VALID_TERMS = ("floating", "shrunk", "out_of_zone")
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -83,8 +83,10 @@ class RewardConfig:
     ``invalid``, whatever its penetration: ``floating``, an object more than the engine's
     ``floating_tolerance_cm`` above its support (the floating metric); ``shrunk``, an object with a
     dimension below ``shrink_ratio`` x the low edge of its category's size band at ``size_tolerance``
-    (:meth:`physcene.assets.SizePrior.low_ratio`; a flattened box). Without it, lifting an object off
-    its support or flattening it takes it out of a collision and earns the collision-free reward."""
+    (:meth:`physcene.assets.SizePrior.low_ratio`; a flattened box); ``out_of_zone``, an object whose
+    yawed footprint leaves the zone by more than ``ZONE_TOLERANCE_CM`` (the out-of-zone metric).
+    Without them, lifting an object off its support, flattening it or pushing it off the zone takes
+    it out of a collision and earns the collision-free reward."""
     invalid: float = -50.0
     """Reward of a parsed layout that breaks a ``valid_terms`` term (the worst colliding layout's)."""
     shrink_ratio: float = 0.5
@@ -330,6 +332,8 @@ class PhysicsReward:
             if bands is None:
                 bands = prior_bands(batch, cfg.size_tolerance)
             broken["shrunk"] = (low_ratio(bands) < cfg.shrink_ratio) & mask
+        if "out_of_zone" in cfg.valid_terms:
+            broken["out_of_zone"] = (batch.zone_overshoot() > ZONE_TOLERANCE_CM) & mask
         return broken
 
     def _object_charges(self, batch, out: dict, charges: ChargeConfig) -> list[np.ndarray]:

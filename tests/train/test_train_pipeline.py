@@ -216,6 +216,14 @@ def test_ablation_rows_per_level_and_per_checkpoint(tmp_path, one_thread):
     assert "pada" not in result["stages"] and not (out / "pada").exists()
     written = json.loads((out / "ablation.json").read_text())
     assert written["checkpoint_rows"][0]["by_level"] == result["checkpoint_rows"][0]["by_level"]
+    # the table's schema: every row names its steps and its gzipped layouts; the curves come with it
+    from physcene.train.ablation import check_ablation
+
+    check_ablation(written)
+    every = written["rows"] + written["checkpoint_rows"]
+    assert [(r["rl_steps"], Path(r["layouts"]).name) for r in every] == \
+        [(0, "sft.jsonl.gz"), (0, "sft_tto.jsonl.gz"), (2, "grpo.jsonl.gz"), (1, "grpo-1.jsonl.gz")]
+    assert (out / "ablation" / "grpo-1.jsonl.gz").is_file() and (out / "ablation.svg").is_file()
 
 
 def test_pada_resumes_from_its_last_checkpoint_with_its_beta(tmp_path, one_thread, step_counter):

@@ -1,0 +1,176 @@
+"""Artifacts kept in the repository's history: add -> commit -> pin -> commit -> restore, sha256-checked;
+an RL run refuses to resume on a base whose digest differs from the one it recorded."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import subprocess
+
+import pytest
+
+from physcene.artifacts import (
+    ArtifactError,
+    add_artifact,
+    checkpoint_digest,
+    is_restored,
+    load_manifest,
+    pin_artifact,
+    resolve_generators,
+    resolve_model,
+    restore_artifact,
+)
+from physcene.cli import main
+from physcene.train.models import TrainingSetupError, base_checked, read_run_info
+
+
+def git(repo, *args):
+    return subprocess.run(["git", *args], cwd=repo, check=True, capture_output=True, text=True).stdout
+
+
+@pytest.fixture
+def repo(tmp_path):
+    root = tmp_path / "repo"
+    root.mkdir()
+    git(root, "init", "-q")
+    git(root, "config", "user.email", "test@example.org")
+    git(root, "config", "user.name", "test")
+    (root / ".gitignore").write_text("/artifacts/\n/runs/\n")
+    (root / "README.md").write_text("repo\n")
+    git(root, "add", "-A")
+    git(root, "commit", "-qm", "start")
+    sft = root / "runs" / "sft"
+    (sft / "tokenizer").mkdir(parents=True)
+    (sft / "model.safetensors").write_bytes(bytes(range(256)) * 40 + b"\r\n\x00")  # binary, CR LF kept
+    (sft / "config.json").write_text('{"model_type": "qwen3"}\n')
+    (sft / "tokenizer" / "tokenizer.json").write_text('{"vocab": {}}')
+    return root
+
+
+def committed_and_pinned(root, name="small-sft"):
+    (root / "runs/sft/checkpoint-2").mkdir()
+    (root / "runs/sft/checkpoint-2/optimizer.pt").write_bytes(b"left out")
+    add_artifact(name, "runs/sft", made_by="physcene train sft --config tiny", data=["synth:train:16"],
+                 exclude=["checkpoint-*"], cwd=root)
+    staged = git(root, "diff", "--cached", "--name-only").split()
+    assert staged == ["artifacts.json", "runs/sft/config.json", "runs/sft/model.safetensors",
+                      "runs/sft/tokenizer/tokenizer.json"]  # not the excluded checkpoint
+    git(root, "commit", "-qm", f"artifact {name}")
+    pin_artifact(name, cwd=root)
+    git(root, "commit", "-qam", f"artifact {name}: out of the tree")
+    return load_manifest(root)[name]
+
+
+def test_add_commit_pin_remove_restore_gives_the_same_bytes(repo):
+    original = {p.relative_to(repo / "runs/sft").as_posix(): p.read_bytes()
+                for p in (repo / "runs/sft").rglob("*") if p.is_file()}
+    artifact = committed_and_pinned(repo)
+    assert (repo / "runs/sft/model.safetensors").is_file()  # an ignored working copy stays
+    assert artifact.commit == git(repo, "rev-parse", "HEAD~1").strip()
+    assert {f["path"] for f in artifact.files} == set(original)
+    assert git(repo, "ls-files", "runs") == ""  # out of the tree; the history holds it
+    assert git(repo, "ls-tree", "-r", "--name-only", "HEAD~1", "runs/sft").split() == \
+        sorted(f"runs/sft/{p}" for p in original)
+    manifest = json.loads((repo / "artifacts.json").read_text())["artifacts"]["small-sft"]
+    assert manifest["made_by"] == "physcene train sft --config tiny"
+    assert manifest["data"] == ["synth:train:16"]
+    subdir = repo / "docs"
+    subdir.mkdir()
+    folder = restore_artifact("small-sft", cwd=subdir)  # any directory inside the checkout
+    assert folder == repo / "artifacts" / "small-sft"
+    for path, data in original.items():
+        assert (folder / path).read_bytes() == data
+        assert hashlib.sha256((folder / path).read_bytes()).hexdigest() == \
+            next(f["sha256"] for f in artifact.files if f["path"] == path)
+    assert checkpoint_digest(folder) == checkpoint_digest(repo / "runs/sft")
+    assert resolve_model("small-sft", cwd=repo) == str(folder)
+    other = restore_artifact("small-sft", "elsewhere", cwd=repo)
+    assert other == repo / "elsewhere" and (other / "config.json").is_file()
+
+
+def test_the_cli_lists_and_restores(repo, monkeypatch, capsys):
+    committed_and_pinned(repo)
+    monkeypatch.chdir(repo)
+    assert main(["artifacts", "list"]) == 0
+    listed = capsys.readouterr().out
+    assert "small-sft: 3 file(s)" in listed and "not restored" in listed
+    assert main(["artifacts", "restore", "small-sft"]) == 0
+    assert main(["artifacts", "list", "--json"]) == 0
+    assert json.loads(capsys.readouterr().out.split("\n", 1)[1])["artifacts"]["small-sft"]["restored"] is True
+    assert main(["artifacts", "restore", "no-such"]) == 2
+    assert "no artifact 'no-such'" in capsys.readouterr().err
+
+
+def test_a_corrupted_blob_is_refused(repo):
+    add_artifact("sft", "runs/sft", made_by="x", cwd=repo)
+    manifest = json.loads((repo / "artifacts.json").read_text())
+    (repo / "runs/sft/config.json").write_text('{"model_type": "other"}\n')  # differs from its hash
+    git(repo, "add", "-f", "runs/sft", "artifacts.json")
+    git(repo, "commit", "-qm", "artifact")
+    with pytest.raises(ArtifactError, match="config.json in commit .* has sha256"):
+        pin_artifact("sft", cwd=repo)
+    manifest["artifacts"]["sft"]["commit"] = git(repo, "rev-parse", "HEAD").strip()  # pinned regardless
+    (repo / "artifacts.json").write_text(json.dumps(manifest))
+    with pytest.raises(ArtifactError, match="refusing to restore"):
+        restore_artifact("sft", cwd=repo)
+    assert not (repo / "artifacts" / "sft" / "config.json").exists()
+
+
+def test_clear_errors_outside_a_checkout_and_for_a_missing_commit(repo, tmp_path):
+    outside = tmp_path / "plain"
+    outside.mkdir()
+    with pytest.raises(ArtifactError, match="not inside a git checkout"):
+        restore_artifact("small-sft", cwd=outside)
+    committed_and_pinned(repo)
+    manifest = json.loads((repo / "artifacts.json").read_text())
+    manifest["artifacts"]["small-sft"]["commit"] = "0" * 40
+    (repo / "artifacts.json").write_text(json.dumps(manifest))
+    with pytest.raises(ArtifactError, match="commit 0{40} is not in this repository; fetch"):
+        restore_artifact("small-sft", cwd=repo)
+    with pytest.raises(ArtifactError, match="restore it with `physcene artifacts restore small-sft`"):
+        resolve_model("small-sft", cwd=repo)
+    add_artifact("again", "README.md", made_by="x", cwd=repo)
+    with pytest.raises(ArtifactError, match="not pinned yet"):
+        restore_artifact("again", cwd=repo)
+
+
+def test_a_shallow_clone_is_told_to_unshallow(repo, tmp_path):
+    committed_and_pinned(repo)  # the files live in HEAD~1, which a depth-1 clone lacks
+    clone = tmp_path / "clone"
+    subprocess.run(["git", "clone", "-q", "--depth", "1", f"file://{repo}", str(clone)], check=True)
+    with pytest.raises(ArtifactError, match=r"is not in this repository; this clone is shallow: run "
+                                            r"`git fetch --unshallow`"):
+        restore_artifact("small-sft", cwd=clone)
+
+
+def test_a_resume_on_another_base_is_refused(repo, tmp_path):
+    out = tmp_path / "pada"
+    digest = base_checked(out, repo / "runs/sft", stage="pada")
+    info = read_run_info(out)
+    assert info["base_sha256"] == digest and info["complete"] is False
+    assert base_checked(out, repo / "runs/sft") == digest  # the same base resumes
+    (repo / "runs/sft/model.safetensors").write_bytes(b"other weights")
+    with pytest.raises(TrainingSetupError, match=f"trained from a base with sha256 {digest}"):
+        base_checked(out, repo / "runs/sft")
+
+
+def test_a_generator_names_an_artifact_and_an_adapter_finds_its_restored_base(repo):
+    committed_and_pinned(repo)
+    pada = repo / "runs" / "pada"
+    pada.mkdir()
+    (pada / "adapter_config.json").write_text(json.dumps({"base_model_name_or_path": "/gone/runs/sft"}))
+    (pada / "adapter_model.safetensors").write_bytes(b"\x00lora\x01")
+    add_artifact("small-pada", "runs/pada", made_by="physcene train pada --config tiny", base="small-sft",
+                 cwd=repo)
+    git(repo, "commit", "-qm", "artifact small-pada")
+    pin_artifact("small-pada", cwd=repo)
+    git(repo, "commit", "-qam", "out of the tree")
+    spec = resolve_generators("reference,model:small-pada,model:runs", cwd=repo)
+    folder = repo / "artifacts" / "small-pada"
+    assert spec == f"reference,model:{folder},model:runs"  # a folder stays a folder
+    config = json.loads((folder / "adapter_config.json").read_text())
+    assert config["base_model_name_or_path"] == str(repo / "artifacts" / "small-sft")
+    assert (repo / "artifacts" / "small-sft" / "model.safetensors").is_file()
+    assert is_restored(folder, load_manifest(repo)["small-pada"])  # the rewrite is not a corruption
+    with pytest.raises(ArtifactError, match="--base 'nope' is not in"):
+        add_artifact("x", "README.md", made_by="x", base="nope", cwd=repo)
