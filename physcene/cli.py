@@ -81,6 +81,14 @@ def build_parser(selected: str | None = None) -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    try:
+        return _main(argv)
+    except KeyboardInterrupt:  # also while the subcommand's modules load (torch, Warp: seconds)
+        print("physcene: interrupted", file=sys.stderr)
+        return 130
+
+
+def _main(argv: list[str] | None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     # the first word that is not an option names the subcommand (top-level takes only -h, --version)
     invoked = next((a for a in argv if not a.startswith("-")), "")
@@ -92,9 +100,6 @@ def main(argv: list[str] | None = None) -> int:
     args.overrides = [a for a in extra if a not in unknown]
     try:
         return int(args._run(args) or 0)
-    except KeyboardInterrupt:
-        print("physcene: interrupted", file=sys.stderr)
-        return 130
     except _INPUT_ERRORS as exc:
         print(f"physcene {args.command}: error: {exc}", file=sys.stderr)
         return 2
