@@ -3,9 +3,9 @@
 The key is the SHA-256 of the normalised mesh bytes (float32 vertices, int32 faces), the grid
 resolution, the point count and seed, the sign method and :data:`BAKE_VERSION` (bumped whenever
 the baking code changes its output). Entries are written to a temporary file in the same folder
-and ``os.replace``d into place (:func:`physcene.files.open_atomic`), so a reader never sees half an entry and an interrupted bake
-leaves nothing behind; an entry that does not load (truncated, bad zip, wrong arrays, non-finite
-values, another key) is deleted and baked again.
+and ``os.replace``d into place (:func:`physcene.files.open_atomic`), so a reader never sees half
+an entry and an interrupted bake leaves nothing behind; an entry that does not load (truncated,
+bad zip, wrong arrays, non-finite values, another key) is deleted and baked again.
 
 Where: ``cache_dir`` when given (config ``assets.cache_dir``), else ``$PHYSCENE_CACHE/assets``,
 else ``~/.cache/physcene/assets``.
