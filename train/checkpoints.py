@@ -7,6 +7,11 @@ RNG state, ``trainer_state.json`` last). A run killed while it writes leaves a f
 the newest folder whose files are all whole and skips the others with a warning; they stay on disk
 (the Trainer's rotation removes them in time) so nothing is deleted behind the user's back.
 
+The check is the guarantee; checkpoints are not staged in a temporary folder and renamed. The
+Trainer itself did that in transformers 4.36 (``tmp-checkpoint-N``): ranks racing on the rename
+broke multi-GPU and multi-node saves (transformers issues 27925, 28119) and it was taken out again,
+and redirecting ``_save_checkpoint`` from a subclass would mean copying it.
+
 A checkpoint is complete when ``trainer_state.json`` parses and names its step, it holds weights
 (``model.safetensors``, a sharded index with every shard, an adapter, or a DeepSpeed
 ``global_step*`` folder), every ``*.safetensors`` has a readable header whose tensors end exactly
