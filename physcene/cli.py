@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import argparse
 import ast
+import gc
 import importlib
 import importlib.util
 import pkgutil
@@ -84,8 +85,12 @@ def main(argv: list[str] | None = None) -> int:
     try:
         return _main(argv)
     except KeyboardInterrupt:  # also while the subcommand's modules load (torch, Warp: seconds)
-        print("physcene: interrupted", file=sys.stderr)
-        return 130
+        pass
+    # Out of the handler the interrupted frames are let go: their progress bars close (and redraw
+    # themselves) now, not at exit after the message, which stays the last line.
+    gc.collect()
+    print("physcene: interrupted", file=sys.stderr)
+    return 130
 
 
 def _main(argv: list[str] | None) -> int:
