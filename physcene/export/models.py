@@ -253,5 +253,3 @@ def _obj_bytes(mesh: trimesh.Trimesh) -> bytes:
 
 def _fmt(values) -> str:
     return " ".join(f"{float(v):.9g}" for v in np.ravel(values))
-
-
