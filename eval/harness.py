@@ -37,6 +37,7 @@ from physcene.eval.metrics import (
 )
 from physcene.eval.render import render_views
 from physcene.eval.report import write_report
+from physcene.files import write_atomic
 from physcene.layout import layout_record_lines, load_layout, read_layout, write_layout
 from physcene.scene import Scene, SceneError
 from physcene.tto import TTOConfig, relation_preservation, repair
@@ -336,7 +337,7 @@ def evaluate_method(items: Sequence[BenchmarkItem], generator: str, judge, *, en
 
 
 def write_json(path: Path, data) -> None:
-    """JSON with NaN written as null (strict JSON readers reject NaN)."""
+    """JSON with NaN written as null (strict JSON readers reject NaN), renamed into place when complete."""
     def clean(x):
         if isinstance(x, float) and not np.isfinite(x):
             return None
@@ -348,8 +349,7 @@ def write_json(path: Path, data) -> None:
             return clean(x.item())
         return x
 
-    path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(json.dumps(clean(data), indent=1))
+    write_atomic(path, json.dumps(clean(data), indent=1))
 
 
 def method_name(generator: str, repair: bool = False, *, whole_argument: bool = False) -> str:
@@ -413,6 +413,10 @@ def run_evaluation(cfg, *, command: str = "", title: str = "physcene evaluation"
     tto_overrides = list(cfg.tto)
     if not any(o.startswith("device=") for o in tto_overrides):
         tto_overrides.insert(0, f"device={device}")
+    # The results of an older run must not sit beside this run's layouts and renders: gone until
+    # this run's are complete (results.json, written last, is what says so).
+    for old in (out / "results.json", out / "report.md"):
+        old.unlink(missing_ok=True)
     methods: dict[str, dict] = {}
     renders: dict[str, dict[str, str]] = {}
     n_render = min(int(cfg.render), len(items))
@@ -433,10 +437,10 @@ def run_evaluation(cfg, *, command: str = "", title: str = "physcene evaluation"
                                  size=tuple(cfg.render_size))
             for view, p in paths.items():
                 renders.setdefault(it.id, {})[f"{name} {view}"] = str(p.relative_to(out))
-    write_json(out / "results.json", {"split": cfg.split, "n": len(items), "judge": cfg.judge,
-                                      "generators": specs, "repair": bool(cfg.repair),
-                                      "methods": methods})
     tables = {k: {kk: vv for kk, vv in v.items() if kk != "scenes"} for k, v in methods.items()}
     path = write_report(out, tables, title=title, command=command, renders=renders,
                         labels=bool(cfg.get("render_labels", False)))
+    write_json(out / "results.json", {"split": cfg.split, "n": len(items), "judge": cfg.judge,
+                                      "generators": specs, "repair": bool(cfg.repair),
+                                      "methods": methods})
     return tables, path

@@ -27,6 +27,7 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
+from physcene.files import write_atomic
 from physcene.scene import Scene
 
 __all__ = ["VIEWS", "png_bytes", "render_comparison", "render_image", "render_views", "scene_meshes"]
@@ -391,6 +392,6 @@ def render_views(scene: Scene, out_dir, views=("front", "perspective"), size: tu
     paths = {}
     for view in views:
         path = out / f"{prefix}{view}.png"
-        path.write_bytes(png_bytes(render_image(scene, view, size=size, library=library, labels=labels)))
+        write_atomic(path, png_bytes(render_image(scene, view, size=size, library=library, labels=labels)))
         paths[view] = path
     return paths

@@ -14,6 +14,7 @@ from pathlib import Path
 
 from physcene.eval.metrics import CRITERIA, DIFFICULTY_LEVELS, QPR_TAUS, THRESHOLDS_CM
 from physcene.eval.render import png_bytes, render_comparison
+from physcene.files import open_atomic, write_atomic
 from physcene.layout import read_layout
 
 __all__ = ["diversity_table", "failure_lines", "level_table", "main_table", "method_slug",
@@ -136,6 +137,12 @@ def type_table(methods: Mapping[str, Mapping]) -> str:
     return _group_table(methods, "by_type", "Scene type", types)
 
 
+def _save_figure(fig, path) -> None:
+    """``fig`` as ``path`` (format from its suffix), renamed into place when complete."""
+    with open_atomic(path, "wb") as fh:
+        fig.savefig(fh, format=Path(path).suffix.lstrip(".") or "png")
+
+
 def plot_qpr_by_level(methods: Mapping[str, Mapping], path: Path) -> Path:
     """Line plot of QPR(τ=7) against difficulty level, one line per method."""
     import matplotlib
@@ -154,7 +161,7 @@ def plot_qpr_by_level(methods: Mapping[str, Mapping], path: Path) -> Path:
     ax.grid(alpha=0.3)
     ax.legend(fontsize=8)
     fig.tight_layout()
-    fig.savefig(path)
+    _save_figure(fig, path)
     plt.close(fig)
     return path
 
@@ -182,7 +189,7 @@ def plot_type_radar(methods: Mapping[str, Mapping], path: Path) -> Path:
     ax.set_title("QPR (τ = 7) per scene type, %", fontsize=9)
     ax.legend(fontsize=7, loc="lower right", bbox_to_anchor=(1.15, -0.1))
     fig.tight_layout()
-    fig.savefig(path)
+    _save_figure(fig, path)
     plt.close(fig)
     return path
 
@@ -206,8 +213,7 @@ def write_comparisons(out_dir, scene_ids: Sequence[str], method_names: Sequence[
         if not scenes:
             continue
         path = out / "renders" / "compare" / f"{scene_id}.png"
-        path.parent.mkdir(parents=True, exist_ok=True)
-        path.write_bytes(png_bytes(render_comparison(scenes, view, size=size, labels=labels)))
+        write_atomic(path, png_bytes(render_comparison(scenes, view, size=size, labels=labels)))
         sheets[scene_id] = str(path.relative_to(out))
     return sheets
 
@@ -251,6 +257,4 @@ def write_report(out_dir, methods: Mapping[str, Mapping], *, title: str, command
                 parts += [f"![{scene_id}: methods side by side]({sheets[scene_id]})", ""]
             parts.append(" ".join(f"![{label}]({p})" for label, p in views.items()))
             parts.append("")
-    path = out / "report.md"
-    path.write_text("\n".join(parts))
-    return path
+    return write_atomic(out / "report.md", "\n".join(parts))

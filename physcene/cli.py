@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import argparse
 import ast
+import gc
 import importlib
 import importlib.util
 import pkgutil
@@ -81,6 +82,18 @@ def build_parser(selected: str | None = None) -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    try:
+        return _main(argv)
+    except KeyboardInterrupt:  # also while the subcommand's modules load (torch, Warp: seconds)
+        pass
+    # Out of the handler the interrupted frames are let go: their progress bars close (and redraw
+    # themselves) now, not at exit after the message, which stays the last line.
+    gc.collect()
+    print("physcene: interrupted", file=sys.stderr)
+    return 130
+
+
+def _main(argv: list[str] | None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     # the first word that is not an option names the subcommand (top-level takes only -h, --version)
     invoked = next((a for a in argv if not a.startswith("-")), "")
@@ -92,9 +105,6 @@ def main(argv: list[str] | None = None) -> int:
     args.overrides = [a for a in extra if a not in unknown]
     try:
         return int(args._run(args) or 0)
-    except KeyboardInterrupt:
-        print("physcene: interrupted", file=sys.stderr)
-        return 130
     except _INPUT_ERRORS as exc:
         print(f"physcene {args.command}: error: {exc}", file=sys.stderr)
         return 2

@@ -26,12 +26,11 @@ from __future__ import annotations
 import gzip
 import json
 import math
-import os
 import re
-import tempfile
 from collections.abc import Iterator
 from pathlib import Path
 
+from physcene.files import write_atomic
 from physcene.scene import Scene, SceneError, SceneObject, Zone
 
 __all__ = [
@@ -319,18 +318,7 @@ def dumps_layout(scene: Scene) -> str:
 
 def write_layout(scene: Scene, path) -> Path:
     """Write ``scene`` as a MesaTask ``layout.json`` atomically (temp file, then rename)."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    text = dumps_layout(scene)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8") as fh:
-            fh.write(text)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-    return path
+    return write_atomic(path, dumps_layout(scene))
 
 
 def iter_layout_tree(root, *, skip_errors: bool = False) -> Iterator[tuple[Path, Scene]]:
@@ -374,12 +362,5 @@ def write_layout_records(records, path) -> Path:
     path.parent.mkdir(parents=True, exist_ok=True)
     body = "".join(json.dumps(r, ensure_ascii=False, allow_nan=False) + "\n" for r in records).encode()
     data = gzip.compress(body, mtime=0) if path.suffix == ".gz" else body
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "wb") as fh:
-            fh.write(data)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    write_atomic(path, data)
     return path

@@ -5,6 +5,7 @@ stage does not load TRL for another):
 
 - :mod:`~physcene.train.sft` stage 1, supervised fine-tuning; :mod:`~physcene.train.models`,
   :mod:`~physcene.train.tokenizer`, :mod:`~physcene.train.records` its model, tokenizer and data;
+  :mod:`~physcene.train.checkpoints` the complete checkpoint a run resumes from;
 - :mod:`~physcene.train.anchors` the physically-projected semantic anchors (SFT output + TTO);
 - :mod:`~physcene.train.pada` stage 2, the paper's objective GRPO + α · CE(anchor) (PADA, PADA*,
   GRPO), configured by :mod:`~physcene.train.config`, its targets tokenised by

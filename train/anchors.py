@@ -28,6 +28,7 @@ from accelerate.utils import gather_object
 from omegaconf import DictConfig
 
 from physcene.ctrc import ParseError, completion_text, parse
+from physcene.files import write_atomic
 from physcene.layout import load_layout
 from physcene.scene import SceneError
 from physcene.train.generate import generate_token_ids, load_for_generation
@@ -146,7 +147,8 @@ def run_anchors(cfg: DictConfig) -> Path:
     """Generate, parse and repair anchors for ``cfg.data.train`` with ``cfg.anchors.model``.
 
     Writes ``cfg.anchors.output`` (JSONL) and ``<output>.summary.json``. An existing complete output is
-    kept (rerun with ``anchors.overwrite=true`` to rebuild).
+    kept (rerun with ``anchors.overwrite=true`` to rebuild). Both files are renamed into place when
+    complete, the anchors last: an interrupted run leaves no anchor file, or a whole one.
     """
     from physcene.physics import PhysicsEngine  # Warp: only when anchors are made
 
@@ -178,7 +180,10 @@ def run_anchors(cfg: DictConfig) -> Path:
                               lengths=lengths)
     rows = gather_object(rows)  # rank order = shard order = input order
     if state.is_main_process:
+        # The anchor file is the one a later run checks for, so it comes last: the old one goes
+        # first, then the summary and the anchors are each renamed into place when complete.
+        out.unlink(missing_ok=True)
+        write_atomic(out.with_suffix(".summary.json"), json.dumps(anchor_summary(rows), indent=2))
         write_records(rows, out)
-        out.with_suffix(".summary.json").write_text(json.dumps(anchor_summary(rows), indent=2))
     state.wait_for_everyone()
     return out

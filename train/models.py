@@ -30,12 +30,15 @@ from transformers import (
 from transformers.models.auto.modeling_auto import MODEL_FOR_IMAGE_TEXT_TO_TEXT_MAPPING_NAMES
 
 from physcene.artifacts import checkpoint_digest
+from physcene.files import replace_dir, write_atomic
+from physcene.train.checkpoints import weights_problem
 from physcene.train.tokenizer import build_tokenizer, train_tokenizer
 
 __all__ = [
     "RUN_INFO",
     "TrainingSetupError",
     "base_checked",
+    "begin_final_save",
     "build_scratch_model",
     "count_parameters",
     "freeze_vision_tower",
@@ -43,6 +46,7 @@ __all__ = [
     "load_tokenizer",
     "prepare_model_and_tokenizer",
     "read_run_info",
+    "save_train_log",
     "set_attention_kernels",
     "torch_dtype",
     "write_run_info",
@@ -183,7 +187,8 @@ def prepare_model_and_tokenizer(cfg: DictConfig, texts: Iterable[str] | None = N
         if tok_dir is not None and (tok_dir / "tokenizer.json").is_file():
             tokenizer = load_tokenizer(tok_dir)  # resume: the vocabulary must not change under a checkpoint
         elif tok_dir is not None:
-            train_tokenizer(texts, tok_dir, vocab_size=int(m.tokenizer.vocab_size))
+            with replace_dir(tok_dir) as tmp:  # a resume must never find half a vocabulary
+                train_tokenizer(texts, tmp, vocab_size=int(m.tokenizer.vocab_size))
             tokenizer = load_tokenizer(tok_dir)
         else:
             tokenizer = build_tokenizer(texts, vocab_size=int(m.tokenizer.vocab_size))
@@ -199,15 +204,43 @@ def prepare_model_and_tokenizer(cfg: DictConfig, texts: Iterable[str] | None = N
 
 
 def write_run_info(out_dir: str | Path, **info) -> None:
-    """Record how a checkpoint expects its input (``chat_format``, ``stage``, ``base_model`` ...)."""
-    Path(out_dir).mkdir(parents=True, exist_ok=True)
-    (Path(out_dir) / RUN_INFO).write_text(json.dumps(info, indent=2, sort_keys=True))
+    """Record how a checkpoint expects its input (``chat_format``, ``stage``, ``base_model`` ...).
+
+    Written last, after the model, tokenizer and log: a run folder with :data:`RUN_INFO` is a
+    finished one (:func:`begin_final_save` removes it before the final model is written)."""
+    write_atomic(Path(out_dir) / RUN_INFO, json.dumps(info, indent=2, sort_keys=True))
+
+
+def begin_final_save(trainer, out_dir: str | Path) -> None:
+    """Remove the :data:`RUN_INFO` of an earlier run before ``trainer`` writes the final model into
+    ``out_dir``: interrupted while it writes, the folder no longer claims to hold a finished model."""
+    if trainer.is_world_process_zero():
+        (Path(out_dir) / RUN_INFO).unlink(missing_ok=True)
+
+
+def save_train_log(trainer, out_dir: str | Path) -> None:
+    """The trainer's log history as ``out_dir/train_log.json`` (renamed into place when complete)."""
+    write_atomic(Path(out_dir) / "train_log.json", json.dumps(trainer.state.log_history, indent=1))
 
 
 def read_run_info(model_dir: str | Path) -> dict:
-    """The :data:`RUN_INFO` of a checkpoint, or ``{}`` for a foreign checkpoint."""
+    """The :data:`RUN_INFO` of a checkpoint, or ``{}`` for a foreign checkpoint.
+
+    A training folder (``checkpoint-*`` inside) without it, or with one marked ``complete: false``, whose
+    top-level weights are missing or cut short is a run that has not finished (stopped before or during
+    its final save): an error saying so, rather than a crash in the model loader."""
     path = Path(model_dir) / RUN_INFO
-    return json.loads(path.read_text()) if path.is_file() else {}
+    info = json.loads(path.read_text()) if path.is_file() else None
+    if info is not None and info.get("complete") is not False:
+        return info
+    folder = Path(model_dir)
+    # an RL run records its base at the start (``complete: false``) and its model at the end
+    if folder.is_dir() and (info is not None or any(folder.glob("checkpoint-*"))):
+        problem = weights_problem(folder)
+        if problem:
+            raise TrainingSetupError(f"{str(folder)!r} is a training run that has not finished ({problem}); "
+                                     "run its training command again to resume it")
+    return info or {}
 
 
 def base_checked(out_dir: str | Path, base_dir: str | Path, **info) -> str:
@@ -216,11 +249,12 @@ def base_checked(out_dir: str | Path, base_dir: str | Path, **info) -> str:
     its run info recorded: resuming an adapter on another base trains it on weights it was not made
     for. A new run records it (``base_sha256``, ``complete: false`` until the run saves its model)."""
     digest = checkpoint_digest(base_dir)
-    recorded = read_run_info(out_dir).get("base_sha256")
+    info_path = Path(out_dir) / RUN_INFO  # raw: an unfinished run's info is what is checked
+    recorded = json.loads(info_path.read_text()).get("base_sha256") if info_path.is_file() else None
     if recorded is not None and recorded != digest:
         raise TrainingSetupError(f"{out_dir} was trained from a base with sha256 {recorded}; {base_dir} has "
                                  f"sha256 {digest}: restore the base it was trained on, or start a new "
                                  "output_dir")
-    if not (Path(out_dir) / RUN_INFO).is_file():
+    if not info_path.is_file():
         write_run_info(out_dir, **info, base_sha256=digest, complete=False)
     return digest

@@ -29,7 +29,6 @@ at 0.04 and is adapted by :class:`~physcene.train.kl.AdaptiveKLCallback`.
 
 from __future__ import annotations
 
-import json
 import logging
 import time
 from pathlib import Path
@@ -37,10 +36,10 @@ from pathlib import Path
 import torch
 from accelerate import PartialState
 from omegaconf import OmegaConf
-from transformers.trainer_utils import get_last_checkpoint
 from trl import GRPOTrainer
 
 from physcene.reward.trl import PhysicsRewardFunction
+from physcene.train.checkpoints import last_complete_checkpoint
 from physcene.train.config import VARIANTS, PADAConfig, pada_arguments, reward_overrides
 from physcene.train.constrained_rollouts import ConstrainedRollouts, generate_with_processors
 from physcene.train.denoise import Denoise
@@ -50,9 +49,11 @@ from physcene.train.generate import set_trainer_cache
 from physcene.train.kl import AdaptiveKLCallback
 from physcene.train.models import (
     base_checked,
+    begin_final_save,
     load_model,
     load_tokenizer,
     read_run_info,
+    save_train_log,
     set_attention_kernels,
     write_run_info,
 )
@@ -268,11 +269,12 @@ def run_pada(cfg, variant: str | None = None, reward=None, callbacks=()) -> Path
         trainer.add_callback(AdaptiveKLCallback(trainer, target=float(kl.target), horizon=int(kl.horizon),
                                                 min_beta=float(kl.min_beta), max_beta=float(kl.max_beta)))
     out = Path(args.output_dir)
-    trainer.train(resume_from_checkpoint=get_last_checkpoint(str(out)) if out.is_dir() else None)
+    trainer.train(resume_from_checkpoint=last_complete_checkpoint(out))
+    begin_final_save(trainer, out)
     trainer.save_model(str(out))
     if trainer.is_world_process_zero():
         tokenizer.save_pretrained(str(out))
-        (out / "train_log.json").write_text(json.dumps(trainer.state.log_history, indent=1))
+        save_train_log(trainer, out)
         write_run_info(out, stage="pada", variant=variant, chat_format=chat, alpha=args.anchor_alpha,
                        eval_batch_size=int(cfg.eval.batch_size), steps=trainer.state.global_step,
                        stopped_by_budget=any(getattr(c, "stopped_early", False)

@@ -14,6 +14,8 @@ from pathlib import Path
 
 from datasets import Dataset
 
+from physcene.files import open_atomic
+
 __all__ = ["LEVELS", "load_records", "prompt_pool", "to_chat", "training_dataset", "write_records"]
 
 # The difficulty levels of physcene.data (1: 1-4 objects ... 5: the most crowded tables).
@@ -58,12 +60,14 @@ def write_records(records: list[dict], path: str | Path) -> None:
     """One JSON object per line (gzipped when the name ends in ``.gz``, as :func:`load_records` reads
     it), written to a temp file then renamed (a crash leaves no half file)."""
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_suffix(path.suffix + ".tmp")
-    with (gzip.open(tmp, "wt") if path.suffix == ".gz" else tmp.open("w")) as f:
+    with open_atomic(path, "wb") as raw:
+        # the gzip header names the final file, not the temporary one
+        packed = gzip.GzipFile(filename=str(path), mode="wb", fileobj=raw) if path.suffix == ".gz" else None
+        out = packed or raw
         for r in records:
-            f.write(json.dumps(r) + "\n")
-    tmp.replace(path)
+            out.write((json.dumps(r) + "\n").encode("utf-8"))
+        if packed is not None:
+            packed.close()  # writes the gzip trailer into raw (it leaves raw open)
 
 
 def prompt_pool(records: list[dict], tokenizer, *, size: int, max_tokens: int,

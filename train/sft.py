@@ -4,14 +4,13 @@ The loss covers the completion only (``completion_only_loss=True``: TRL masks th
 prompt/completion datasets). Full fine-tuning by default; ``sft.lora`` switches to LoRA adapters.
 The global batch is ``per_device_batch_size x world_size x gradient_accumulation_steps``; the
 accumulation steps are derived from ``global_batch_size`` for the world size the run sees, so one
-config serves 1 GPU, N GPUs and the CPU test. A run resumes from the last ``checkpoint-*`` in its
-output directory.
+config serves 1 GPU, N GPUs and the CPU test. A run resumes from the newest complete
+``checkpoint-*`` in its output directory (:func:`~physcene.train.checkpoints.last_complete_checkpoint`).
 """
 
 from __future__ import annotations
 
 import dataclasses
-import json
 import logging
 import math
 import os
@@ -23,12 +22,14 @@ import torch.distributed as dist
 from omegaconf import DictConfig, OmegaConf
 from peft import LoraConfig
 from transformers import TrainerCallback
-from transformers.trainer_utils import get_last_checkpoint
 from trl import SFTConfig, SFTTrainer
 
+from physcene.train.checkpoints import last_complete_checkpoint
 from physcene.train.models import (
     TrainingSetupError,
+    begin_final_save,
     prepare_model_and_tokenizer,
+    save_train_log,
     set_attention_kernels,
     torch_dtype,
     write_run_info,
@@ -226,16 +227,17 @@ def run_sft(cfg: DictConfig, callbacks=()) -> Path:
         peft_config=lora_config(cfg.sft.lora),
         callbacks=[*callbacks, *time_budget_callbacks(cfg.sft), SkipNonFiniteSteps()],
     )
-    trainer.train(resume_from_checkpoint=get_last_checkpoint(str(out)) if out.is_dir() else None)
+    trainer.train(resume_from_checkpoint=last_complete_checkpoint(out))
     if cfg.sft.lora is not None:
         # Later stages load one plain checkpoint: fold the adapters into the weights.
         trainer.model = trainer.model.merge_and_unload()
     if cfg.model.source == "scratch":
         trainer.model.to(torch_dtype(str(cfg.model.dtype)))  # small: a 52 MiB bf16 checkpoint
+    begin_final_save(trainer, out)
     trainer.save_model(str(out))
     if trainer.is_world_process_zero():
         tokenizer.save_pretrained(str(out))
-        (out / "train_log.json").write_text(json.dumps(trainer.state.log_history, indent=1))
+        save_train_log(trainer, out)
         write_run_info(out, stage="sft", chat_format=chat, config=str(cfg.name), n_records=len(records),
                        eval_batch_size=int(cfg.eval.batch_size), steps=trainer.state.global_step,
                        stopped_by_budget=any(getattr(c, "stopped_early", False)

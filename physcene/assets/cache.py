@@ -3,9 +3,9 @@
 The key is the SHA-256 of the normalised mesh bytes (float32 vertices, int32 faces), the grid
 resolution, the point count and seed, the sign method and :data:`BAKE_VERSION` (bumped whenever
 the baking code changes its output). Entries are written to a temporary file in the same folder
-and ``os.replace``d into place, so a reader never sees half an entry and an interrupted bake
-leaves nothing behind; an entry that does not load (truncated, bad zip, wrong arrays, non-finite
-values, another key) is deleted and baked again.
+and ``os.replace``d into place (:func:`physcene.files.open_atomic`), so a reader never sees half
+an entry and an interrupted bake leaves nothing behind; an entry that does not load (truncated,
+bad zip, wrong arrays, non-finite values, another key) is deleted and baked again.
 
 Where: ``cache_dir`` when given (config ``assets.cache_dir``), else ``$PHYSCENE_CACHE/assets``,
 else ``~/.cache/physcene/assets``.
@@ -16,11 +16,12 @@ from __future__ import annotations
 import hashlib
 import logging
 import os
-import tempfile
 import zipfile
 from pathlib import Path
 
 import numpy as np
+
+from physcene.files import open_atomic
 
 __all__ = ["BAKE_VERSION", "BakeCache", "default_cache_dir"]
 
@@ -85,18 +86,9 @@ class BakeCache:
         return {"sdf": entry["sdf"], "points": entry["points"]}
 
     def store(self, key: str, sdf: np.ndarray, points: np.ndarray) -> Path:
-        """Write an entry atomically (temp file in the same folder, then ``os.replace``)."""
-        self.root.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(dir=self.root, prefix=f".{key[:16]}-", suffix=".tmp")
-        try:
-            with os.fdopen(fd, "wb") as f:
-                _write_npz(f, key=np.array(key), sdf=sdf, points=points)
-                f.flush()
-                os.fsync(f.fileno())
-            os.replace(tmp, self.path(key))
-        except BaseException:
-            Path(tmp).unlink(missing_ok=True)
-            raise
+        """Write an entry atomically and durably (temp file in the same folder, fsync, ``os.replace``)."""
+        with open_atomic(self.path(key), "wb", fsync=True) as f:
+            _write_npz(f, key=np.array(key), sdf=sdf, points=points)
         return self.path(key)
 
 

@@ -5,12 +5,12 @@
 
 ``key=value`` overrides go to ``configs/data.yaml`` (e.g. ``noise.pair_rate=0.3``,
 ``record.workers=4``). Each run writes ``<split>.jsonl``, ``<split>_stats.json`` and
-``<split>_stats.md`` in DIR.
+``<split>_stats.md`` in DIR, all three renamed into place once complete (an interrupted run leaves
+the previous files or none; the same command writes them again, byte for byte).
 """
 
 from __future__ import annotations
 
-import json
 import sys
 from dataclasses import replace
 from pathlib import Path
@@ -19,11 +19,12 @@ from tqdm import tqdm
 
 from physcene.commands import add_json, add_quiet, print_json
 from physcene.config import load_config
-from physcene.data.benchmark import DataConfig, split_stats, stats_markdown, write_records, write_split
+from physcene.data.benchmark import DataConfig, split_files, split_stats, write_split
 from physcene.data.instructions import EndpointInstructor
 from physcene.data.mesatask_ctrc import dumps_record, import_layout_tree
 from physcene.data.splits import select_test
 from physcene.eval.metrics import measure_reference
+from physcene.files import write_atomic_many
 
 NAME = "data"
 HELP = "Build benchmark data: synthetic MesaTask-style splits or MesaTask-CTRC from real layouts"
@@ -148,11 +149,9 @@ def _run_import(args) -> int:
     ):
         for r in chosen:
             r["split"] = split
-        write_records((dumps_record(r) for r in chosen), out / f"{split}.jsonl")
         stats = split_stats(chosen, measurer=measure_reference if args.measure and chosen else None)
         stats.update(split=split, seed=args.seed, file=f"{split}.jsonl", source=str(root))
-        (out / f"{split}_stats.json").write_text(json.dumps(stats, indent=2, sort_keys=True) + "\n")
-        (out / f"{split}_stats.md").write_text(stats_markdown(stats))
+        write_atomic_many(split_files(out, split, [dumps_record(r) for r in chosen], stats))
         written.append({"split": split, "file": out / f"{split}.jsonl", "n": len(chosen),
                         "stats_json": out / f"{split}_stats.json", "stats_md": out / f"{split}_stats.md"})
         if not args.json:

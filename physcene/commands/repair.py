@@ -18,6 +18,7 @@ from pathlib import Path
 
 from physcene.commands import add_json, add_quiet, print_json
 from physcene.ctrc import MAX_DECIMALS, completion_text, decimals_of
+from physcene.files import write_atomic
 from physcene.layout import layout_to_dict, load_layout
 from physcene.scene import SceneError
 from physcene.tto import TTOConfig, repair, summarize
@@ -176,8 +177,5 @@ def _write_json(path: Path, data) -> None:
 
 
 def _write_text(path: Path, text: str) -> None:
-    """Atomic write: a temp file beside ``path``, then rename."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.tmp")
-    tmp.write_text(text, encoding="utf-8")
-    tmp.replace(path)
+    """Atomic write (:func:`physcene.files.write_atomic`): an interrupted repair leaves no half file."""
+    write_atomic(path, text)

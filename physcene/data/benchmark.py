@@ -4,15 +4,18 @@
 JSONL (in parallel worker processes; every record has its own RNG seeded from (seed, split,
 index), so the bytes do not depend on the number of workers) together with the stats table
 (type × level counts, noise counts and, measured with the physics engine, the reference
-SCR/ACR) as ``<split>_stats.json`` and ``<split>_stats.md``.
+SCR/ACR) as ``<split>_stats.json`` and ``<split>_stats.md``. The three files are renamed into
+place together once all are complete (:func:`physcene.files.write_atomic_many`): an interrupted
+run leaves the previous files or none, and running it again writes the same bytes.
 """
 
 from __future__ import annotations
 
 import json
 import multiprocessing as mp
+import signal
 import time
-from collections.abc import Callable, Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass, field, fields
 from pathlib import Path
 
@@ -27,6 +30,7 @@ from physcene.data.noise import NoiseConfig, NoiseRecord, apply_noise
 from physcene.data.scene_types import OOD_SCENE_TYPES, SCENE_TYPES, spec_for
 from physcene.data.splits import PlanItem, plan_split, record_rng
 from physcene.data.synth import ContainerFit, SynthConfig, synthesize_layout
+from physcene.files import open_atomic, write_atomic_many
 from physcene.layout import load_layout
 from physcene.scene import Scene
 
@@ -34,6 +38,7 @@ __all__ = [
     "DataConfig",
     "build_record",
     "build_scenes",
+    "split_files",
     "split_stats",
     "stats_markdown",
     "synthesize",
@@ -153,13 +158,25 @@ def _work(args) -> str:
     return dumps_record(build_record(split, seed, item, config))
 
 
+def _ignore_interrupt() -> None:
+    """Pool workers leave Ctrl-C to the parent, which stops the pool (no traceback per worker)."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
 def write_records(lines: Iterable[str], path: Path) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".tmp")
-    with open(tmp, "w", encoding="utf-8", newline="\n") as fh:
+    """One record per line, written under a temporary name and renamed when complete."""
+    with open_atomic(path) as fh:
         for line in lines:
             fh.write(line + "\n")
-    tmp.replace(path)
+
+
+def split_files(out_dir, split: str, lines: Sequence[str], stats: dict) -> dict[Path, str]:
+    """``<split>.jsonl``, ``<split>_stats.md`` and ``<split>_stats.json`` (last: it says the split is
+    complete), for :func:`physcene.files.write_atomic_many`."""
+    out_dir = Path(out_dir)
+    return {out_dir / f"{split}.jsonl": "".join(line + "\n" for line in lines),
+            out_dir / f"{split}_stats.md": stats_markdown(stats),
+            out_dir / f"{split}_stats.json": json.dumps(stats, indent=2, sort_keys=True) + "\n"}
 
 
 def write_split(
@@ -191,7 +208,7 @@ def write_split(
     lines: list[str] = []
     if config.workers > 1 and len(jobs) > 32:
         ctx = mp.get_context("fork") if "fork" in mp.get_all_start_methods() else mp.get_context()
-        with ctx.Pool(config.workers) as pool:
+        with ctx.Pool(config.workers, initializer=_ignore_interrupt) as pool:
             for line in pool.imap(_work, jobs, chunksize=16):
                 lines.append(line)
                 bar.update()
@@ -202,7 +219,6 @@ def write_split(
     bar.close()
     seconds = time.perf_counter() - t0
     path = out_dir / f"{split}.jsonl"
-    write_records(lines, path)
     records = [json.loads(line) for line in lines]
     if measure is None:
         measure = (
@@ -213,8 +229,9 @@ def write_split(
                          "(e.g. physcene.eval.metrics.measure_reference)")
     stats = split_stats(records, measurer=measurer if measure else None)
     stats.update(split=split, seed=seed, file=path.name)
-    (out_dir / f"{split}_stats.json").write_text(json.dumps(stats, indent=2, sort_keys=True) + "\n")
-    (out_dir / f"{split}_stats.md").write_text(stats_markdown(stats))
+    # The split and its stats appear together (none is left over from an older run), after the
+    # measuring: an interrupted run leaves the previous files or none.
+    write_atomic_many(split_files(out_dir, split, lines, stats))
     stats["generation_seconds"] = round(seconds, 2)  # reported, never written (files stay byte-identical)
     return stats
 

@@ -19,6 +19,8 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
+from physcene.files import open_atomic
+
 __all__ = ["convex_parts"]
 
 
@@ -74,16 +76,8 @@ def convex_parts(mesh: trimesh.Trimesh, settings: dict) -> list[trimesh.Trimesh]
     vertices = np.concatenate([p.vertices for p in parts])
     faces = np.concatenate([p.faces for p in parts])
     offsets = np.cumsum([[0, 0]] + [[len(p.vertices), len(p.faces)] for p in parts], axis=0)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    # Written to a temporary file in the same folder, then renamed: readers never see half a file.
-    fd, tmp = tempfile.mkstemp(dir=path.parent, suffix=".npz.tmp")
-    try:
-        with os.fdopen(fd, "wb") as fh:
-            np.savez(fh, vertices=vertices, faces=faces, offsets=offsets)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    with open_atomic(path, "wb") as fh:  # readers never see half a file
+        np.savez(fh, vertices=vertices, faces=faces, offsets=offsets)
     return parts
 
 

@@ -9,11 +9,11 @@ import trimesh
 from physcene.export.models import (
     ExportConfig,
     _pose_matrix,
-    _write_atomic,
     build_models,
     category_color,
     table_box,
 )
+from physcene.files import write_atomic
 from physcene.scene import Scene
 
 __all__ = ["export_glb", "glb_scene"]
@@ -43,6 +43,6 @@ def export_glb(scene: Scene, out_dir, *, library=None, config: ExportConfig | No
     out_dir.mkdir(parents=True, exist_ok=True)
     data = glb_scene(scene, library=library, config=config).export(file_type="glb")
     path = out_dir / "scene.glb"
-    _write_atomic(path, data)
+    write_atomic(path, data)
     return path
 

@@ -11,11 +11,11 @@ from physcene.export.models import (
     ObjectModel,
     _fmt,
     _obj_bytes,
-    _write_atomic,
     build_models,
     category_color,
     table_box,
 )
+from physcene.files import write_atomic
 from physcene.scene import Scene
 
 __all__ = ["export_mjcf", "mjcf_document"]
@@ -86,7 +86,7 @@ def export_mjcf(scene: Scene, out_dir, *, library=None, config: ExportConfig | N
     xml, files = mjcf_document(scene, library=library, config=config)
     out_dir = Path(out_dir)
     for rel, data in files.items():
-        _write_atomic(out_dir / rel, data)
+        write_atomic(out_dir / rel, data)
     path = out_dir / "scene.xml"
-    _write_atomic(path, xml.encode())
+    write_atomic(path, xml.encode())
     return path

@@ -24,7 +24,8 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
-from physcene.export.models import ExportConfig, _write_atomic, table_box, visual_meshes
+from physcene.export.models import ExportConfig, table_box, visual_meshes
+from physcene.files import write_atomic
 from physcene.graph import ensure_hierarchy
 from physcene.scene import Scene
 
@@ -86,12 +87,12 @@ def export_sceneeval(scene: Scene, out_dir, *, library=None, config: ExportConfi
         while safe in assets:
             safe += "_"
         data = trimesh.Scene(geometry={safe: mesh}).export(file_type="glb")
-        _write_atomic(out_dir / "assets" / f"{safe}.glb", data)
+        write_atomic(out_dir / "assets" / f"{safe}.glb", data)
         assets[safe] = {"file": f"assets/{safe}.glb", "category": obj.category, "source": asset.asset_id,
                         "description": obj.description or obj.category.replace("_", " ")}
     state = sceneeval_state(scene, library=library, config=config, names=list(assets))
-    _write_atomic(out_dir / "assets.json", (json.dumps({"prefix": ASSET_PREFIX, "units": "m",
+    write_atomic(out_dir / "assets.json", (json.dumps({"prefix": ASSET_PREFIX, "units": "m",
                                                          "assets": assets}, indent=2) + "\n").encode())
     path = out_dir / "scene_state.json"
-    _write_atomic(path, (json.dumps(state, indent=2) + "\n").encode())
+    write_atomic(path, (json.dumps(state, indent=2) + "\n").encode())
     return path

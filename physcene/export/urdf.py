@@ -16,11 +16,11 @@ from physcene.export.models import (
     ExportError,
     _fmt,
     _obj_bytes,
-    _write_atomic,
     build_models,
     category_color,
     table_box,
 )
+from physcene.files import write_atomic
 from physcene.scene import Scene
 
 __all__ = ["export_urdf"]
@@ -82,24 +82,24 @@ def export_urdf(scene: Scene, out_dir, *, library=None, config: ExportConfig | N
     big = 1e3 * float(np.prod(2 * half))  # a fixed base; its mass only matters to loaders that check it
     table_inertia = np.diag(big / 3.0 * np.array([half[1] ** 2 + half[2] ** 2, half[0] ** 2 + half[2] ** 2,
                                                   half[0] ** 2 + half[1] ** 2]))
-    _write_atomic(out_dir / "table" / "table.urdf",
+    write_atomic(out_dir / "table" / "table.urdf",
                   _urdf_robot("table", "table", big, np.zeros(3), table_inertia, None, [(table, None)],
                               [0.6, 0.45, 0.3, 1.0]).encode())
     entries = []
     for model in models:
         folder = out_dir / "objects" / model.name
-        _write_atomic(folder / "visual.obj", _obj_bytes(model.visual))
+        write_atomic(folder / "visual.obj", _obj_bytes(model.visual))
         shapes = []
         for k, shape in enumerate(model.collision):
             if shape.kind in ("box", "cylinder", "sphere"):
                 shapes.append((shape, None))
             else:
-                _write_atomic(folder / f"collision_{k}.obj", _obj_bytes(shape.mesh))
+                write_atomic(folder / f"collision_{k}.obj", _obj_bytes(shape.mesh))
                 shapes.append((shape, f"collision_{k}.obj"))
         rgba = [c / 255 for c in category_color(model.category)]
         urdf = _urdf_robot(model.name, model.name, model.mass, model.center_of_mass, model.inertia,
                            "visual.obj", shapes, rgba)
-        _write_atomic(folder / f"{model.name}.urdf", urdf.encode())
+        write_atomic(folder / f"{model.name}.urdf", urdf.encode())
         entries.append({"id": model.instance_id, "category": model.category,
                         "urdf": f"objects/{model.name}/{model.name}.urdf",
                         "pose": {"position": model.position.tolist(),
@@ -112,5 +112,5 @@ def export_urdf(scene: Scene, out_dir, *, library=None, config: ExportConfig | N
                      "fixed": True},
            "objects": entries}
     path = out_dir / "scene.json"
-    _write_atomic(path, (json.dumps(doc, indent=2) + "\n").encode())
+    write_atomic(path, (json.dumps(doc, indent=2) + "\n").encode())
     return path

@@ -28,6 +28,7 @@ from physcene.export.models import (
     category_color,
     table_box,
 )
+from physcene.files import write_atomic
 from physcene.scene import Scene
 
 __all__ = ["export_usd", "usd_stage"]
@@ -147,8 +148,6 @@ def export_usd(scene: Scene, out_dir, *, library=None, config: ExportConfig | No
     out_dir.mkdir(parents=True, exist_ok=True)
     path = out_dir / "scene.usda"
     stage = usd_stage(scene, library=library, config=config)
-    # Exported from memory and renamed: a reader never sees half a stage.
-    tmp = out_dir / ".scene.usda.tmp.usda"
-    stage.GetRootLayer().Export(str(tmp))
-    tmp.replace(path)
+    # Exported from memory and written whole: a reader never sees half a stage.
+    write_atomic(path, stage.GetRootLayer().ExportToString())
     return path
