@@ -21,7 +21,7 @@ from physcene.artifacts import (
     restore_artifact,
 )
 from physcene.cli import main
-from physcene.train.models import TrainingSetupError, base_checked, read_run_info
+from physcene.train.models import RUN_INFO, TrainingSetupError, base_checked, read_run_info
 
 
 def git(repo, *args):
@@ -146,8 +146,10 @@ def test_a_shallow_clone_is_told_to_unshallow(repo, tmp_path):
 def test_a_resume_on_another_base_is_refused(repo, tmp_path):
     out = tmp_path / "pada"
     digest = base_checked(out, repo / "runs/sft", stage="pada")
-    info = read_run_info(out)
+    info = json.loads((out / RUN_INFO).read_text())
     assert info["base_sha256"] == digest and info["complete"] is False
+    with pytest.raises(TrainingSetupError, match="has not finished"):  # no model saved yet: not loadable
+        read_run_info(out)
     assert base_checked(out, repo / "runs/sft") == digest  # the same base resumes
     (repo / "runs/sft/model.safetensors").write_bytes(b"other weights")
     with pytest.raises(TrainingSetupError, match=f"trained from a base with sha256 {digest}"):
