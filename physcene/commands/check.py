@@ -3,6 +3,7 @@
     physcene check scene/layout.json                    # one MesaTask layout
     physcene check Layout_info/ --json                  # every layout.json under a tree
     physcene check data.jsonl --device cuda             # a JSONL dataset (field "layout")
+    physcene check data/                                # a data synth folder: its JSONL, not its stats
     physcene check a.json b.json margin_cm=0.2          # configs/physics.yaml overrides
 
 Every scene is scored in one engine call. Exit status 0 whatever the collisions; 2 when an input
