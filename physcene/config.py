@@ -75,12 +75,13 @@ def load_config(name: str, overrides: Sequence[str] = (), *, known: Sequence[str
         merged = OmegaConf.from_dotlist(list(overrides))
     except Exception as exc:  # omegaconf raises several types for malformed overrides
         raise ConfigError(f"bad override in {list(overrides)}: {exc}") from exc
+    raw = OmegaConf.to_container(merged)  # unresolved: an override may be ${...} of the config
     for override in overrides:
         key = override.split("=", 1)[0].strip()
         default = _default_value(cfg, key)
-        value = OmegaConf.select(merged, key)
-        if isinstance(value, (DictConfig, ListConfig)):
-            value = OmegaConf.to_container(value)
+        value = raw
+        for part in key.split("."):
+            value = value.get(part) if isinstance(value, dict) else None
         try:
             OmegaConf.update(merged, key, _typed_like(value, default), merge=False)
         except ValueError as exc:
