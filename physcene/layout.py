@@ -51,7 +51,7 @@ __all__ = [
     "yaw_to_quaternion",
 ]
 
-# Bounds of a layout file's numbers (cm), checked where a file is read (``bounded=True``): a
+# Bounds of a layout file's numbers (cm), checked where a command reads one (``bounded=True``): a
 # tabletop's objects and zones lie within 10 m of its origin and no object is over 5 m or under
 # 0.01 mm. Beyond them a number is a typo or a broken exporter (a size of 1e30 wrote Infinity).
 MAX_COORDINATE_CM = 1000.0
@@ -264,15 +264,17 @@ def load_layout(data: dict, *, source: str = "<dict>", scene_type: str | None = 
         raise exc.with_source(source) from None
 
 
-def read_layout(path, *, scene_type: str | None = None) -> Scene:
-    """Read a MesaTask ``layout.json``; errors name the file, the object and the field."""
+def read_layout(path, *, scene_type: str | None = None, bounded: bool = False) -> Scene:
+    """Read a MesaTask ``layout.json``; errors name the file, the object and the field.
+    ``bounded``: as :func:`load_layout` (the commands that read a user's files set it; layouts a
+    run saved itself, such as eval's ``layouts/``, may hold a model's far-out guesses)."""
     path = Path(path)
     try:
         text = path.read_text(encoding="utf-8")
     except UnicodeDecodeError as exc:
         raise SceneError(f"not UTF-8 text ({exc.reason})", source=str(path)) from None
     data = parse_json(text, source=str(path), allow_nan=False)
-    return load_layout(data, source=str(path), scene_type=scene_type, bounded=True)
+    return load_layout(data, source=str(path), scene_type=scene_type, bounded=bounded)
 
 
 def parse_json(text: str, *, source: str, allow_nan: bool = True):

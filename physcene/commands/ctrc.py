@@ -83,7 +83,7 @@ def run(args) -> int:
         scene = load_layout(parse_json(sys.stdin.read(), source=source, allow_nan=False), source=source,
                             bounded=True)
     else:
-        scene = read_layout(args.input)
+        scene = read_layout(args.input, bounded=True)
     if args.prompt:
         text = build_prompt(scene.instruction, scene.scene_type, scene.zone, scene.objects,
                             restricted_zones=scene.restricted_zones) + "\n"
