@@ -97,28 +97,32 @@ def build_parser(selected: str | None = None) -> argparse.ArgumentParser:
     return parser
 
 
-def _value_options(parser: argparse.ArgumentParser) -> set[str]:
-    """Option strings of ``parser`` (and its nested subcommands) that take a value."""
-    found = set()
+def _options(parser: argparse.ArgumentParser) -> dict[str, bool]:
+    """Option strings of ``parser`` (and its nested subcommands): whether each takes a value."""
+    found = {}
     for action in parser._actions:
         if isinstance(action, argparse._SubParsersAction):
             for nested in action.choices.values():
-                found |= _value_options(nested)
-        elif action.option_strings and action.nargs != 0:
-            found.update(action.option_strings)
+                found.update(_options(nested))
+        else:
+            found.update(dict.fromkeys(action.option_strings, action.nargs != 0))
     return found
 
 
 def _split_settings(argv: list[str], parser: argparse.ArgumentParser) -> tuple[list[str], list[str]]:
     """(``key=value`` settings, the other words): settings are taken out before argparse sees the
     words, so that a command's ``PATH...`` never swallows them."""
-    takes_value = _value_options(parser)
+    options = _options(parser)
+
+    def is_value(k: int) -> bool:  # argv[k] follows an option that takes it (abbreviated too: --gen)
+        prev = argv[k - 1] if k else ""
+        if prev in options:
+            return options[prev]
+        return prev.startswith("--") and any(o.startswith(prev) and v for o, v in options.items())
+
     settings, words = [], []
     for k, word in enumerate(argv):
-        if _SETTING.match(word) and not (k and argv[k - 1] in takes_value):
-            settings.append(word)
-        else:
-            words.append(word)
+        (words if is_value(k) or not _SETTING.match(word) else settings).append(word)
     return settings, words
 
 

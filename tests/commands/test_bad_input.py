@@ -100,6 +100,14 @@ def test_settings_after_paths_are_settings(bad, capsys):
     _one_error(capsys.readouterr().err, "margin_cm='wide'", "physics.yaml")
 
 
+def test_an_option_value_with_an_equals_sign_stays_the_options():
+    url = "endpoint:http://127.0.0.1:8000/v1?key=v"
+    for flag in ("--generator", "--gen"):  # argparse takes abbreviations
+        argv = ["eval", flag, url, "n=3", "--repair", "seed=1"]
+        assert cli._split_settings(argv, cli.build_parser("eval")) == (
+            ["n=3", "seed=1"], ["eval", flag, url, "--repair"])
+
+
 def test_a_command_without_settings_refuses_them(capsys, tmp_path):
     assert cli.main(["view", str(tmp_path / "x.json"), "port=1"]) == 2
     _one_error(capsys.readouterr().err, "takes no key=value settings", "port=1")
