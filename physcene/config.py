@@ -110,6 +110,8 @@ def _typed_like(value, default):
     null is accepted everywhere (the configs use it for "off" / "all"); so is an interpolation."""
     if default is _UNTYPED or value is None or isinstance(value, str) and value.startswith("${"):
         return value
+    if isinstance(default, list) and isinstance(value, str):
+        return [value]  # `key=name` for a list of names: one name (valid_terms=floating)
     if isinstance(default, (dict, list)):
         if not isinstance(value, type(default)):
             raise ValueError(f"expected a {'mapping {k: v}' if isinstance(default, dict) else 'list [...]'}")
@@ -166,9 +168,11 @@ def _coerce(value, kind: type | None):
         return int(value) if isinstance(value, int) else int(as_float)
     if kind is float:
         try:
-            number = float(value) if not isinstance(value, bool) else math.nan
+            number = float(value) if not isinstance(value, bool) else None
         except (TypeError, ValueError):
-            number = math.nan
+            number = None
+        if number is None:
+            raise ValueError("expected a number")
         if not math.isfinite(number):
             raise ValueError("expected a finite number")
         return number
