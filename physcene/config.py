@@ -13,11 +13,12 @@ merged first, in order, then the file itself, then the overrides (the training c
 from __future__ import annotations
 
 import dataclasses
+import math
 from collections.abc import Sequence
 from importlib import resources
 from pathlib import Path
 
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig, ListConfig, OmegaConf
 
 __all__ = ["ConfigError", "config_path", "load_config", "load_dataclass", "split_overrides"]
 
@@ -71,9 +72,57 @@ def load_config(name: str, overrides: Sequence[str] = (), *, known: Sequence[str
     if unknown:
         raise ConfigError(f"{path}: unknown keys {unknown} (settings are key=value over this file)")
     try:
-        return OmegaConf.merge(cfg, OmegaConf.from_dotlist(list(overrides)))
+        merged = OmegaConf.from_dotlist(list(overrides))
     except Exception as exc:  # omegaconf raises several types for malformed overrides
         raise ConfigError(f"bad override in {list(overrides)}: {exc}") from exc
+    raw = OmegaConf.to_container(merged)  # unresolved: an override may be ${...} of the config
+    for override in overrides:
+        key = override.split("=", 1)[0].strip()
+        default = _default_value(cfg, key)
+        value = raw
+        for part in key.split("."):
+            value = value.get(part) if isinstance(value, dict) else None
+        try:
+            OmegaConf.update(merged, key, _typed_like(value, default), merge=False)
+        except ValueError as exc:
+            raise ConfigError(f"{path}: {key}={value!r}: {exc} (the default is {default!r})") from None
+    return OmegaConf.merge(cfg, merged)
+
+
+_UNTYPED = object()  # an entry whose type the YAML does not fix: null, ???, an interpolation
+
+
+def _default_value(cfg: DictConfig, key: str):
+    """The value ``key`` has in the YAML, or ``_UNTYPED`` (not there, null, ``???``, ``${...}``)."""
+    if not _has_key(cfg, key):
+        return _UNTYPED
+    node = cfg
+    for part in key.split("."):
+        node = node._get_node(part)
+    if node._is_missing() or node._is_interpolation() or node._is_none():
+        return _UNTYPED
+    return OmegaConf.to_container(node) if isinstance(node, (DictConfig, ListConfig)) else node._value()
+
+
+def _typed_like(value, default):
+    """``value`` (an override, as YAML read it) with the type of ``default``, the value the YAML
+    file gives that key: ``n=abc`` over ``n: 24`` is a ValueError, not a string that fails later.
+    null is accepted everywhere (the configs use it for "off" / "all"); so is an interpolation."""
+    if default is _UNTYPED or value is None or isinstance(value, str) and value.startswith("${"):
+        return value
+    if isinstance(default, list) and isinstance(value, str):
+        return [value]  # `key=name` for a list of names: one name (valid_terms=floating)
+    if isinstance(default, (dict, list)):
+        if not isinstance(value, type(default)):
+            raise ValueError(f"expected a {'mapping {k: v}' if isinstance(default, dict) else 'list [...]'}")
+        return value
+    if isinstance(value, (dict, list)):
+        raise ValueError(f"expected a single value, got a {'mapping' if isinstance(value, dict) else 'list'}")
+    if isinstance(default, str):  # device=0 is the string "0"; a boolean keeps its YAML spelling
+        return str(value).lower() if isinstance(value, bool) else str(value)
+    if isinstance(default, (bool, int, float)):
+        return _coerce(value, type(default))
+    return value
 
 
 def _composed(path: Path, seen: tuple[Path, ...] = ()) -> DictConfig:
@@ -110,17 +159,23 @@ def _coerce(value, kind: type | None):
             return value.lower() == "true"
         raise ValueError("expected true or false")
     if kind is int:
-        as_float = float(value)
+        try:
+            as_float = float(value) if not isinstance(value, bool) else math.nan
+        except (TypeError, ValueError):
+            as_float = math.nan
         if not as_float.is_integer():
             raise ValueError("expected an integer")
-        return int(as_float)
+        return int(value) if isinstance(value, int) else int(as_float)
     if kind is float:
-        if isinstance(value, bool):
-            raise ValueError("expected a number")
         try:
-            return float(value)
-        except ValueError:
-            raise ValueError("expected a number") from None
+            number = float(value) if not isinstance(value, bool) else None
+        except (TypeError, ValueError):
+            number = None
+        if number is None:
+            raise ValueError("expected a number")
+        if not math.isfinite(number):
+            raise ValueError("expected a finite number")
+        return number
     if kind is tuple and isinstance(value, str):
         return (value,)  # `key=name` for a tuple of names: one name, not its characters
     return kind(value)

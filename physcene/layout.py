@@ -41,6 +41,10 @@ __all__ = [
     "layout_record_lines",
     "layout_to_dict",
     "load_layout",
+    "MAX_COORDINATE_CM",
+    "MAX_SIZE_CM",
+    "MIN_SIZE_CM",
+    "parse_json",
     "quaternion_tilt",
     "quaternion_to_yaw",
     "read_layout",
@@ -48,6 +52,14 @@ __all__ = [
     "write_layout_records",
     "yaw_to_quaternion",
 ]
+
+# Bounds of a layout file's numbers (cm), checked where a command reads one (``bounded=True``): a
+# tabletop's objects and zones lie within 10 m of its origin and no object is over 5 m or under
+# 0.01 mm. Beyond them a number is a typo or a broken exporter (a size of 1e30 wrote Infinity).
+MAX_COORDINATE_CM = 1000.0
+MAX_SIZE_CM = 500.0
+MIN_SIZE_CM = 0.001
+_COORDINATE = (-MAX_COORDINATE_CM, MAX_COORDINATE_CM)
 
 # Instances named ``box_*``, ``cylinder_*``, ``sphere_*`` are exact primitives, whatever follows.
 PRIMITIVE_CATEGORIES = ("box", "cylinder", "sphere")
@@ -98,7 +110,9 @@ def yaw_to_quaternion(yaw: float) -> list[float]:
     return [0.0, 0.0, math.sin(0.5 * yaw), math.cos(0.5 * yaw)]
 
 
-def _number_list(value, n: int, *, obj: str | None, field: str, source: str) -> list[float]:
+def _number_list(value, n: int, *, obj: str | None, field: str, source: str,
+                 bounds: tuple[float, float] | None = None) -> list[float]:
+    """``value`` as ``n`` finite floats, each within ``bounds`` (lo, hi) when given."""
     if not isinstance(value, (list, tuple)) or len(value) != n:
         raise SceneError(f"expected a list of {n} numbers, got {value!r:.80}", obj=obj, field=field,
                          source=source)
@@ -106,13 +120,19 @@ def _number_list(value, n: int, *, obj: str | None, field: str, source: str) -> 
     for v in value:
         if isinstance(v, bool) or not isinstance(v, (int, float)):
             raise SceneError(f"expected numbers, got {v!r:.40}", obj=obj, field=field, source=source)
+        if isinstance(v, int) and abs(v) > 1e300:  # a 400-digit integer has no float
+            raise SceneError(f"number too large ({len(str(abs(v)))} digits)", obj=obj, field=field,
+                             source=source)
         if not math.isfinite(float(v)):
             raise SceneError(f"non-finite value {v!r}", obj=obj, field=field, source=source)
+        if bounds is not None and not bounds[0] <= v <= bounds[1]:
+            raise SceneError(f"{v:g} cm is outside {bounds[0]:g} to {bounds[1]:g} cm", obj=obj,
+                             field=field, source=source)
         out.append(float(v))
     return out
 
 
-def _rects(value, *, field: str, source: str) -> list[Zone]:
+def _rects(value, *, field: str, source: str, bounded: bool = False) -> list[Zone]:
     """One rect [xmin, xmax, ymin, ymax], a list of rects, or nothing (None / [] / {})."""
     if value is None or value == [] or value == {}:
         return []
@@ -123,7 +143,8 @@ def _rects(value, *, field: str, source: str) -> list[Zone]:
                          field=field, source=source)
     zones = []
     for i, rect in enumerate(value):
-        vals = _number_list(rect, 4, obj=None, field=f"{field}[{i}]", source=source)
+        vals = _number_list(rect, 4, obj=None, field=f"{field}[{i}]", source=source,
+                            bounds=_COORDINATE if bounded else None)
         try:
             zones.append(Zone.from_list(vals, field=f"{field}[{i}]"))
         except SceneError as exc:
@@ -165,9 +186,11 @@ def _optional_str(entry: dict, key: str, *, obj: str, source: str) -> str | None
     return str(value)
 
 
-def _load_object(name: str, entry: dict, source: str) -> SceneObject:
-    position = _number_list(entry.get("position"), 3, obj=name, field="position", source=source)
-    size = _number_list(entry.get("size"), 3, obj=name, field="size", source=source)
+def _load_object(name: str, entry: dict, source: str, bounded: bool = False) -> SceneObject:
+    position = _number_list(entry.get("position"), 3, obj=name, field="position", source=source,
+                            bounds=_COORDINATE if bounded else None)
+    size = _number_list(entry.get("size"), 3, obj=name, field="size", source=source,
+                        bounds=(MIN_SIZE_CM, MAX_SIZE_CM) if bounded else None)
     yaw = None
     if entry.get("rotation") is not None:
         quat = _number_list(entry["rotation"], 4, obj=name, field="rotation", source=source)
@@ -199,22 +222,28 @@ def _load_object(name: str, entry: dict, source: str) -> SceneObject:
         raise exc.with_source(source) from None
 
 
-def load_layout(data: dict, *, source: str = "<dict>", scene_type: str | None = None) -> Scene:
-    """A :class:`Scene` from a parsed MesaTask layout dict (cm). ``scene_type`` fills a missing one."""
+def load_layout(data: dict, *, source: str = "<dict>", scene_type: str | None = None,
+                bounded: bool = False) -> Scene:
+    """A :class:`Scene` from a parsed MesaTask layout dict (cm). ``scene_type`` fills a missing one.
+
+    ``bounded``: positions and zones must lie within ``MAX_COORDINATE_CM`` of the origin and sizes
+    from ``MIN_SIZE_CM`` to ``MAX_SIZE_CM`` (layout files; the CTRC reader has its own limit)."""
     if not isinstance(data, dict):
         raise SceneError(f"expected a JSON object at the top level, got {type(data).__name__}", source=source)
-    if "item_placement_zone" not in data:
-        raise SceneError("missing", field="item_placement_zone", source=source)
+    for key in ("item_placement_zone", "objects"):
+        if key not in data:
+            raise SceneError("missing (a layout needs an item_placement_zone and an objects list)",
+                             field=key, source=source)
     zone_vals = _number_list(data["item_placement_zone"], 4, obj=None, field="item_placement_zone",
-                             source=source)
+                             source=source, bounds=_COORDINATE if bounded else None)
     try:
         zone = Zone.from_list(zone_vals, field="item_placement_zone")
     except SceneError as exc:
         raise exc.with_source(source) from None
-    restricted = _rects(data.get("restricted_zone"), field="restricted_zone", source=source)
-    restricted += _rects(data.get("sink_zone"), field="sink_zone", source=source)
-    items = _object_items(data.get("objects", []), source)
-    objects = [_load_object(name, entry, source) for name, entry in items]
+    restricted = _rects(data.get("restricted_zone"), field="restricted_zone", source=source, bounded=bounded)
+    restricted += _rects(data.get("sink_zone"), field="sink_zone", source=source, bounded=bounded)
+    items = _object_items(data["objects"], source)
+    objects = [_load_object(name, entry, source, bounded) for name, entry in items]
     # Yaw-only scenes drop roll/pitch; say which objects lost more than ~0.5 degree of it.
     tilted = sorted(name for name, entry in items
                     if isinstance(entry.get("rotation"), list) and len(entry["rotation"]) == 4
@@ -237,21 +266,32 @@ def load_layout(data: dict, *, source: str = "<dict>", scene_type: str | None = 
         raise exc.with_source(source) from None
 
 
-def read_layout(path, *, scene_type: str | None = None) -> Scene:
-    """Read a MesaTask ``layout.json``; errors name the file, the object and the field."""
+def read_layout(path, *, scene_type: str | None = None, bounded: bool = False) -> Scene:
+    """Read a MesaTask ``layout.json``; errors name the file, the object and the field.
+    ``bounded``: as :func:`load_layout` (the commands that read a user's files set it; layouts a
+    run saved itself, such as eval's ``layouts/``, may hold a model's far-out guesses)."""
     path = Path(path)
     try:
         text = path.read_text(encoding="utf-8")
     except UnicodeDecodeError as exc:
         raise SceneError(f"not UTF-8 text ({exc.reason})", source=str(path)) from None
+    data = parse_json(text, source=str(path), allow_nan=False)
+    return load_layout(data, source=str(path), scene_type=scene_type, bounded=bounded)
+
+
+def parse_json(text: str, *, source: str, allow_nan: bool = True):
+    """``json.loads(text)``, where every way JSON text can fail (a syntax error, NaN when not
+    ``allow_nan``, an integer of over 4,300 digits, nesting too deep for the parser) is one
+    :class:`SceneError` naming ``source``."""
     try:
-        data = json.loads(text, parse_constant=_reject_constant)
+        return json.loads(text, **({} if allow_nan else {"parse_constant": _reject_constant}))
     except json.JSONDecodeError as exc:
         raise SceneError(f"invalid JSON at line {exc.lineno} column {exc.colno}: {exc.msg}",
-                         source=str(path)) from None
-    except (ValueError, RecursionError) as exc:
-        raise SceneError(f"invalid JSON: {exc}", source=str(path)) from None
-    return load_layout(data, source=str(path), scene_type=scene_type)
+                         source=source) from None
+    except RecursionError:
+        raise SceneError("invalid JSON: nested too deeply", source=source) from None
+    except ValueError as exc:
+        raise SceneError(f"invalid JSON: {exc}", source=source) from None
 
 
 def _reject_constant(name: str):

@@ -15,6 +15,7 @@ import time
 
 from physcene.assets.cache import BakeCache
 from physcene.assets.library import AssetLibrary
+from physcene.commands import add_quiet
 from physcene.config import load_config
 
 NAME = "assets"
@@ -32,6 +33,7 @@ def add_arguments(parser) -> None:
     )
     parser.add_argument("--category", action="append", default=[], help="only these categories (repeatable)")
     parser.add_argument("--json", action="store_true", help="list: print JSON [{category, asset_id, source}]")
+    add_quiet(parser)
 
 
 def build_library(args) -> AssetLibrary:
@@ -71,10 +73,9 @@ def run(args) -> int:
     for e in entries:
         start = time.perf_counter()
         asset = library.get(e.asset_id)
-        print(
-            f"{e.asset_id:32s} R={asset.resolution} P={len(asset.points)} {time.perf_counter() - start:.3f}s",
-            file=sys.stderr,
-        )
+        if not args.quiet:  # one progress line per asset
+            print(f"{e.asset_id:32s} R={asset.resolution} P={len(asset.points)} "
+                  f"{time.perf_counter() - start:.3f}s", file=sys.stderr)
     print(
         f"{len(entries)} assets ready in {time.perf_counter() - total:.1f} s; cache: "
         f"{library.cache.root if library.cache else 'off'}"

@@ -4,6 +4,7 @@
     physcene check Layout_info/ --json                  # every layout.json under a tree
     physcene check data.jsonl --device cuda             # a JSONL dataset (field "layout")
     physcene check docs/results/ablation/pada.jsonl.gz  # gzipped JSONL too (an ablation row's layouts)
+    physcene check data/                                # a data synth folder: its JSONL, not its stats
     physcene check a.json b.json margin_cm=0.2          # configs/physics.yaml overrides
 
 Every scene is scored in one engine call. Exit status 0 whatever the collisions; 2 when an input
@@ -12,16 +13,15 @@ cannot be read (it is named, on stderr and in the scene's ``error`` field with -
 
 from __future__ import annotations
 
-import json
 import sys
 from dataclasses import dataclass
 from pathlib import Path
 
 from tqdm import tqdm
 
-from physcene.commands import add_quiet
-from physcene.layout import layout_record_lines, load_layout
-from physcene.scene import Scene
+from physcene.commands import add_quiet, print_json
+from physcene.layout import layout_record_lines, load_layout, parse_json
+from physcene.scene import Scene, SceneError
 
 NAME = "check"
 HELP = "Check layouts for interpenetration, floating objects and table penetration"
@@ -51,14 +51,19 @@ def add_arguments(parser) -> None:
     add_quiet(parser)
 
 
-def _load_json_file(path: Path) -> _Item:
+def _error(path, exc: Exception) -> str:
+    """The message of ``exc``, naming ``path`` once (a SceneError from a file already names it)."""
+    return str(exc) if isinstance(exc, SceneError) and exc.source else f"{path}: {exc}"
+
+
+def _load_json_file(path: Path, data=None) -> _Item:
+    """The layout in the JSON file ``path`` (``data``: its content, when already parsed)."""
     try:
-        data = json.loads(path.read_text(encoding="utf-8"))
-        if not isinstance(data, dict):
-            raise ValueError(f"expected a JSON object, got {type(data).__name__}")
-        return _Item(str(path), scene=load_layout(data, source=str(path)))
+        if data is None:
+            data = parse_json(path.read_text(encoding="utf-8"), source=str(path))
+        return _Item(str(path), scene=load_layout(data, source=str(path), bounded=True))
     except (OSError, UnicodeDecodeError, ValueError, KeyError, TypeError) as exc:
-        return _Item(str(path), error=f"{path}: {exc}")
+        return _Item(str(path), error=_error(path, exc))
 
 
 def _load_jsonl(path: Path) -> list[_Item]:
@@ -70,17 +75,50 @@ def _load_jsonl(path: Path) -> list[_Item]:
     for number, line in lines:
         where = f"{path}:{number}"
         try:
-            record = json.loads(line)
+            record = parse_json(line, source=where)
             layout = record.get("layout") if isinstance(record, dict) else None
             if isinstance(layout, str):
-                layout = json.loads(layout)
+                layout = parse_json(layout, source=where)
             if layout is None and isinstance(record, dict) and record.get("parse_error"):
                 raise ValueError(f"the completion did not parse: {record['parse_error']}")
             if not isinstance(layout, dict):
-                raise ValueError("the record has no 'layout' object")
-            items.append(_Item(where, scene=load_layout(layout, source=where)))
+                raise SceneError("the record has no 'layout' object", source=where)
+            items.append(_Item(where, scene=load_layout(layout, source=where, bounded=True)))
         except (ValueError, KeyError, TypeError) as exc:
-            items.append(_Item(where, error=f"{where}: {exc}"))
+            items.append(_Item(where, error=_error(where, exc)))
+    return items
+
+
+def _is_layout(data) -> bool:
+    """Whether parsed JSON is meant as a layout (a folder also holds stats and reports)."""
+    return isinstance(data, dict) and ("item_placement_zone" in data or "objects" in data)
+
+
+_DATASETS = (".jsonl", ".jsonl.gz")  # JSONL layout records, gzipped or not
+
+
+def _collect_dir(path: Path) -> list[_Item]:
+    """The layouts under a folder: ``layout.json`` / ``*.layout.json`` files (MesaTask trees) and
+    JSONL datasets (``physcene data synth``); where there are none of those, every ``*.json`` that
+    holds a layout (eval's ``layouts/<method>/<id>.json``), other JSON (stats, reports) skipped."""
+    files = sorted(p for p in path.rglob("*.json") if p.is_file())
+    named = [p for p in files if p.name == "layout.json" or p.name.endswith(".layout.json")]
+    datasets = sorted(p for p in path.rglob("*.jsonl*") if p.is_file() and p.name.endswith(_DATASETS))
+    items = [_load_json_file(p) for p in named]
+    for p in datasets:
+        items.extend(_load_jsonl(p))
+    if not items:
+        for p in files:
+            try:
+                data = parse_json(p.read_text(encoding="utf-8"), source=str(p))
+            except (OSError, UnicodeDecodeError, ValueError) as exc:
+                items.append(_Item(str(p), error=_error(p, exc)))
+                continue
+            if _is_layout(data):
+                items.append(_load_json_file(p, data))
+    if not items:
+        items.append(_Item(str(path), error=f"{path}: no layouts under this directory (layout.json, "
+                                            "*.layout.json, *.jsonl datasets or .json layouts)"))
     return items
 
 
@@ -90,12 +128,8 @@ def collect(paths) -> list[_Item]:
     for raw in paths:
         path = Path(raw)
         if path.is_dir():
-            files = sorted(p for p in path.rglob("*.json") if p.is_file())
-            named = [p for p in files if p.name == "layout.json" or p.name.endswith(".layout.json")]
-            if not files:
-                items.append(_Item(str(path), error=f"{path}: no .json layouts under this directory"))
-            items.extend(_load_json_file(p) for p in (named or files))
-        elif path.name.endswith((".jsonl", ".jsonl.gz")):
+            items.extend(_collect_dir(path))
+        elif path.name.endswith(_DATASETS):
             missing = [_Item(str(path), error=f"{path}: no such file")]
             items.extend(_load_jsonl(path) if path.is_file() else missing)
         elif path.is_file():
@@ -108,8 +142,12 @@ def collect(paths) -> list[_Item]:
 def check_scenes(items: list[_Item], engine, progress: bool = False) -> list[dict]:
     """The ``scenes`` entries of the JSON report, in input order; ``progress``: a bar on stderr
     over the scenes, when there is more than one engine call."""
-    ok = [k for k, it in enumerate(items) if it.scene is not None]
-    reports: dict[int, dict] = {}
+    ok = [k for k, it in enumerate(items) if it.scene is not None and it.scene.objects]
+    # a scene without objects has nothing to collide or float: no engine call
+    reports: dict[int, dict] = {
+        k: {"path": it.path, "objects": 0, "pairs": [], "max_depth_cm": 0.0, "energy": 0.0, "floating": [],
+            "table_penetration_cm": 0.0, "error": None}
+        for k, it in enumerate(items) if it.scene is not None and not it.scene.objects}
     bar = tqdm(total=len(ok), desc="check", unit="scene", file=sys.stderr,
                disable=not progress or len(ok) <= _CHUNK)
     for lo in range(0, len(ok), _CHUNK):
@@ -149,18 +187,17 @@ def _line(report: dict) -> str:
 def run(args) -> int:
     from physcene.physics import PhysicsConfig, PhysicsEngine
 
-    # PATH... also swallows the key=value overrides after the paths: a word with "=" that names no
-    # file is an override (configs/physics.yaml)
-    overrides = [p for p in args.paths if "=" in p and not Path(p).exists()]
-    items = collect([p for p in args.paths if p not in overrides])
-    config = PhysicsConfig.load([*args.overrides, *overrides])
-    engine = PhysicsEngine(device=args.device, config=config) if any(it.scene for it in items) else None
+    config = PhysicsConfig.load(args.overrides)
+    items = collect(args.paths)
+    needed = any(it.scene is not None and it.scene.objects for it in items)
+    engine = PhysicsEngine(device=args.device, config=config) if needed else None
     reports = check_scenes(items, engine, progress=not args.quiet)
     if args.json:
-        print(json.dumps({"scenes": reports}, indent=1))
+        print_json({"scenes": reports})
     else:
         for report in reports:
-            print(_line(report))
+            if not report["error"]:  # errors are printed once, on stderr
+                print(_line(report))
     errors = [r["error"] for r in reports if r["error"]]
     for message in errors:
         print(f"physcene check: error: {message}", file=sys.stderr)

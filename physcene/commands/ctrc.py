@@ -11,13 +11,12 @@ nothing is printed to stdout and no ``--output`` file is written.
 
 from __future__ import annotations
 
-import json
 import sys
 from pathlib import Path
 
 from physcene.ctrc import ParseError, build_prompt, completion_text, parse
 from physcene.graph import GraphConfig, build_hierarchy
-from physcene.layout import dumps_layout, load_layout, read_layout, write_layout
+from physcene.layout import dumps_layout, load_layout, parse_json, read_layout, write_layout
 from physcene.scene import SceneError, Zone
 
 NAME = "ctrc"
@@ -81,14 +80,10 @@ def run(args) -> int:
     graph_config = GraphConfig.load(args.overrides)  # checked even when unused
     source = "<stdin>" if args.input == "-" else args.input
     if args.input == "-":
-        try:
-            data = json.loads(sys.stdin.read())
-        except json.JSONDecodeError as exc:
-            raise SceneError(f"invalid JSON at line {exc.lineno} column {exc.colno}: {exc.msg}",
-                             source=source) from None
-        scene = load_layout(data, source=source)
+        scene = load_layout(parse_json(sys.stdin.read(), source=source, allow_nan=False), source=source,
+                            bounded=True)
     else:
-        scene = read_layout(args.input)
+        scene = read_layout(args.input, bounded=True)
     if args.prompt:
         text = build_prompt(scene.instruction, scene.scene_type, scene.zone, scene.objects,
                             restricted_zones=scene.restricted_zones) + "\n"

@@ -7,7 +7,7 @@ import sys
 
 from physcene.artifacts import resolve_generators
 from physcene.commands import add_json, add_quiet, print_json
-from physcene.config import load_config
+from physcene.config import config_path, load_config
 from physcene.eval.harness import EvalError, run_evaluation
 from physcene.eval.report import failure_lines, main_table
 
@@ -38,7 +38,10 @@ def _config(args):
         cfg.repair = True
     if cfg.get("generator"):  # model:NAME of an artifact -> its restored folder
         cfg.generator = resolve_generators(str(cfg.generator))
-    if cfg.n is not None and int(cfg.n) < 1:
+    # n is null in eval.yaml (all scenes), so the config path cannot know its type: checked here
+    if cfg.n is not None and (isinstance(cfg.n, bool) or not isinstance(cfg.n, int)):
+        raise ValueError(f"{config_path(args.config)}: n={cfg.n!r}: expected an integer or null")
+    if cfg.n is not None and cfg.n < 1:
         raise ValueError(f"--n must be >= 1, got {cfg.n}")
     return cfg
 

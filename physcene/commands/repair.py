@@ -1,6 +1,7 @@
 """``physcene repair``: hierarchy-constrained test-time optimisation of layouts (physcene.tto).
 
     physcene repair scene/layout.json -o fixed/layout.json     # report: fixed/layout.report.json
+    physcene repair scene/layout.json -o fixed/                # a folder: fixed/layout.json
     physcene repair Layout_info/ -o Fixed/                     # mirrors the tree; Fixed/repair_report.json
     physcene repair data.jsonl -o fixed.jsonl                  # field "layout" (and "completion",
                                                                # re-written); fixed.report.json
@@ -14,12 +15,13 @@ relations kept and what could not be satisfied.
 from __future__ import annotations
 
 import json
+import os
 from pathlib import Path
 
 from physcene.commands import add_json, add_quiet, print_json
 from physcene.ctrc import MAX_DECIMALS, completion_text, decimals_of
 from physcene.files import write_atomic
-from physcene.layout import layout_to_dict, load_layout
+from physcene.layout import layout_to_dict, load_layout, parse_json
 from physcene.scene import SceneError
 from physcene.tto import TTOConfig, repair, summarize
 
@@ -47,8 +49,8 @@ def add_arguments(parser) -> None:
 
 def _read_json(path: Path) -> dict:
     try:
-        return json.loads(path.read_text(encoding="utf-8"))
-    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+        return parse_json(path.read_text(encoding="utf-8"), source=str(path))
+    except UnicodeDecodeError as exc:
         raise SceneError(f"not a JSON layout ({exc})", source=str(path)) from None
 
 
@@ -76,7 +78,7 @@ def _report_path(out: Path) -> Path:
 
 def _items_file(src: Path):
     raw = _read_json(src)
-    return [(str(src.name), raw, load_layout(raw, source=str(src)))]
+    return [(str(src.name), raw, load_layout(raw, source=str(src), bounded=True))]
 
 
 def _items_tree(src: Path):
@@ -86,7 +88,7 @@ def _items_tree(src: Path):
         parts = path.relative_to(src / "Layout_info" if (src / "Layout_info").is_dir() else src).parts
         scene_type = parts[-3].replace("_", " ") if len(parts) >= 3 else None
         raw = _read_json(path)
-        items.append((str(rel), raw, load_layout(raw, source=str(path), scene_type=scene_type)))
+        items.append((str(rel), raw, load_layout(raw, source=str(path), scene_type=scene_type, bounded=True)))
     if not items:
         raise RepairInputError(f"no layout.json under {str(src)!r}")
     return items
@@ -99,19 +101,13 @@ def _items_jsonl(src: Path):
             if not line.strip():
                 continue
             where = f"{src}:{line_no}"
-            try:
-                record = json.loads(line)
-            except json.JSONDecodeError as exc:
-                raise RepairInputError(f"{where}: invalid JSON ({exc.msg})") from None
+            record = parse_json(line, source=where)
             layout = record.get("layout") if isinstance(record, dict) else None
             if isinstance(layout, str):
-                try:
-                    layout = json.loads(layout)
-                except json.JSONDecodeError as exc:
-                    raise RepairInputError(f"{where}: field 'layout' is not JSON ({exc.msg})") from None
+                layout = parse_json(layout, source=f"{where} field 'layout'")
             if not isinstance(layout, dict):
                 raise RepairInputError(f"{where}: expected a record with a 'layout' object")
-            items.append((record, layout, load_layout(layout, source=where)))
+            items.append((record, layout, load_layout(layout, source=where, bounded=True)))
     return items
 
 
@@ -131,7 +127,8 @@ def run(args) -> int:
         mode, items = "jsonl", _items_jsonl(src)
     else:
         mode, items = "file", _items_file(src)
-    if mode != "tree" and out.is_dir():
+    # -o names a folder when it is one or ends with a slash (newdir/): the output goes inside
+    if mode != "tree" and (out.is_dir() or args.output.endswith(("/", os.sep))):
         out = out / src.name
     results = repair([scene for *_, scene in items], config, PhysicsEngine(device=config.device),
                      progress=not args.quiet)

@@ -21,7 +21,7 @@ import sys
 from collections.abc import Sequence
 from pathlib import Path
 
-from physcene.commands import add_quiet
+from physcene.commands import add_quiet, json_safe
 from physcene.commands.check import collect
 from physcene.export import ExportConfig
 from physcene.scene import Scene
@@ -61,9 +61,9 @@ class _NoRecord:
 
 
 def run(args) -> int:
-    items = read_inputs(args.paths)
-    export_config = ExportConfig.load(args.overrides)
+    export_config = ExportConfig.load(args.overrides)  # a bad setting fails before any reading
     config = SettleConfig.load(args.overrides)
+    items = read_inputs(args.paths)
     readable = [(label, scene) for label, scene, error in items if error is None]
     errors = [error for _, _, error in items if error is not None]
     if args.workers < 1:
@@ -78,7 +78,9 @@ def run(args) -> int:
         records = [r.to_dict() for r in results]
         records += [{"path": label, "stable": None, "objects": [], "error": error}
                     for label, _, error in items if error is not None]
-        print(json.dumps({"scenes": records, "stability_rate": rate, "object_stability_rate": object_rate}))
+        # strict JSON: a diverged simulation's NaN motion is null
+        print(json.dumps(json_safe({"scenes": records, "stability_rate": rate,
+                                    "object_stability_rate": object_rate}), allow_nan=False))
         return 2 if errors else 0
     for r in results:
         moving = [o for o in r.objects if not o.stable]

@@ -42,3 +42,20 @@ def test_known_and_dataclass_keys_still_load():
     with pytest.raises(ConfigError, match=r"unknown keys \['sft.max_stepz'\]"):
         load_config("train_tiny", ["sft.max_stepz=1"])
     assert load_config("reward", ["max_overlapping_pairs=5"], known=["max_overlapping_pairs"]) is not None
+
+
+def test_a_value_takes_the_type_of_the_yaml_default():
+    assert load_config("demo", ["n=3"]).n == 3
+    assert load_config("export", ["settle.duration_s=4"]).settle.duration_s == 4.0  # an int, as float
+    assert load_config("eval", ["device=0"]).device == "0"  # a string default stays a string
+    # an interpolation is checked unresolved, then resolved against the whole config
+    cfg = load_config("train_tiny", ["sft.output_dir=${output_dir}/x", "sft.max_steps=${seed}"])
+    assert cfg.sft.output_dir == f"{cfg.output_dir}/x" and cfg.sft.max_steps == cfg.seed
+    for override, words in (("n=abc", "n='abc': expected an integer"),
+                            ("n=2.5", "n=2.5: expected an integer"),
+                            ("repair=1", "repair=1: expected true or false"),
+                            ("judge_image_size=5", "judge_image_size=5: expected a list"),
+                            ("split=[a]", "split=['a']: expected a single value")):
+        with pytest.raises(ConfigError, match=r"configs/demo\.yaml: ") as exc:
+            load_config("demo", [override])
+        assert words in str(exc.value)
