@@ -28,6 +28,7 @@ from trl import SFTConfig, SFTTrainer
 
 from physcene.train.models import (
     TrainingSetupError,
+    language_model_targets,
     prepare_model_and_tokenizer,
     set_attention_kernels,
     torch_dtype,
@@ -141,11 +142,12 @@ def accumulation_steps(global_batch: int, per_device: int, world: int) -> int:
 
 
 def lora_config(lora: DictConfig | None) -> LoraConfig | None:
-    """A peft ``LoraConfig`` from ``{r, alpha, dropout, target_modules}``, or None for full fine-tuning."""
+    """A peft ``LoraConfig`` from ``{r, alpha, dropout, target_modules}``, or None for full fine-tuning;
+    the adapters go on the language model's modules of those names only (never a vision tower's)."""
     if lora is None:
         return None
     return LoraConfig(r=int(lora.r), lora_alpha=int(lora.alpha), lora_dropout=float(lora.get("dropout", 0.0)),
-                      target_modules=list(lora.target_modules), task_type="CAUSAL_LM")
+                      target_modules=language_model_targets(lora.target_modules), task_type="CAUSAL_LM")
 
 
 def _precision(cfg: DictConfig) -> dict:
