@@ -182,7 +182,8 @@ def _sft(args, accelerator, model, tokenizer, records) -> dict:
     model = accelerator.prepare(model)
     trainable = [p for p in model.parameters() if p.requires_grad]
     betas = (float(cfg.sft.adam_beta1), float(cfg.sft.adam_beta2))
-    optimizer = accelerator.prepare(torch.optim.AdamW(trainable, lr=float(cfg.sft.learning_rate), betas=betas))
+    optimizer = torch.optim.AdamW(trainable, lr=float(cfg.sft.learning_rate), betas=betas)
+    optimizer = accelerator.prepare(optimizer)
     ids = fixed_rows(tokenizer, records, batch, length, offset=batch * accelerator.process_index)
     ids = ids.to(accelerator.device)
 
