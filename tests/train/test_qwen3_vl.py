@@ -167,3 +167,32 @@ def test_qwen3_vl_eval_and_generate_parse_and_reward_the_completions(qwen3_vl_ru
     rewards = PhysicsReward(RewardConfig(device="cpu")).score([*texts, reference]).rewards.tolist()
     assert all(isinstance(r, float) for r in rewards)
     assert rewards[:2] == [-100.0, -100.0] and -50.0 <= rewards[2] <= 50.0
+
+
+def test_qwen3_vl_lora_targets_skip_a_vision_tower_whose_layers_share_the_names():
+    """Qwen2.5-VL's vision MLP names its layers gate_proj / up_proj / down_proj like the decoder's: a
+    suffix list would wrap both; the targets of ``lora_config`` wrap the language model's only."""
+    from omegaconf import OmegaConf
+    from peft import inject_adapter_in_model
+    from peft.tuners.lora import LoraLayer
+
+    from physcene.train.models import TrainingSetupError, language_model_targets
+    from physcene.train.sft import lora_config
+
+    def block():
+        return torch.nn.ModuleDict({"mlp": torch.nn.ModuleDict(
+            {n: torch.nn.Linear(4, 4) for n in ("gate_proj", "up_proj", "down_proj")})})
+
+    model = torch.nn.Module()
+    model.model = torch.nn.Module()
+    model.model.visual = torch.nn.ModuleDict({"blocks": torch.nn.ModuleList([block()])})
+    model.model.language_model = torch.nn.ModuleDict({"layers": torch.nn.ModuleList([block(), block()])})
+    lora = OmegaConf.create({"r": 16, "alpha": 32, "dropout": 0.0,
+                             "target_modules": ["gate_proj", "down_proj"]})
+    wrapped = [n for n, m in inject_adapter_in_model(lora_config(lora), model).named_modules()
+               if isinstance(m, LoraLayer)]
+    assert sorted(n.split("model.", 1)[1] for n in wrapped) == [
+        f"language_model.layers.{i}.mlp.{name}" for i in (0, 1) for name in ("down_proj", "gate_proj")]
+    assert not re.fullmatch(language_model_targets(["q_proj"]), "vision_tower.layers.0.q_proj")
+    with pytest.raises(TrainingSetupError, match="lora.target_modules"):
+        language_model_targets(["q_proj|.*"])
