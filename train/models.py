@@ -6,7 +6,8 @@
   or one GPU (``small``, ~27 M parameters, a 55 MB bf16 checkpoint).
 - ``pretrained``: any local Hugging Face checkpoint, e.g. Qwen3-VL-8B-Instruct. Vision-language
   checkpoints load with ``AutoModelForImageTextToText`` and are fed text only; their vision tower is
-  frozen (``requires_grad=False``) so neither the optimizer nor ZeRO-2 keeps states for it.
+  frozen (``requires_grad=False``) so neither the optimizer nor ZeRO-2 keeps states for it, and LoRA
+  targets the language model's modules only (:func:`language_model_targets`).
 """
 
 from __future__ import annotations
