@@ -6,12 +6,14 @@
   or one GPU (``small``, ~27 M parameters, a 55 MB bf16 checkpoint).
 - ``pretrained``: any local Hugging Face checkpoint, e.g. Qwen3-VL-8B-Instruct. Vision-language
   checkpoints load with ``AutoModelForImageTextToText`` and are fed text only; their vision tower is
-  frozen (``requires_grad=False``) so neither the optimizer nor ZeRO-2 keeps states for it.
+  frozen (``requires_grad=False``) so neither the optimizer nor ZeRO-2 keeps states for it, and LoRA
+  targets the language model's modules only (:func:`language_model_targets`).
 """
 
 from __future__ import annotations
 
 import json
+import re
 from collections.abc import Iterable
 from pathlib import Path
 
@@ -42,6 +44,7 @@ __all__ = [
     "build_scratch_model",
     "count_parameters",
     "freeze_vision_tower",
+    "language_model_targets",
     "load_model",
     "load_tokenizer",
     "prepare_model_and_tokenizer",
@@ -104,6 +107,25 @@ def build_scratch_model(arch: DictConfig | dict, tokenizer: PreTrainedTokenizerB
 def _is_image_text_checkpoint(path: str | Path) -> bool:
     config = AutoConfig.from_pretrained(str(path))
     return config.model_type in MODEL_FOR_IMAGE_TEXT_TO_TEXT_MAPPING_NAMES
+
+
+# Where a vision tower's modules sit in the image-text-to-text classes (Qwen3-VL: model.visual;
+# LLaVA-style: vision_tower / vision_model). Qwen2.5-VL's vision blocks have gate/up/down_proj too.
+VISION_TOWER_NAMES = ("visual", "vision_tower", "vision_model")
+
+
+def language_model_targets(names: Iterable[str]) -> str:
+    """A peft ``target_modules`` regex for the modules named ``names`` (``q_proj`` ...) outside any
+    vision tower: LoRA on the language model only, for causal LMs and vision-language models alike.
+
+    peft matches a string ``target_modules`` against each module's full name with ``re.fullmatch``;
+    a list would match by suffix and also wrap a vision block's layer of the same name.
+    """
+    names = [str(n) for n in names]
+    if not names or any(not re.fullmatch(r"[A-Za-z0-9_]+", n) for n in names):
+        raise TrainingSetupError(f"lora.target_modules must be module names such as q_proj, got {names}")
+    tower = "|".join(VISION_TOWER_NAMES)
+    return rf"(?!(?:.*\.)?(?:{tower})\.).*\.(?:{'|'.join(names)})"
 
 
 def freeze_vision_tower(model: torch.nn.Module) -> int:

@@ -28,6 +28,7 @@ from physcene.train.checkpoints import last_complete_checkpoint
 from physcene.train.models import (
     TrainingSetupError,
     begin_final_save,
+    language_model_targets,
     prepare_model_and_tokenizer,
     save_train_log,
     set_attention_kernels,
@@ -142,11 +143,12 @@ def accumulation_steps(global_batch: int, per_device: int, world: int) -> int:
 
 
 def lora_config(lora: DictConfig | None) -> LoraConfig | None:
-    """A peft ``LoraConfig`` from ``{r, alpha, dropout, target_modules}``, or None for full fine-tuning."""
+    """A peft ``LoraConfig`` from ``{r, alpha, dropout, target_modules}``, or None for full fine-tuning;
+    the adapters go on the language model's modules of those names only (never a vision tower's)."""
     if lora is None:
         return None
     return LoraConfig(r=int(lora.r), lora_alpha=int(lora.alpha), lora_dropout=float(lora.get("dropout", 0.0)),
-                      target_modules=list(lora.target_modules), task_type="CAUSAL_LM")
+                      target_modules=language_model_targets(lora.target_modules), task_type="CAUSAL_LM")
 
 
 def _precision(cfg: DictConfig) -> dict:

@@ -73,7 +73,8 @@ def run(args) -> int:
     argv = sys.argv[1:] or ["eval"]
     command = "physcene " + " ".join(shlex.quote(a) for a in argv)
     tables, path = run_evaluation(cfg, command=command, title=f"physcene eval — {cfg.split} split",
-                                  progress=not args.quiet, generators=model_generators(cfg))
+                                  progress=not args.quiet,
+                                  generators=model_generators(cfg, max_new_tokens=int(cfg.max_new_tokens)))
     if args.json:
         print_json({"split": cfg.split, "n": cfg.n, "report": path, "results": path.parent / "results.json",
                     "methods": tables})
