@@ -198,29 +198,34 @@ class CTRCConstraint(LogitsProcessor):
         for b, ids in enumerate(new):
             if self.finished[b]:
                 continue
-            added = ""
-            for t in ids:
-                if t == self.eos:
-                    self.finished[b] = True
-                    break
-                added += self.token_text[t]
-            if self.finished[b]:
-                continue
-            searched = self.anchors[b] is _UNSET or may_end_anchor(self.texts[b], added)
-            self.texts[b] += added
-            admitted, self.admitted[b] = self.admitted[b], set()
-            ahead, self.ahead[b] = self.ahead[b], {}
-            if searched:
-                found = ahead.get(added, _UNSET)
-                self.anchors[b] = (last_anchor(self.texts[b], self.listed[b], self.zones[b])
-                                   if found is _UNSET else found)
-            found = self.anchors[b]
-            if found is None:
-                rules[b] = None
-            else:
-                partial = self.texts[b][found[0]:]
-                rules[b] = active_rule(partial, found[1], within=not searched and partial in admitted)
+            rule = self.advance_row(b, ids)
+            if not self.finished[b]:
+                rules[b] = rule
         return rules
+
+    def advance_row(self, b: int, ids: Sequence[int]) -> Rule | None:
+        """Append row ``b``'s new token ``ids`` to its text; the rule then in force (None: free text, or
+        the row has just finished: ``finished[b]``). The fast decoder
+        (:mod:`physcene.train.decode`) calls it per row, for the rows whose token it has accepted."""
+        added = ""
+        for t in ids:
+            if t == self.eos:
+                self.finished[b] = True
+                return None
+            added += self.token_text[t]
+        searched = self.anchors[b] is _UNSET or may_end_anchor(self.texts[b], added)
+        self.texts[b] += added
+        admitted, self.admitted[b] = self.admitted[b], set()
+        ahead, self.ahead[b] = self.ahead[b], {}
+        if searched:
+            found = ahead.get(added, _UNSET)
+            self.anchors[b] = (last_anchor(self.texts[b], self.listed[b], self.zones[b])
+                               if found is _UNSET else found)
+        found = self.anchors[b]
+        if found is None:
+            return None
+        partial = self.texts[b][found[0]:]
+        return active_rule(partial, found[1], within=not searched and partial in admitted)
 
     def allowed_in_vocabulary(self, row: int, rule: Rule | None, scores: torch.Tensor,
                                finite_row: torch.Tensor | None = None) -> list[int]:
