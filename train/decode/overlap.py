@@ -61,12 +61,12 @@ class OverlappedConstraint:
             if chosen != token:
                 corrections[b] = chosen
             self.accepted[b].append(chosen)
+            if chosen not in self.eos:
+                self.rules[b] = self.constraint.advance_row(b, [chosen])
             if chosen in self.eos or len(self.accepted[b]) >= self.max_new_tokens:
                 self.finished[b] = True
                 self.open -= 1
                 self.constraint.finished[b] = True
-            else:
-                self.rules[b] = self.constraint.advance_row(b, [chosen])
         stats.seconds += time.perf_counter() - start
         return corrections
 
