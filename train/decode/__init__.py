@@ -36,7 +36,8 @@ logger = logging.getLogger(__name__)
 
 # model -> {(batch, length, graphs): decoder}
 _DECODERS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
-_KEPT_BYTES = 4 << 30  # a decoder whose cache is larger is dropped after its call (an 8B model's cache)
+_KEPT_SHARE = 0.25  # a decoder whose cache takes more of the GPU is dropped after its call (an 8B model's)
+_KEPT_BYTES_CPU = 4 << 30
 
 
 @contextlib.contextmanager
@@ -64,14 +65,18 @@ def sampling_mode(model: torch.nn.Module):
 
 def decoder_for(model: torch.nn.Module, batch: int, length: int, graphs: bool = True) -> FastDecoder:
     """The model's :class:`FastDecoder` for ``batch`` rows x ``length`` columns (made once, kept while
-    the model lives unless its cache is larger than 4 GiB; another shape replaces it)."""
+    the model lives unless its cache takes over a quarter of the GPU's memory (4 GiB on CPU): training
+    needs it back; another shape replaces it)."""
     kept = _DECODERS.setdefault(model, {})
     key = (int(batch), int(length), bool(graphs))
     decoder = kept.get(key)
     if decoder is None:
         kept.clear()  # one shape at a time: PADA's rounds and eval's batches keep theirs
         decoder = FastDecoder(model, batch=batch, length=length, graphs=graphs)
-        if decoder.cache.bytes_per_column() * batch * length <= _KEPT_BYTES:
+        device = decoder.device
+        limit = (_KEPT_SHARE * torch.cuda.get_device_properties(device).total_memory
+                 if device.type == "cuda" else _KEPT_BYTES_CPU)
+        if decoder.cache.bytes_per_column() * batch * length <= limit:
             kept[key] = decoder
     return decoder
 

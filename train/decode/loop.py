@@ -123,9 +123,8 @@ class FastDecoder:
         """Pick each row's token from ``logits`` [B, V] (float32) into :attr:`token`; candidates for the
         constraint into :attr:`candidates`; the logits into this step's slot of :attr:`logits`."""
         produced = (self.positions - self.prompt_length + 1).clamp(min=0)  # index of the token chosen
-        if self.eos.numel():
-            blocked = (produced < self.min_new)[:, None]
-            logits[:, self.eos] = torch.where(blocked, float("-inf"), logits[:, self.eos])
+        blocked = (produced < self.min_new)[:, None]  # min_new_tokens: no EOS yet (index ops: no host sync)
+        logits.index_copy_(1, self.eos, torch.where(blocked, float("-inf"), logits.index_select(1, self.eos)))
         self.logits.index_copy_(0, (self.step % 2).view(1), logits[None])
         if self.sampling:
             warped = self.warpers(None, logits) if self.warpers is not None else logits
@@ -137,7 +136,7 @@ class FastDecoder:
             values, order = logits.topk(_COPIED_CANDIDATES, dim=-1)
         self.candidates.copy_(torch.where(torch.isfinite(values), order, -1))
         token = torch.where(self.finished, self.pad_id, token)
-        self.finished |= torch.isin(token, self.eos)
+        self.finished |= (token[:, None] == self.eos[None]).any(dim=-1)
         self.token.copy_(token)
         if self.out is not None:
             self.out.scatter_(1, produced.clamp(max=self.out.shape[1] - 1)[:, None], token[:, None])
@@ -175,14 +174,18 @@ class FastDecoder:
             torch.cuda.current_stream(self.device).wait_stream(stream)
             graph = torch.cuda.CUDAGraph()
             pool = next(iter(self.graphs.values())).pool() if self.graphs else None
-            with torch.cuda.graph(graph, pool=pool):
+            # thread_local: work another thread puts on the device meanwhile does not void the capture
+            with torch.cuda.graph(graph, pool=pool, capture_error_mode="thread_local"):
                 self._forward_step(read_length)
             self.graphs[key] = graph
         except Exception as error:  # noqa: BLE001 - any capture failure: eager steps, reason kept
             self.fallback_reason = f"CUDA graph capture failed ({type(error).__name__}: {error})"
             logger.warning("fast decoding runs eager steps: %s", self.fallback_reason)
             graph = None
-            torch.cuda.synchronize(self.device)
+            try:
+                torch.cuda.synchronize(self.device)
+            except RuntimeError as sync_error:  # noqa: PERF203 - logged, the eager steps will tell
+                logger.warning("after the failed capture: %s", sync_error)
         for t, saved in zip(self._state(), state):
             t.copy_(saved)
         self.capture_seconds += time.perf_counter() - start
@@ -243,9 +246,19 @@ class FastDecoder:
         self.positions.fill_(p)
         self._furthest = p
 
+    def _parameters_moved(self) -> bool:
+        """Whether a parameter's storage changed since the graphs were captured (a graph reads the
+        addresses it was captured with: a model moved or re-wrapped would be read stale)."""
+        now = tuple(p.data_ptr() for p in self.model.parameters())
+        moved, self._addresses = getattr(self, "_addresses", now) != now, now
+        return moved
+
     def configure(self, *, max_new_tokens: int, min_new_tokens: int, eos: list[int], pad: int,
                   sampling: bool, warpers, keep_output: bool) -> None:
         """Per-call settings (the graphs of other settings stay captured)."""
+        if self._parameters_moved() and self.graphs:
+            logger.warning("model parameters moved since the decoding graphs were captured: recapturing")
+            self.graphs.clear()
         self.min_new.fill_(int(min_new_tokens))
         eos_ids = torch.tensor(sorted(set(eos)), dtype=torch.long, device=self.device)
         if eos_ids.shape != self.eos.shape or not torch.equal(eos_ids, self.eos):
@@ -346,7 +359,7 @@ class FastDecoder:
             tokens = torch.tensor(list(corrections.values()), dtype=torch.long)
             rows, tokens = rows.to(self.device, non_blocking=cuda), tokens.to(self.device, non_blocking=cuda)
             self.token.index_copy_(0, rows, tokens)
-            self.finished.index_copy_(0, rows, torch.isin(tokens, self.eos))
+            self.finished.index_copy_(0, rows, (tokens[:, None] == self.eos[None]).any(dim=-1))
             if rewind:  # the row's next step rewrites the column its discarded step wrote
                 self.positions.index_add_(0, rows, torch.full_like(rows, -1))
 
