@@ -201,3 +201,31 @@ def test_tiny_qwen3_vl_greedy_ids_equal_hf_generate():
                                eos_token_id=2, pad_token_id=0)[:, ids.shape[1]:].tolist()
     result = fast_generate(model, ids, mask, max_new_tokens=24, eos=[2], pad=0)
     assert result.tokens == [row[:row.index(2) + 1] if 2 in row else row for row in reference]
+
+
+def test_pada_generates_with_the_fast_decoder(tmp_path, records, tokenizer):
+    """``pada.cache: fast`` reaches the trainer and one PADA step samples its groups with the fast
+    decoder, under the constraint (its counters logged) and without it."""
+    from datasets import Dataset
+
+    from physcene.config import load_config
+    from physcene.train.pada import PADAConfig, PADATrainer, pada_arguments
+
+    cfg = load_config("train_tiny", [f"output_dir={tmp_path}", "pada.cache=fast"])
+    args = pada_arguments(cfg, "grpo")
+    assert args.fast_decode and args.cache_implementation is None
+    for constrained in (True, False):
+        model = build_scratch_model(ARCH, tokenizer, seed=3)
+        args = PADAConfig(output_dir=str(tmp_path / str(constrained)), num_generations=2,
+                          per_device_train_batch_size=2, max_completion_length=12, use_cpu=True,
+                          report_to="none", beta=0.0, anchor_alpha=0.0, max_steps=1, fast_decode=True,
+                          constrained_decoding=constrained, logging_steps=1, save_strategy="no")
+        prompts = [records[0]["prompt"][:200], records[1]["prompt"][:260]]
+        trainer = PADATrainer(model, reward_funcs=[lambda prompts, completions, **kw: [0.0] * len(prompts)],
+                              args=args, processing_class=tokenizer,
+                              train_dataset=Dataset.from_list([{"prompt": p, "anchor": ""} for p in prompts]))
+        trainer.train()
+        logged = {k for entry in trainer.state.log_history for k in entry}
+        assert "time/decode_graphs" in logged
+        assert ("time/constraint_s" in logged) is constrained
+        assert trainer.model.training  # given back in training mode

@@ -23,10 +23,14 @@ class StaticKV:
 
     def __init__(self, layers: int, batch: int, kv_heads: int, length: int, head_dim: int, *,
                  dtype: torch.dtype, device: torch.device, positions: torch.Tensor):
-        shape = (batch, kv_heads, length, head_dim)
-        self.keys = [torch.zeros(shape, dtype=dtype, device=device) for _ in range(layers)]
-        self.values = [torch.zeros(shape, dtype=dtype, device=device) for _ in range(layers)]
+        self.shape = (batch, kv_heads, length, head_dim)
+        self.dtype, self.device = dtype, device
+        # allocated by the first prompt pass in the dtypes the layers produce (under autocast keys
+        # and values can differ from the weights and from each other); later writes are cast to them
+        self.keys: list[torch.Tensor | None] = [None] * layers
+        self.values: list[torch.Tensor | None] = [None] * layers
         self.positions = positions
+        self.allocations = 0
         self.length = length
         self.read_length = length
         self.seen = 0  # columns filled by the prompt pass (host-side, for get_seq_length)
@@ -34,14 +38,18 @@ class StaticKV:
     def update(self, key: torch.Tensor, value: torch.Tensor, layer_idx: int, *args, **kwargs):
         k, v = self.keys[layer_idx], self.values[layer_idx]
         new = key.shape[2]
+        if k is None or new > 1 and (k.dtype != key.dtype or v.dtype != value.dtype):
+            k = self.keys[layer_idx] = torch.zeros(self.shape, dtype=key.dtype, device=self.device)
+            v = self.values[layer_idx] = torch.zeros(self.shape, dtype=value.dtype, device=self.device)
+            self.allocations += 1  # graphs captured on the old buffers are void
         if new > 1:
             k[:, :, :new].copy_(key)
             v[:, :, :new].copy_(value)
             self.seen = new
             return k[:, :, :new], v[:, :, :new]
         index = self.positions.view(-1, 1, 1, 1).expand(-1, key.shape[1], 1, key.shape[3])
-        k.scatter_(2, index, key)
-        v.scatter_(2, index, value)
+        k.scatter_(2, index, key.to(k.dtype))
+        v.scatter_(2, index, value.to(v.dtype))
         return k[:, :, :self.read_length], v[:, :, :self.read_length]
 
     def get_seq_length(self, layer_idx: int = 0) -> int:
@@ -49,5 +57,5 @@ class StaticKV:
 
     def bytes_per_column(self) -> int:
         """KV bytes of one column (one token of one row) over all layers."""
-        k = self.keys[0]
-        return 2 * len(self.keys) * k.shape[1] * k.shape[3] * k.element_size()
+        size = self.keys[0].element_size() if self.keys[0] is not None else self.dtype.itemsize
+        return 2 * len(self.keys) * self.shape[1] * self.shape[3] * size

@@ -289,7 +289,10 @@ class FastDecoder:
         self.configure(max_new_tokens=max_new_tokens, min_new_tokens=min_new_tokens, eos=eos, pad=pad,
                        sampling=sampling, warpers=warpers, keep_output=constraint is None)
         start = time.perf_counter()
+        allocations = self.cache.allocations
         self.prefill(input_ids, attention_mask)
+        if self.cache.allocations != allocations and allocations:
+            self.graphs.clear()  # captured on cache buffers the prompt pass has replaced
         timing["prefill"] = time.perf_counter() - start
         start = time.perf_counter()
         if constraint is None:
