@@ -152,7 +152,8 @@ def fast_rollouts(trainer: GRPOTrainer, prompt_ids: list[list[int]],
     profiling, unwrapping, no_grad, full_params = _unwrapped(trainer)
     with profiling, unwrapping as unwrapped_model, no_grad, full_params:
         result = fast_generate(unwrapped_model, inputs["input_ids"], inputs["attention_mask"],
-                               max_new_tokens=config.max_new_tokens, eos=list(trainer.eos_token_ids),
+                               max_new_tokens=config.max_new_tokens,
+                               min_new_tokens=config.min_new_tokens or 0, eos=list(trainer.eos_token_ids),
                                pad=trainer._tokenizer.pad_token_id, sampling=bool(config.do_sample),
                                warpers=warpers, constraint=constraint, length=length)
     trainer.log_value("time/decode_graphs", float(result.graphs))
