@@ -229,3 +229,36 @@ def test_pada_generates_with_the_fast_decoder(tmp_path, records, tokenizer):
         assert "time/decode_graphs" in logged
         assert ("time/constraint_s" in logged) is constrained
         assert trainer.model.training  # given back in training mode
+
+
+@pytest.mark.cuda
+def test_cuda_graph_steps_equal_eager_steps_and_hf_generate(records, tokenizer):
+    """On a GPU (float32): the replayed CUDA graphs give the eager steps' ids and HF generate's, with and
+    without the constraint; sampling with a seed repeats; no fallback."""
+    model = build_scratch_model(ARCH, tokenizer, seed=3).cuda().eval()
+    prompts, prefix, ids, mask = _plan_prefixed(records, tokenizer, 4)
+    ids, mask = ids.cuda(), mask.cuda()
+    common = dict(max_new_tokens=160, eos=[tokenizer.eos_token_id], pad=tokenizer.pad_token_id)
+    graphed = fast_generate(model, ids, mask, **common)
+    assert graphed.graphs and graphed.fallback_reason is None
+    assert graphed.tokens == fast_generate(model, ids, mask, graphs=False, **common).tokens
+    reference = model.generate(input_ids=ids, attention_mask=mask, do_sample=False, max_new_tokens=160,
+                               eos_token_id=tokenizer.eos_token_id, pad_token_id=tokenizer.pad_token_id)
+    eos = tokenizer.eos_token_id
+    cut = [row[:row.index(eos) + 1] if eos in row else row for row in reference[:, ids.shape[1]:].tolist()]
+    assert graphed.tokens == cut
+    processor = CTRCConstraint(tokenizer, prompts)
+    processor.prompt_length = ids.shape[1] - len(prefix)
+    reference = model.generate(input_ids=ids, attention_mask=mask, do_sample=False, max_new_tokens=160,
+                               eos_token_id=eos, pad_token_id=tokenizer.pad_token_id,
+                               logits_processor=LogitsProcessorList([processor]))
+    constrained = fast_generate(model, ids, mask, constraint=_primed(tokenizer, prompts, prefix), **common)
+    assert constrained.graphs and constrained.repairs > 0
+    assert constrained.tokens == [row[:row.index(eos) + 1] if eos in row else row
+                                  for row in reference[:, ids.shape[1]:].tolist()]
+    warpers = sampling_warpers(GenerationConfig(do_sample=True, temperature=0.9, top_k=50, top_p=0.95))
+    runs = []
+    for _ in range(2):
+        torch.manual_seed(11)
+        runs.append(fast_generate(model, ids, mask, sampling=True, warpers=warpers, **common).tokens)
+    assert runs[0] == runs[1]

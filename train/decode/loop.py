@@ -165,6 +165,7 @@ class FastDecoder:
             return graph
         start = time.perf_counter()
         state = [t.clone() for t in self._state()]
+        rng = torch.cuda.get_rng_state(self.device)  # warm-up draws must not shift a seeded run
         try:
             stream = torch.cuda.Stream(self.device)
             stream.wait_stream(torch.cuda.current_stream(self.device))
@@ -188,6 +189,7 @@ class FastDecoder:
                 logger.warning("after the failed capture: %s", sync_error)
         for t, saved in zip(self._state(), state):
             t.copy_(saved)
+        torch.cuda.set_rng_state(rng, self.device)
         self.capture_seconds += time.perf_counter() - start
         return graph
 
