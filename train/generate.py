@@ -134,7 +134,8 @@ def generate_token_ids(model: PreTrainedModel, tokenizer: PreTrainedTokenizerBas
                        chat_format: bool = False, max_new_tokens: int = 1024, batch_size: int = 16,
                        do_sample: bool = False, temperature: float = 1.0, seed: int = 0,
                        cache: str = "dynamic", min_new_tokens: int | None = None,
-                       constrained: bool = False, report: list | None = None) -> list[list[int]]:
+                       constrained: bool = False, report: list | None = None,
+                       fast_attention: str = "sdpa") -> list[list[int]]:
     """Completion token ids of ``prompts`` (prompt and left padding cut off; each row is
     ``max_new_tokens`` long or ends in EOS + pad), in input order.
 
@@ -142,7 +143,8 @@ def generate_token_ids(model: PreTrainedModel, tokenizer: PreTrainedTokenizerBas
     (benchmarks force equal lengths with it). ``constrained``: decode under
     :class:`physcene.train.constrained.CTRCConstraint` (CTRC grammar + the prompt's Object List).
     ``report``: a list that ``cache="fast"`` appends each batch's
-    :class:`~physcene.train.decode.DecodeResult` to (graphs used, bytes read, repairs, timings).
+    :class:`~physcene.train.decode.DecodeResult` to (graphs used, bytes read, repairs, timings);
+    ``fast_attention``: its attention (``sdpa`` or ``matmul``, :func:`physcene.train.decode.fast_generate`).
     """
     if batch_size < 1 or max_new_tokens < 1:
         raise ValueError(f"batch_size and max_new_tokens must be >= 1, got {batch_size}, {max_new_tokens}")
@@ -161,7 +163,7 @@ def generate_token_ids(model: PreTrainedModel, tokenizer: PreTrainedTokenizerBas
         return _fast_token_ids(model, tokenizer, prompts, order, encoded, batch_size=batch_size,
                                max_new_tokens=max_new_tokens, min_new_tokens=min_new_tokens or 0,
                                do_sample=do_sample, temperature=temperature, constrained=constrained,
-                               length=longest + max_new_tokens, report=report)
+                               length=longest + max_new_tokens, report=report, attention=fast_attention)
     kwargs = {"do_sample": do_sample, "max_new_tokens": max_new_tokens,
               "pad_token_id": tokenizer.pad_token_id, "eos_token_id": tokenizer.eos_token_id,
               **cache_generate_kwargs(cache, device, max_cache_len=longest + max_new_tokens)}
@@ -188,7 +190,7 @@ def generate_token_ids(model: PreTrainedModel, tokenizer: PreTrainedTokenizerBas
 
 def _fast_token_ids(model, tokenizer, prompts, order, encoded, *, batch_size: int, max_new_tokens: int,
                     min_new_tokens: int, do_sample: bool, temperature: float, constrained: bool,
-                    length: int, report: list | None) -> list[list[int]]:
+                    length: int, report: list | None, attention: str) -> list[list[int]]:
     """:func:`generate_token_ids` with :func:`physcene.train.decode.fast_generate`: the same rows (EOS
     then padding up to the batch's longest completion, as HF ``generate`` returns them)."""
     from physcene.train.decode import fast_generate
@@ -208,7 +210,7 @@ def _fast_token_ids(model, tokenizer, prompts, order, encoded, *, batch_size: in
         result = fast_generate(model, enc["input_ids"].to(device), enc["attention_mask"].to(device),
                                max_new_tokens=max_new_tokens, min_new_tokens=min_new_tokens,
                                eos=[tokenizer.eos_token_id], pad=tokenizer.pad_token_id, sampling=do_sample,
-                               warpers=warpers, constraint=constraint, length=length)
+                               warpers=warpers, constraint=constraint, length=length, attention=attention)
         if report is not None:
             report.append(result)
         width = max((len(row) for row in result.tokens), default=0)

@@ -262,3 +262,23 @@ def test_cuda_graph_steps_equal_eager_steps_and_hf_generate(records, tokenizer):
         torch.manual_seed(11)
         runs.append(fast_generate(model, ids, mask, sampling=True, warpers=warpers, **common).tokens)
     assert runs[0] == runs[1]
+
+
+def test_matmul_attention_agrees_with_sdpa(records, tokenizer, model):
+    """The matmul decoding attention (float32 scores): the sdpa one's outputs to float32 rounding, and
+    the same greedy ids on the tiny model in float32."""
+    from physcene.train.decode import folded_matmul_attention
+
+    torch.manual_seed(0)
+    module = torch.nn.Module()
+    module.num_key_value_groups, module.is_causal, module.training = 2, True, False
+    q, k, v = torch.randn(3, 4, 1, 8), torch.randn(3, 2, 12, 8), torch.randn(3, 2, 12, 8)
+    mask = torch.ones(3, 1, 1, 12, dtype=torch.bool)
+    mask[1, ..., :5] = False
+    ours, _ = folded_matmul_attention(module, q, k, v, mask, scaling=0.35)
+    theirs, _ = folded_gqa_attention(module, q, k, v, mask, scaling=0.35)
+    assert torch.allclose(ours, theirs, atol=1e-5)
+    prompts = [records[0]["prompt"], records[1]["prompt"][:300]]
+    kwargs = dict(max_new_tokens=24, batch_size=2, cache="fast")
+    assert (generate_token_ids(model, tokenizer, prompts, fast_attention="matmul", **kwargs)
+            == generate_token_ids(model, tokenizer, prompts, **kwargs))

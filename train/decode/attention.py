@@ -16,9 +16,11 @@ from __future__ import annotations
 
 import torch
 
-__all__ = ["FOLDED_ATTENTION", "fold_queries", "folded_gqa_attention", "register_folded_attention"]
+__all__ = ["ATTENTIONS", "FOLDED_ATTENTION", "MATMUL_ATTENTION", "fold_queries", "folded_gqa_attention",
+           "folded_matmul_attention", "register_folded_attention"]
 
 FOLDED_ATTENTION = "sdpa_folded_gqa"
+MATMUL_ATTENTION = "matmul_folded_gqa"
 
 
 def fold_queries(query: torch.Tensor, groups: int) -> torch.Tensor:
@@ -61,11 +63,60 @@ def folded_gqa_attention(module: torch.nn.Module, query: torch.Tensor, key: torc
     return out.reshape(batch, heads, 1, value.shape[-1]).transpose(1, 2).contiguous(), None
 
 
-def register_folded_attention() -> str:
-    """Register :func:`folded_gqa_attention` as :data:`FOLDED_ATTENTION` (idempotent); its name."""
+def folded_matmul_attention(module: torch.nn.Module, query: torch.Tensor, key: torch.Tensor,
+                            value: torch.Tensor, attention_mask: torch.Tensor | None, dropout: float = 0.0,
+                            scaling: float | None = None, is_causal: bool | None = None,
+                            **kwargs) -> tuple[torch.Tensor, None]:
+    """The folded decoding step as two batched matmuls (scores in float32, softmax, then the values):
+    cuBLAS spreads the cache read over the whole GPU where sdpa's memory-efficient kernel gives each
+    (row, KV head) one block. Not bitwise sdpa's (another reduction order); prompt passes as
+    :func:`folded_gqa_attention`."""
+    groups = getattr(module, "num_key_value_groups", 1)
+    if query.shape[2] > 1 or kwargs.get("position_bias") is not None or (dropout and module.training):
+        return folded_gqa_attention(module, query, key, value, attention_mask, dropout=dropout,
+                                    scaling=scaling, is_causal=is_causal, **kwargs)
+    batch, heads, _, dim = query.shape
+    scale = scaling if scaling is not None else dim ** -0.5
+    scores = _float_scores(fold_queries(query, groups), key.transpose(-1, -2)) * scale  # [B, Hkv, G, L]
+    mask = _fold_mask(attention_mask, groups, 1)
+    if mask is not None:
+        scores = scores.masked_fill(~mask, float("-inf")) if mask.dtype == torch.bool else scores + mask
+    out = torch.matmul(scores.softmax(dim=-1).to(value.dtype), value)
+    return out.reshape(batch, heads, 1, value.shape[-1]).transpose(1, 2).contiguous(), None
+
+
+_FLOAT_SCORES: dict[str, bool] = {}
+
+
+def _float_scores(q: torch.Tensor, k_t: torch.Tensor) -> torch.Tensor:
+    """``q @ k_t`` in float32 from bf16/fp16 operands without a float32 copy of the cache (``bmm``'s
+    ``out_dtype`` on CUDA where this torch has it, else the half-precision product upcast)."""
+    if q.dtype == torch.float32:
+        return torch.matmul(q, k_t)
+    lead = q.shape[:-2]
+    q3, k3 = q.reshape(-1, *q.shape[-2:]), k_t.reshape(-1, *k_t.shape[-2:])
+    if _FLOAT_SCORES.get(q.device.type, q.is_cuda):
+        try:
+            return torch.bmm(q3, k3, out_dtype=torch.float32).reshape(*lead, q.shape[-2], k_t.shape[-1])
+        except (RuntimeError, TypeError):
+            _FLOAT_SCORES[q.device.type] = False
+    return torch.bmm(q3, k3).float().reshape(*lead, q.shape[-2], k_t.shape[-1])
+
+
+ATTENTIONS = {"sdpa": (FOLDED_ATTENTION, folded_gqa_attention),
+              "matmul": (MATMUL_ATTENTION, folded_matmul_attention)}
+"""The fast decoder's attention choices: name -> (registered name, function)."""
+
+
+def register_folded_attention(kind: str = "sdpa") -> str:
+    """Register the folded attention ``kind`` (:data:`ATTENTIONS`) with transformers (idempotent); its
+    registered name."""
     from transformers import AttentionInterface
     from transformers.masking_utils import AttentionMaskInterface, sdpa_mask
 
-    AttentionInterface.register(FOLDED_ATTENTION, folded_gqa_attention)
-    AttentionMaskInterface.register(FOLDED_ATTENTION, sdpa_mask)
-    return FOLDED_ATTENTION
+    if kind not in ATTENTIONS:
+        raise ValueError(f"fast decoding attention {kind!r}: expected one of {', '.join(ATTENTIONS)}")
+    name, function = ATTENTIONS[kind]
+    AttentionInterface.register(name, function)
+    AttentionMaskInterface.register(name, sdpa_mask)
+    return name

@@ -76,7 +76,7 @@ class FastDecoder:
     """
 
     def __init__(self, model: torch.nn.Module, *, batch: int, length: int, graphs: bool = True,
-                 buckets: int = 8):
+                 buckets: int = 8, attention: str = "sdpa"):
         if batch < 1 or length < 2:
             raise ValueError(f"FastDecoder: batch {batch} and length {length} must be >= 1 and >= 2")
         self.model = model
@@ -116,7 +116,8 @@ class FastDecoder:
         self.graphs: dict[tuple, torch.cuda.CUDAGraph] = {}
         self.fallback_reason: str | None = None
         self.capture_seconds = 0.0
-        register_folded_attention()
+        self.attention = attention
+        register_folded_attention(attention)
 
     # --- one step -------------------------------------------------------------------------------------
     def _choose(self, logits: torch.Tensor) -> None:

@@ -4,7 +4,7 @@ the fast decoder, against the KV-cache-read limit.
     physcene bench generate --device cuda --config small --batch 512 --tokens 2048 --json
     physcene bench generate --device cuda --config small --batch 512 --tokens 2048 --constrained
     physcene bench generate --device cpu --config tiny --batch 2 --tokens 8
-    physcene bench generate --device cuda --variants dynamic static static+compile fast
+    physcene bench generate --device cuda --variants dynamic static static+compile fast fast+matmul
 
 A randomly initialised model of ``configs/train_<config>.yaml`` (speed does not depend on the
 weights) and a tokenizer trained the way the train code does (:mod:`physcene.train.tokenizer`, on 32
@@ -35,9 +35,12 @@ import torch
 
 from physcene.commands.bench.timing import BenchTarget, device_name, timed
 
-__all__ = ["BANDWIDTH_TB_S", "TARGET", "VARIANT_CACHE", "memory_bandwidth"]
+__all__ = ["BANDWIDTH_TB_S", "TARGET", "VARIANT_ATTENTION", "VARIANT_CACHE", "memory_bandwidth"]
 
-VARIANT_CACHE = {"dynamic": "dynamic", "static": "static", "static+compile": "static_compile", "fast": "fast"}
+VARIANT_CACHE = {"dynamic": "dynamic", "static": "static", "static+compile": "static_compile", "fast": "fast",
+                 "fast+matmul": "fast"}
+# the fast decoder's attention per variant (physcene.train.decode.ATTENTIONS)
+VARIANT_ATTENTION = {"fast+matmul": "matmul"}
 
 # peak memory bandwidth, TB/s, by a substring of torch.cuda.get_device_name (the first match wins)
 BANDWIDTH_TB_S = {"H200": 4.8, "H100 PCIe": 2.0, "H100 NVL": 3.9, "H100": 3.35, "A100-SXM4-80GB": 2.039,
@@ -141,12 +144,13 @@ def run(args) -> dict:
     for name in args.variants:
         cache = VARIANT_CACHE[name]
         report: list = []
+        attention = VARIANT_ATTENTION.get(name, "sdpa")
 
-        def call(tokens: int, cache=cache, report=report):
+        def call(tokens: int, cache=cache, report=report, attention=attention):
             report.clear()
             return generate_token_ids(model, tokenizer, prompts, max_new_tokens=tokens, min_new_tokens=tokens,
                                       batch_size=args.batch, cache=cache, constrained=args.constrained,
-                                      report=report)
+                                      report=report, fast_attention=attention)
 
         try:
             start = time.perf_counter()
