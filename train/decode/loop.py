@@ -76,7 +76,7 @@ class FastDecoder:
     """
 
     def __init__(self, model: torch.nn.Module, *, batch: int, length: int, graphs: bool = True,
-                 buckets: int = 8, attention: str = "sdpa"):
+                 buckets: int = 16, attention: str = "sdpa"):
         if batch < 1 or length < 2:
             raise ValueError(f"FastDecoder: batch {batch} and length {length} must be >= 1 and >= 2")
         self.model = model
@@ -109,6 +109,7 @@ class FastDecoder:
         self.pad_id = torch.zeros((), dtype=torch.long, device=dev)
         self.sampling = False
         self.warpers = None
+        self._settings: tuple = ()
         chunk = -(-self.length // max(int(buckets), 1))
         chunk = -(-chunk // 64) * 64
         self.bounds = sorted({min(self.length, chunk * k) for k in range(1, -(-self.length // chunk) + 1)})
@@ -126,7 +127,8 @@ class FastDecoder:
         produced = (self.positions - self.prompt_length + 1).clamp(min=0)  # index of the token chosen
         blocked = (produced < self.min_new)[:, None]  # min_new_tokens: no EOS yet (index ops: no host sync)
         logits.index_copy_(1, self.eos, torch.where(blocked, float("-inf"), logits.index_select(1, self.eos)))
-        self.logits.index_copy_(0, (self.step % 2).view(1), logits[None])
+        if self.out is None:  # under the constraint: what the host may need to repair a row
+            self.logits.index_copy_(0, (self.step % 2).view(1), logits[None])
         if self.sampling:
             warped = self.warpers(None, logits) if self.warpers is not None else logits
             uniform = torch.rand_like(warped).clamp_(min=torch.finfo(warped.dtype).tiny)
@@ -134,8 +136,10 @@ class FastDecoder:
             token = order[:, 0]
         else:
             token = logits.argmax(dim=-1)
-            values, order = logits.topk(_COPIED_CANDIDATES, dim=-1)
-        self.candidates.copy_(torch.where(torch.isfinite(values), order, -1))
+            if self.out is None:
+                values, order = logits.topk(_COPIED_CANDIDATES, dim=-1)
+        if self.out is None:
+            self.candidates.copy_(torch.where(torch.isfinite(values), order, -1))
         token = torch.where(self.finished, self.pad_id, token)
         self.finished |= (token[:, None] == self.eos[None]).any(dim=-1)
         self.token.copy_(token)
@@ -155,7 +159,7 @@ class FastDecoder:
         self.positions.add_(1).clamp_(max=self.length - 1)
 
     def _key(self, read_length: int) -> tuple:
-        return (read_length, self.sampling, _warper_key(self.warpers), self.out is not None)
+        return (read_length, *self._settings)
 
     def _capture(self, read_length: int) -> torch.cuda.CUDAGraph | None:
         """The step's CUDA graph for ``read_length`` (captured on first use; state saved around the
@@ -278,6 +282,8 @@ class FastDecoder:
             self.out.fill_(int(pad))
         else:
             self.out = None
+        # what a captured graph bakes in besides its read length
+        self._settings = (self.sampling, _warper_key(self.warpers), self.out is not None)
 
     def generate(self, input_ids: torch.Tensor, attention_mask: torch.Tensor, *, max_new_tokens: int,
                  eos: list[int], pad: int, min_new_tokens: int = 0, sampling: bool = False, warpers=None,
