@@ -203,6 +203,23 @@ class CTRCConstraint(LogitsProcessor):
                 rules[b] = rule
         return rules
 
+    def advance_free_text(self, b: int, token: int) -> bool:
+        """The common step of a row in free text (no anchor in force): when ``token`` is not EOS and
+        cannot end an anchor, it is allowed and appended here (True; the row stays in free text) at
+        one anchor test instead of :meth:`allowed_tokens` + :meth:`advance_row`; else False."""
+        if self.anchors[b] is not None or token == self.eos:
+            return False
+        added = self.token_text[token]
+        text = self.texts[b]
+        if added and may_end_anchor(text, added):
+            return False
+        self.texts[b] = text + added
+        if self.admitted[b]:
+            self.admitted[b] = set()
+        if self.ahead[b]:
+            self.ahead[b] = {}
+        return True
+
     def advance_row(self, b: int, ids: Sequence[int]) -> Rule | None:
         """Append row ``b``'s new token ``ids`` to its text; the rule then in force (None: free text, or
         the row has just finished: ``finished[b]``). The fast decoder

@@ -54,8 +54,14 @@ class OverlappedConstraint:
         start = time.perf_counter()
         stats = self.constraint.stats
         corrections: dict[int, int] = {}
+        free_text = self.constraint.advance_free_text
         for b, token in enumerate(tokens):
             if self.finished[b] or b in skip:
+                continue
+            if self.rules[b] is None and free_text(b, token):  # most rows: free text, no anchor ends
+                self.accepted[b].append(token)
+                if len(self.accepted[b]) >= self.max_new_tokens:
+                    self._finish(b)
                 continue
             chosen = self._choose(b, token, [t for t in candidates[b] if t >= 0], logits_row)
             if chosen != token:
@@ -64,11 +70,14 @@ class OverlappedConstraint:
             if chosen not in self.eos:
                 self.rules[b] = self.constraint.advance_row(b, [chosen])
             if chosen in self.eos or len(self.accepted[b]) >= self.max_new_tokens:
-                self.finished[b] = True
-                self.open -= 1
-                self.constraint.finished[b] = True
+                self._finish(b)
         stats.seconds += time.perf_counter() - start
         return corrections
+
+    def _finish(self, b: int) -> None:
+        self.finished[b] = True
+        self.open -= 1
+        self.constraint.finished[b] = True
 
     def _choose(self, b: int, token: int, candidates: list[int], logits_row) -> int:
         c, rule = self.constraint, self.rules[b]
