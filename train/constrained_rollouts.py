@@ -144,7 +144,10 @@ def fast_rollouts(trainer: GRPOTrainer, prompt_ids: list[list[int]],
         return generate_with_processors(trainer, prompt_ids, processors)
     length = getattr(trainer, "_fast_decode_length", None)
     if length is None:  # one cache length for the run: one decoder and one set of CUDA graphs
-        prompts = trainer.train_dataset["prompt"] if trainer.train_dataset is not None else ()
+        try:
+            prompts = trainer.train_dataset["prompt"]
+        except (TypeError, KeyError):  # no dataset, or an iterable one: this round's prompts only
+            prompts = ()
         longest = max(longest_prompt_tokens(trainer._tokenizer, prompts), max(map(len, prompt_ids)))
         multiple = trainer.pad_to_multiple_of or 1
         length = trainer._fast_decode_length = -(-longest // multiple) * multiple + config.max_new_tokens
