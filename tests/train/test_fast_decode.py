@@ -282,3 +282,22 @@ def test_matmul_attention_agrees_with_sdpa(records, tokenizer, model):
     kwargs = dict(max_new_tokens=24, batch_size=2, cache="fast")
     assert (generate_token_ids(model, tokenizer, prompts, fast_attention="matmul", **kwargs)
             == generate_token_ids(model, tokenizer, prompts, **kwargs))
+
+
+@pytest.mark.slow
+def test_bench_pada_times_whole_steps(capsys):
+    """``physcene bench pada`` at tiny sizes: one timed step per cache, split into its parts."""
+    import json
+
+    from physcene.cli import main
+
+    assert main(["bench", "pada", "--config", "tiny", "--tokens", "8", "--steps", "1", "--caches", "fast",
+                 "dynamic", "--json", "--set", "pada.global_batch_size=4", "pada.per_device_batch_size=2",
+                 "pada.num_generations=2"]) == 0
+    r = json.loads(capsys.readouterr().out)
+    assert r["target"] == "pada" and r["global_batch"] == 4 and r["num_generations"] == 2
+    for cache, path in (("fast", "eager"), ("dynamic", "hf_generate")):
+        v = r["caches"][cache]
+        assert v["path"] == path and v["steps_timed"] == 1 and v["seconds_per_step"] > 0
+        assert v["generate_s"] > 0 and v["update_s"] == pytest.approx(
+            v["seconds_per_step"] - v["generate_s"] - v["reward_s"])
