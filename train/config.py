@@ -55,6 +55,9 @@ class PADAConfig(GRPOConfig):
     generation_compile: bool = field(
         default=False, metadata={"help": "Compile the decoding forward of a static-cache generation "
                                          "(pada.cache=static_compile); TRL itself always disables it."})
+    fast_decode: bool = field(
+        default=False, metadata={"help": "Generate the groups with the fast decoder (pada.cache=fast: "
+                                         "physcene.train.decode; HF generate only, not vLLM)."})
     constrained_decoding: bool = field(
         default=False, metadata={"help": "Sample the groups under the CTRC constraint, passed to generate "
                                          "as a logits processor (physcene.train.constrained_rollouts; HF "
@@ -176,8 +179,9 @@ def pada_arguments(cfg, variant: str) -> PADAConfig:
         max_completion_length=int(p.max_completion_length),
         temperature=float(p.temperature),
         # TRL passes it to GenerationConfig (HF generate, use_vllm=False); None = HF's dynamic cache
-        cache_implementation=None if cache == "dynamic" else "static",
+        cache_implementation=None if cache in ("dynamic", "fast") else "static",
         generation_compile=cache == "static_compile",
+        fast_decode=cache == "fast",
         constrained_decoding=bool(p.get("constrained", False)),
         mask_overruled=bool(p.get("mask_overruled", True)),
         nonfinite_probe=int(p.get("nonfinite_probe", 0) or 0),

@@ -20,6 +20,8 @@ no cost to what is sampled, and its KL term to the reference grows without bound
 
 from __future__ import annotations
 
+import logging
+
 import torch
 from transformers import LogitsProcessorList
 from trl import GRPOTrainer
@@ -30,7 +32,9 @@ from trl.trainer.utils import pad
 from physcene.train.constrained import CTRCConstraint, sampling_warpers
 from physcene.train.extension import PADAExtension
 
-__all__ = ["ConstrainedRollouts", "generate_with_processors", "mask_overruled"]
+__all__ = ["ConstrainedRollouts", "fast_rollouts", "generate_with_processors", "mask_overruled"]
+
+logger = logging.getLogger(__name__)
 
 
 class ConstrainedRollouts(PADAExtension):
@@ -91,30 +95,84 @@ def mask_overruled(trainer, output: dict, overruled: list[list[int]]) -> None:
     trainer.log_value("constraint/overruled_frac", (masked / total.clamp(min=1)).item())
 
 
-def generate_with_processors(trainer: GRPOTrainer, prompt_ids: list[list[int]],
-                             processors: list) -> tuple[list[list[int]], None]:
-    """TRL's HF-generate path of ``GRPOTrainer._generate_single_turn`` for text prompts, with
-    ``processors`` passed to ``generate``: (completion ids per row, cut after the first EOS; None)."""
-    device = trainer.accelerator.device
+def _generation_inputs(trainer: GRPOTrainer, prompt_ids: list[list[int]]) -> dict:
+    """TRL's left-padded prompt batch on the trainer's device."""
     prompt_tensors = [torch.tensor(ids) for ids in prompt_ids]
     padded_ids = pad(prompt_tensors, padding_value=trainer._tokenizer.pad_token_id, padding_side="left",
                      pad_to_multiple_of=trainer.pad_to_multiple_of)
     attention_mask = pad([torch.ones_like(t) for t in prompt_tensors], padding_value=0, padding_side="left",
                          pad_to_multiple_of=trainer.pad_to_multiple_of)
     # Trainer's _prepare_inputs (device placement), as TRL's own call does
-    generate_inputs = super(GRPOTrainer, trainer)._prepare_inputs(
+    return super(GRPOTrainer, trainer)._prepare_inputs(
         {"input_ids": padded_ids, "attention_mask": attention_mask})
-    with (
-        profiling_context(trainer, "transformers.generate"),
-        unwrap_model_for_generation(
-            trainer.model_wrapped, trainer.accelerator,
-            gather_deepspeed3_params=trainer.args.ds3_gather_for_generation,
-            generation_kwargs=trainer.generation_kwargs,
-            gradient_checkpointing_kwargs=trainer.args.gradient_checkpointing_kwargs,
-        ) as unwrapped_model,
-        torch.no_grad(),
-        trainer._dist.summon_full_params(trainer.model_wrapped, recurse=False),
-    ):
+
+
+def _unwrapped(trainer: GRPOTrainer):
+    """TRL's context for a generation call: (profiling, the unwrapped model, no grad, full params)."""
+    return (profiling_context(trainer, "transformers.generate"),
+            unwrap_model_for_generation(
+                trainer.model_wrapped, trainer.accelerator,
+                gather_deepspeed3_params=trainer.args.ds3_gather_for_generation,
+                generation_kwargs=trainer.generation_kwargs,
+                gradient_checkpointing_kwargs=trainer.args.gradient_checkpointing_kwargs),
+            torch.no_grad(),
+            trainer._dist.summon_full_params(trainer.model_wrapped, recurse=False))
+
+
+def fast_rollouts(trainer: GRPOTrainer, prompt_ids: list[list[int]],
+                  processors: list) -> tuple[list[list[int]], None]:
+    """TRL's generation call with the fast decoder (``pada.cache: fast``): (completion ids per row, cut
+    after the first EOS; None), as :func:`generate_with_processors`. The CTRC constraint (the one
+    processor it takes) is checked beside the GPU. Settings it does not rebuild (another logits
+    processor, a repetition penalty, suppressed tokens, a warper outside temperature/top-k/top-p/
+    min-p) go to HF generate instead, once logged."""
+    from physcene.train.decode import fast_generate
+    from physcene.train.generate import longest_prompt_tokens
+
+    config = trainer.generation_config
+    constraint = next((p for p in processors if isinstance(p, CTRCConstraint)), None)
+    warpers = sampling_warpers(config) if config.do_sample else None
+    unsupported = [name for name, bad in (
+        ("logits processors", len(processors) > (constraint is not None)),
+        ("repetition_penalty", (config.repetition_penalty or 1.0) != 1.0),
+        ("suppress_tokens", bool(config.suppress_tokens)),
+        ("warpers", config.do_sample and warpers is None)) if bad]
+    if unsupported:
+        if not getattr(trainer, "_fast_decode_refused", False):
+            logger.warning("pada.cache=fast: %s set, generating with HF generate", ", ".join(unsupported))
+            trainer._fast_decode_refused = True
+        return generate_with_processors(trainer, prompt_ids, processors)
+    length = getattr(trainer, "_fast_decode_length", None)
+    if length is None:  # one cache length for the run: one decoder and one set of CUDA graphs
+        try:
+            prompts = trainer.train_dataset["prompt"]
+        except (TypeError, KeyError):  # no dataset, or an iterable one: this round's prompts only
+            prompts = ()
+        longest = max(longest_prompt_tokens(trainer._tokenizer, prompts), max(map(len, prompt_ids)))
+        multiple = trainer.pad_to_multiple_of or 1
+        length = trainer._fast_decode_length = -(-longest // multiple) * multiple + config.max_new_tokens
+    inputs = _generation_inputs(trainer, prompt_ids)
+    profiling, unwrapping, no_grad, full_params = _unwrapped(trainer)
+    with profiling, unwrapping as unwrapped_model, no_grad, full_params:
+        result = fast_generate(unwrapped_model, inputs["input_ids"], inputs["attention_mask"],
+                               max_new_tokens=config.max_new_tokens,
+                               min_new_tokens=config.min_new_tokens or 0, eos=list(trainer.eos_token_ids),
+                               pad=trainer._tokenizer.pad_token_id, sampling=bool(config.do_sample),
+                               warpers=warpers, constraint=constraint, length=length)
+    trainer.log_value("time/decode_graphs", float(result.graphs))
+    trainer.log_value("time/decode_repairs", float(result.repairs))
+    trainer.log_value("time/decode_host_check_s", result.seconds.get("host_check", 0.0))
+    return result.tokens, None
+
+
+def generate_with_processors(trainer: GRPOTrainer, prompt_ids: list[list[int]],
+                             processors: list) -> tuple[list[list[int]], None]:
+    """TRL's HF-generate path of ``GRPOTrainer._generate_single_turn`` for text prompts, with
+    ``processors`` passed to ``generate``: (completion ids per row, cut after the first EOS; None)."""
+    device = trainer.accelerator.device
+    generate_inputs = _generation_inputs(trainer, prompt_ids)
+    profiling, unwrapping, no_grad, full_params = _unwrapped(trainer)
+    with profiling, unwrapping as unwrapped_model, no_grad, full_params:
         prompt_completion_ids = unwrapped_model.generate(
             **generate_inputs, generation_config=trainer.generation_config,
             logits_processor=LogitsProcessorList(processors))

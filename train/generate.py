@@ -12,7 +12,11 @@ Prompts are sorted by length before batching so left padding stays small.
 - ``static``: ``cache_implementation="static"`` with ``disable_compile`` (a preallocated cache,
   eager forward; transformers would otherwise auto-compile on CUDA);
 - ``static_compile``: the static cache and HF's ``torch.compile``d decoding forward
-  (``CompileConfig``, mode ``reduce-overhead`` = CUDA graphs on CUDA; also honoured on CPU).
+  (``CompileConfig``, mode ``reduce-overhead`` = CUDA graphs on CUDA; also honoured on CPU);
+- ``fast``: not HF ``generate`` but :mod:`physcene.train.decode` (folded GQA attention, a static
+  cache read up to a bucketed length, decoding steps replayed as CUDA graphs, the CTRC constraint
+  checked on the host while the GPU runs the next step, dropout off). HF ``generate`` stays the
+  reference it is tested against.
 
 For the static modes the cache is sized once for the longest prompt of the whole call plus
 ``max_new_tokens`` (``max_cache_len``) so every batch reuses one shape and one compiled graph.
@@ -34,7 +38,7 @@ from physcene.train.models import TrainingSetupError, load_model, load_tokenizer
 __all__ = ["CACHE_MODES", "cache_generate_kwargs", "check_cache", "generate", "generate_token_ids",
            "generate_with", "load_for_generation", "longest_prompt_tokens", "set_trainer_cache"]
 
-CACHE_MODES = ("dynamic", "static", "static_compile")
+CACHE_MODES = ("dynamic", "static", "static_compile", "fast")
 
 
 def check_cache(cache: str) -> str:
@@ -51,6 +55,8 @@ def cache_generate_kwargs(cache: str, device: str | torch.device = "cpu",
     ``max_cache_len`` (tokens: longest prompt + max_new_tokens) sizes a static cache for every call.
     """
     check_cache(cache)
+    if cache == "fast":
+        raise ValueError("cache 'fast' is not an HF generate mode: generate_token_ids runs it itself")
     if cache == "dynamic":
         return {"cache_implementation": "dynamic"}
     kwargs: dict = {"cache_implementation": "static"}
@@ -128,13 +134,17 @@ def generate_token_ids(model: PreTrainedModel, tokenizer: PreTrainedTokenizerBas
                        chat_format: bool = False, max_new_tokens: int = 1024, batch_size: int = 16,
                        do_sample: bool = False, temperature: float = 1.0, seed: int = 0,
                        cache: str = "dynamic", min_new_tokens: int | None = None,
-                       constrained: bool = False) -> list[list[int]]:
+                       constrained: bool = False, report: list | None = None,
+                       fast_attention: str = "sdpa") -> list[list[int]]:
     """Completion token ids of ``prompts`` (prompt and left padding cut off; each row is
     ``max_new_tokens`` long or ends in EOS + pad), in input order.
 
     ``cache``: one of :data:`CACHE_MODES`. ``min_new_tokens`` forbids EOS before that many tokens
     (benchmarks force equal lengths with it). ``constrained``: decode under
     :class:`physcene.train.constrained.CTRCConstraint` (CTRC grammar + the prompt's Object List).
+    ``report``: a list that ``cache="fast"`` appends each batch's
+    :class:`~physcene.train.decode.DecodeResult` to (graphs used, bytes read, repairs, timings);
+    ``fast_attention``: its attention (``sdpa`` or ``matmul``, :func:`physcene.train.decode.fast_generate`).
     """
     if batch_size < 1 or max_new_tokens < 1:
         raise ValueError(f"batch_size and max_new_tokens must be >= 1, got {batch_size}, {max_new_tokens}")
@@ -149,6 +159,11 @@ def generate_token_ids(model: PreTrainedModel, tokenizer: PreTrainedTokenizerBas
                          padding=True, add_special_tokens=False)
                for start in range(0, len(order), batch_size)]
     longest = max((enc["input_ids"].shape[1] for enc in encoded), default=0)
+    if cache == "fast":
+        return _fast_token_ids(model, tokenizer, prompts, order, encoded, batch_size=batch_size,
+                               max_new_tokens=max_new_tokens, min_new_tokens=min_new_tokens or 0,
+                               do_sample=do_sample, temperature=temperature, constrained=constrained,
+                               length=longest + max_new_tokens, report=report, attention=fast_attention)
     kwargs = {"do_sample": do_sample, "max_new_tokens": max_new_tokens,
               "pad_token_id": tokenizer.pad_token_id, "eos_token_id": tokenizer.eos_token_id,
               **cache_generate_kwargs(cache, device, max_cache_len=longest + max_new_tokens)}
@@ -170,6 +185,37 @@ def generate_token_ids(model: PreTrainedModel, tokenizer: PreTrainedTokenizerBas
         ids = model.generate(**enc, **kwargs)[:, enc["input_ids"].shape[1]:]
         for i, row in zip(idx, ids.tolist()):
             out[i] = row
+    return out
+
+
+def _fast_token_ids(model, tokenizer, prompts, order, encoded, *, batch_size: int, max_new_tokens: int,
+                    min_new_tokens: int, do_sample: bool, temperature: float, constrained: bool,
+                    length: int, report: list | None, attention: str) -> list[list[int]]:
+    """:func:`generate_token_ids` with :func:`physcene.train.decode.fast_generate`: the same rows (EOS
+    then padding up to the batch's longest completion, as HF ``generate`` returns them)."""
+    from physcene.train.decode import fast_generate
+
+    device = next(model.parameters()).device
+    warpers = None
+    if do_sample:
+        config = copy.deepcopy(model.generation_config)
+        config.update(do_sample=True, temperature=temperature)
+        warpers = sampling_warpers(config) or LogitsProcessorList()
+    out: list[list[int]] = [[] for _ in prompts]
+    for k, enc in enumerate(encoded):
+        idx = order[k * batch_size:(k + 1) * batch_size]
+        rows = [prompts[i] for i in idx]
+        constraint = (CTRCConstraint(tokenizer, rows, greedy=not do_sample, warpers=warpers)
+                      if constrained else None)
+        result = fast_generate(model, enc["input_ids"].to(device), enc["attention_mask"].to(device),
+                               max_new_tokens=max_new_tokens, min_new_tokens=min_new_tokens,
+                               eos=[tokenizer.eos_token_id], pad=tokenizer.pad_token_id, sampling=do_sample,
+                               warpers=warpers, constraint=constraint, length=length, attention=attention)
+        if report is not None:
+            report.append(result)
+        width = max((len(row) for row in result.tokens), default=0)
+        for i, row in zip(idx, result.tokens):
+            out[i] = row + [tokenizer.pad_token_id] * (width - len(row))
     return out
 
 

@@ -41,7 +41,7 @@ from trl import GRPOTrainer
 from physcene.reward.trl import PhysicsRewardFunction
 from physcene.train.checkpoints import last_complete_checkpoint
 from physcene.train.config import VARIANTS, PADAConfig, pada_arguments, reward_overrides
-from physcene.train.constrained_rollouts import ConstrainedRollouts, generate_with_processors
+from physcene.train.constrained_rollouts import ConstrainedRollouts, fast_rollouts, generate_with_processors
 from physcene.train.denoise import Denoise
 from physcene.train.diagnostics import NonfiniteProbe
 from physcene.train.extension import PADAExtension
@@ -147,18 +147,21 @@ class PADATrainer(GRPOTrainer):
     def _generate_single_turn(self, prompt_ids, images, multimodal_fields, num_generations,
                               has_tool_images=False):
         """TRL's generation call, with the extensions' logits processors passed to ``generate`` when
-        there are any (:func:`~physcene.train.constrained_rollouts.generate_with_processors`)."""
+        there are any (:func:`~physcene.train.constrained_rollouts.generate_with_processors`), or the
+        fast decoder for text prompts under ``pada.cache: fast``
+        (:func:`~physcene.train.constrained_rollouts.fast_rollouts`)."""
         prompts = self._round_prompts
         usable = prompts is not None and len(prompts) == len(prompt_ids) and not self.use_vllm
         used = [(e, e.logits_processors(self, prompts)) for e in self.extensions] if usable else []
         processors = [p for _, ps in used for p in ps]
-        if not processors:
+        fast = self.args.fast_decode and not self.use_vllm and not multimodal_fields
+        if not processors and not fast:
             return super()._generate_single_turn(prompt_ids, images, multimodal_fields, num_generations,
                                                  has_tool_images)
         if multimodal_fields:
             raise ValueError("logits processors (pada.constrained) need text prompts, got image fields "
                              f"{sorted(multimodal_fields)}")
-        output = generate_with_processors(self, prompt_ids, processors)
+        output = (fast_rollouts if fast else generate_with_processors)(self, prompt_ids, processors)
         for extension, ps in used:
             if ps:
                 extension.after_generation(self)

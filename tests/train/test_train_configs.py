@@ -13,7 +13,7 @@ from physcene.config import ConfigError, load_config
 #  ablation.n_test, model.path required): the values of the three configs before they were composed
 EXPECTED = [
     ("tiny", "scratch", "float32", 96, 3.0e-3, 8, False, "dynamic", 4, False),
-    ("small", "scratch", "bfloat16", 512, 1.0e-3, 128, True, "static_compile", 200, False),
+    ("small", "scratch", "bfloat16", 512, 1.0e-3, 128, True, "fast", 200, False),
     ("qwen3_vl_8b", "pretrained", "bfloat16", None, 1.0e-5, 128, False, "dynamic", 200, True),
 ]
 

@@ -198,29 +198,51 @@ class CTRCConstraint(LogitsProcessor):
         for b, ids in enumerate(new):
             if self.finished[b]:
                 continue
-            added = ""
-            for t in ids:
-                if t == self.eos:
-                    self.finished[b] = True
-                    break
-                added += self.token_text[t]
-            if self.finished[b]:
-                continue
-            searched = self.anchors[b] is _UNSET or may_end_anchor(self.texts[b], added)
-            self.texts[b] += added
-            admitted, self.admitted[b] = self.admitted[b], set()
-            ahead, self.ahead[b] = self.ahead[b], {}
-            if searched:
-                found = ahead.get(added, _UNSET)
-                self.anchors[b] = (last_anchor(self.texts[b], self.listed[b], self.zones[b])
-                                   if found is _UNSET else found)
-            found = self.anchors[b]
-            if found is None:
-                rules[b] = None
-            else:
-                partial = self.texts[b][found[0]:]
-                rules[b] = active_rule(partial, found[1], within=not searched and partial in admitted)
+            rule = self.advance_row(b, ids)
+            if not self.finished[b]:
+                rules[b] = rule
         return rules
+
+    def advance_free_text(self, b: int, token: int) -> bool:
+        """The common step of a row in free text (no anchor in force): when ``token`` is not EOS and
+        cannot end an anchor, it is allowed and appended here (True; the row stays in free text) at
+        one anchor test instead of :meth:`allowed_tokens` + :meth:`advance_row`; else False."""
+        if self.anchors[b] is not None or token == self.eos:
+            return False
+        added = self.token_text[token]
+        text = self.texts[b]
+        if added and may_end_anchor(text, added):
+            return False
+        self.texts[b] = text + added
+        if self.admitted[b]:
+            self.admitted[b] = set()
+        if self.ahead[b]:
+            self.ahead[b] = {}
+        return True
+
+    def advance_row(self, b: int, ids: Sequence[int]) -> Rule | None:
+        """Append row ``b``'s new token ``ids`` to its text; the rule then in force (None: free text, or
+        the row has just finished: ``finished[b]``). The fast decoder
+        (:mod:`physcene.train.decode`) calls it per row, for the rows whose token it has accepted."""
+        added = ""
+        for t in ids:
+            if t == self.eos:
+                self.finished[b] = True
+                return None
+            added += self.token_text[t]
+        searched = self.anchors[b] is _UNSET or may_end_anchor(self.texts[b], added)
+        self.texts[b] += added
+        admitted, self.admitted[b] = self.admitted[b], set()
+        ahead, self.ahead[b] = self.ahead[b], {}
+        if searched:
+            found = ahead.get(added, _UNSET)
+            self.anchors[b] = (last_anchor(self.texts[b], self.listed[b], self.zones[b])
+                               if found is _UNSET else found)
+        found = self.anchors[b]
+        if found is None:
+            return None
+        partial = self.texts[b][found[0]:]
+        return active_rule(partial, found[1], within=not searched and partial in admitted)
 
     def allowed_in_vocabulary(self, row: int, rule: Rule | None, scores: torch.Tensor,
                                finite_row: torch.Tensor | None = None) -> list[int]:

@@ -1,19 +1,30 @@
-"""``physcene bench generate``: batched greedy generation with each KV-cache mode.
+"""``physcene bench generate``: batched greedy generation, HF ``generate`` (each KV-cache mode) beside
+the fast decoder, against the KV-cache-read limit.
 
-    physcene bench generate --device cuda --config small --batch 128 --tokens 512 --json
+    physcene bench generate --device cuda --config small --batch 512 --tokens 2048 --json
+    physcene bench generate --device cuda --config small --batch 512 --tokens 2048 --constrained
     physcene bench generate --device cpu --config tiny --batch 2 --tokens 8
-    physcene bench generate --device cuda --variants dynamic static     # a subset
+    physcene bench generate --device cuda --variants dynamic static static+compile fast fast+matmul
 
 A randomly initialised model of ``configs/train_<config>.yaml`` (speed does not depend on the
 weights) and a tokenizer trained the way the train code does (:mod:`physcene.train.tokenizer`, on 32
 synthetic records) generate ``--tokens`` new tokens for ``--batch`` CTRC prompts in one batch, with
 ``min_new_tokens`` so every variant decodes exactly the same number of steps. Timed with
-:func:`physcene.commands.bench.timing.timed` (device synchronised, median of ``--repeat``, one warm-up call
-that also compiles ``static_compile``): :func:`physcene.train.generate.generate_token_ids`, i.e.
-``generate_with`` without the final text decode. Each variant's token ids are compared with the
-first variant's (``dynamic`` by default): greedy decoding should give identical ids; in bf16 the
-different attention reductions of a static cache can flip a near-tie, so the figure is the share of
-equal rows and the first differing step.
+:func:`physcene.commands.bench.timing.timed` (device synchronised, median of ``--repeat``, after one
+call that also compiles ``static+compile`` and captures ``fast``'s CUDA graphs):
+:func:`physcene.train.generate.generate_token_ids`, i.e. ``generate_with`` without the final text
+decode. ``--constrained``: every variant decodes under the CTRC constraint (HF: the logits
+processor; fast: the host check beside the GPU).
+
+Each variant's token ids are compared with the first variant's (``static`` by default): greedy
+decoding should give identical ids; in bf16 a different reduction order can flip a near-tie, so the
+figure is the share of equal rows and the first differing step.
+
+The limit: a decoding step must read every row's KV cache up to its current length at least once,
+``kv_floor_seconds`` = those bytes summed over the steps / the GPU's memory bandwidth (from
+:data:`BANDWIDTH_TB_S` by the GPU's name, else measured with a large device copy: ``bandwidth_source``
+says which); ``floor_ratio`` = floor / measured time (1.0 = at the limit). The fast decoder reads
+the cache up to a bucketed length (``kv_bytes_read``: what it actually read).
 """
 
 from __future__ import annotations
@@ -24,9 +35,16 @@ import torch
 
 from physcene.commands.bench.timing import BenchTarget, device_name, timed
 
-__all__ = ["TARGET", "VARIANT_CACHE"]
+__all__ = ["BANDWIDTH_TB_S", "TARGET", "VARIANT_ATTENTION", "VARIANT_CACHE", "memory_bandwidth"]
 
-VARIANT_CACHE = {"dynamic": "dynamic", "static": "static", "static+compile": "static_compile"}
+VARIANT_CACHE = {"dynamic": "dynamic", "static": "static", "static+compile": "static_compile", "fast": "fast",
+                 "fast+matmul": "fast"}
+# the fast decoder's attention per variant (physcene.train.decode.ATTENTIONS)
+VARIANT_ATTENTION = {"fast+matmul": "matmul"}
+
+# peak memory bandwidth, TB/s, by a substring of torch.cuda.get_device_name (the first match wins)
+BANDWIDTH_TB_S = {"H200": 4.8, "H100 PCIe": 2.0, "H100 NVL": 3.9, "H100": 3.35, "A100-SXM4-80GB": 2.039,
+                  "A100 80GB PCIe": 1.935, "A100": 1.555, "L40S": 0.864, "A10G": 0.6, "RTX 4090": 1.008}
 
 
 def add_arguments(parser) -> None:
@@ -35,11 +53,57 @@ def add_arguments(parser) -> None:
     parser.add_argument("--batch", type=int, default=128, help="prompts, generated in one batch")
     parser.add_argument("--tokens", type=int, default=512,
                         help="new tokens per prompt (forced: no early EOS)")
-    parser.add_argument("--variants", nargs="+", default=list(VARIANT_CACHE), choices=list(VARIANT_CACHE),
-                        help="cache variants to time in this process (the first is the reference)")
+    parser.add_argument("--variants", nargs="+", default=["static", "fast"], choices=list(VARIANT_CACHE),
+                        help="variants to time in this process (the first is the reference)")
+    parser.add_argument("--constrained", action="store_true",
+                        help="decode every variant under the CTRC constraint")
     parser.add_argument("--dtype", default=None,
                         help="model dtype (default: bfloat16 on CUDA, float32 on CPU)")
+    parser.add_argument("--cudnn-attention", action="store_true",
+                        help="allow torch's cuDNN attention (off by default, as in training: "
+                             "physcene.train.models.set_attention_kernels)")
     parser.add_argument("--seed", type=int, default=0)
+
+
+def memory_bandwidth(device: torch.device) -> tuple[float, str]:
+    """(bytes/s, source): the GPU's peak from :data:`BANDWIDTH_TB_S` by name, else a measured device
+    copy of 1 GiB (read + write) — on CPU, always measured."""
+    if device.type == "cuda":
+        name = torch.cuda.get_device_name(device)
+        for key, tb_s in BANDWIDTH_TB_S.items():
+            if key in name:
+                return tb_s * 1e12, f"table: {key} {tb_s} TB/s"
+    return measured_bandwidth(device), "measured: device copy"
+
+
+def measured_bandwidth(device: torch.device, size: int = 1 << 30) -> float:
+    """Bytes/s of a ``size``-byte device copy (read + write counted), best of 5."""
+    size = size if device.type == "cuda" else size // 8
+    src = torch.empty(size, dtype=torch.uint8, device=device)
+    dst = torch.empty_like(src)
+    best = float("inf")
+    for _ in range(5):
+        if device.type == "cuda":
+            torch.cuda.synchronize(device)
+        start = time.perf_counter()
+        dst.copy_(src)
+        if device.type == "cuda":
+            torch.cuda.synchronize(device)
+        best = min(best, time.perf_counter() - start)
+    return 2 * size / best
+
+
+def kv_floor_bytes(model, batch: int, prompt_tokens: int, tokens: int) -> int:
+    """KV bytes the decoding steps must read at least: step t reads each row's ``prompt + t`` columns."""
+    from physcene.train.decode import text_model
+
+    config = text_model(model).config
+    heads = int(config.num_attention_heads)
+    kv_heads = int(getattr(config, "num_key_value_heads", None) or heads)
+    head_dim = int(getattr(config, "head_dim", None) or config.hidden_size // heads)
+    column = 2 * int(config.num_hidden_layers) * kv_heads * head_dim * next(model.parameters()).element_size()
+    columns = sum(prompt_tokens + t for t in range(1, tokens))  # steps after the prompt pass
+    return batch * columns * column
 
 
 def run(args) -> dict:
@@ -53,6 +117,8 @@ def run(args) -> dict:
     if args.batch < 1 or args.tokens < 1:
         raise ValueError(f"--batch {args.batch} --tokens {args.tokens}: both must be >= 1")
     device = torch.device(args.device)
+    if device.type == "cuda":
+        torch.backends.cuda.enable_cudnn_sdp(bool(args.cudnn_attention))
     dtype = args.dtype or ("bfloat16" if device.type == "cuda" else "float32")
     cfg = load_config(f"train_{args.config}", list(getattr(args, "overrides", [])))
     records = list(synthesize("train", n=max(32, args.batch), seed=args.seed))
@@ -61,32 +127,50 @@ def run(args) -> dict:
     model = build_scratch_model(cfg.model.arch, tokenizer, seed=args.seed, dtype=dtype).to(device).eval()
     prompts = [r["prompt"] for r in records[:args.batch]]
     prompt_tokens = [len(tokenizer(p, add_special_tokens=False)["input_ids"]) for p in prompts]
+    bandwidth, source = memory_bandwidth(device)
+    floor_bytes = kv_floor_bytes(model, args.batch, max(prompt_tokens), args.tokens)
     result = {
         "target": "generate", "device": device_name(device), "config": args.config, "dtype": dtype,
         "parameters": count_parameters(model), "attention": model.config._attn_implementation,
         "batch": args.batch, "tokens": args.tokens, "prompt_tokens_max": max(prompt_tokens),
-        "prompt_tokens_mean": sum(prompt_tokens) / len(prompt_tokens), "variants": {},
+        "prompt_tokens_mean": sum(prompt_tokens) / len(prompt_tokens), "constrained": bool(args.constrained),
+        "cudnn_attention": bool(args.cudnn_attention) and device.type == "cuda",
+        "bandwidth_bytes_per_s": bandwidth, "bandwidth_source": source,
+        "kv_floor_bytes": floor_bytes, "kv_floor_seconds": floor_bytes / bandwidth,
+        "kv_floor_ms_per_step": 1e3 * floor_bytes / bandwidth / max(args.tokens - 1, 1),
+        "variants": {},
     }
     reference = None
     for name in args.variants:
         cache = VARIANT_CACHE[name]
+        report: list = []
+        attention = VARIANT_ATTENTION.get(name, "sdpa")
 
-        def call(tokens: int, cache=cache):
+        def call(tokens: int, cache=cache, report=report, attention=attention):
+            report.clear()
             return generate_token_ids(model, tokenizer, prompts, max_new_tokens=tokens, min_new_tokens=tokens,
-                                      batch_size=args.batch, cache=cache)
+                                      batch_size=args.batch, cache=cache, constrained=args.constrained,
+                                      report=report, fast_attention=attention)
 
-        start = time.perf_counter()
-        ids = call(args.tokens)  # the first call: cache allocation, compilation for static_compile
-        first = time.perf_counter() - start
-        timing = timed(lambda: call(args.tokens), device, args.repeat, warmup=0)
-        seconds, cpu_seconds = timing.seconds, timing.cpu_seconds
-        prefill = timed(lambda: call(1), device, args.repeat, warmup=1).seconds  # prompt pass + one token
-        steps = max(args.tokens - 1, 1)
+        try:
+            start = time.perf_counter()
+            ids = call(args.tokens)  # the first call: cache allocation, compilation, graph capture
+            first = time.perf_counter() - start
+            timing = timed(lambda: call(args.tokens), device, args.repeat, warmup=0)
+            details = _fast_details(report)
+            prefill = timed(lambda: call(1), device, args.repeat, warmup=1).seconds  # prompt pass + one token
+        except torch.cuda.OutOfMemoryError as error:  # one variant too large: the others still report
+            result["variants"][name] = {"cache": cache, "error": f"out of memory: {error}"[:300]}
+            torch.cuda.empty_cache()
+            continue
+        seconds, steps = timing.seconds, max(args.tokens - 1, 1)
         row = result["variants"][name] = {
-            "cache": cache, "seconds": seconds, "cpu_seconds": cpu_seconds, "first_call_seconds": first,
+            "cache": cache, "seconds": seconds, "cpu_seconds": timing.cpu_seconds,
+            "first_call_seconds": first,
             "ms_per_step": 1e3 * seconds / args.tokens,
             "decode_ms_per_step": 1e3 * max(seconds - prefill, 0.0) / steps if args.tokens > 1 else None,
             "prefill_seconds": prefill, "tokens_per_s": args.batch * args.tokens / seconds,
+            "floor_ratio": result["kv_floor_seconds"] / seconds, **details,
         }
         if device.type == "cuda":
             row["max_memory_gib"] = torch.cuda.max_memory_allocated(device) / 2**30
@@ -94,10 +178,23 @@ def run(args) -> dict:
         if reference is None:
             reference, result["reference"] = ids, name
         row.update(_agreement(ids, reference))
-    base = result["variants"][result["reference"]]["seconds"]
-    for row in result["variants"].values():
-        row["speedup"] = base / row["seconds"]
+    timed_rows = [r for r in result["variants"].values() if "seconds" in r]
+    base = result["variants"].get(result.get("reference"), {}).get("seconds")
+    for row in timed_rows:
+        row["speedup"] = base / row["seconds"] if base else None
     return result
+
+
+def _fast_details(report: list) -> dict:
+    """The fast decoder's own figures of the last timed call (empty for HF variants)."""
+    if not report:
+        return {}
+    r = report[-1]
+    return {"path": "cuda_graphs" if r.graphs else "eager", "fallback_reason": r.fallback_reason,
+            "decode_steps": r.steps, "repairs": r.repairs, "kv_bytes_read": r.kv_bytes_read,
+            "host_check_seconds": r.seconds.get("host_check", 0.0),
+            "decode_seconds": r.seconds.get("decode", 0.0),
+            "fast_prefill_seconds": r.seconds.get("prefill", 0.0)}
 
 
 def _agreement(ids: list[list[int]], reference: list[list[int]]) -> dict:
@@ -111,19 +208,26 @@ def _agreement(ids: list[list[int]], reference: list[list[int]]) -> dict:
 
 def summary(r: dict) -> str:
     lines = [f"device {r['device']}: {r['config']} model ({r['parameters'] / 1e6:.2f} M parameters, "
-             f"{r['dtype']}, "
-             f"{r['attention']} attention), {r['batch']} prompts ({r['prompt_tokens_mean']:.0f} tokens mean, "
-             f"{r['prompt_tokens_max']} max) x {r['tokens']} new tokens"]
+             f"{r['dtype']}, {r['attention']} attention), {r['batch']} prompts "
+             f"({r['prompt_tokens_mean']:.0f} tokens mean, {r['prompt_tokens_max']} max) x {r['tokens']} new "
+             f"tokens{', CTRC-constrained' if r['constrained'] else ''}",
+             f"KV-read floor {r['kv_floor_seconds']:.2f} s ({r['kv_floor_ms_per_step']:.2f} ms/step; "
+             f"bandwidth {r['bandwidth_bytes_per_s'] / 1e12:.2f} TB/s, {r['bandwidth_source']})"]
     for name, v in r["variants"].items():
+        if "error" in v:
+            lines.append(f"{name:15s} {v['error']}")
+            continue
         decode = "" if v["decode_ms_per_step"] is None else f" ({v['decode_ms_per_step']:.2f} ms decode only)"
         same = "same ids" if v["equal"] else (f"{v['equal_rows']:.0%} rows equal, first diff at step "
                                               f"{v['first_diff_step']}")
-        lines.append(f"{name:15s} {v['ms_per_step']:8.2f} ms/step{decode}  "
-                     f"{v['tokens_per_s']:10.0f} tokens/s  "
-                     f"{v['speedup']:5.2f}x  first call {v['first_call_seconds']:.1f} s  {same} as "
-                     f"{r['reference']}")
+        path = f"  [{v['path']}{': ' + v['fallback_reason'] if v.get('fallback_reason') else ''}]" \
+            if "path" in v else ""
+        lines.append(f"{name:15s} {v['seconds']:7.2f} s {v['ms_per_step']:8.2f} ms/step{decode}  "
+                     f"{v['tokens_per_s']:10.0f} tokens/s  floor/time {v['floor_ratio']:.2f}  "
+                     f"{v['speedup'] or 0:5.2f}x  first call {v['first_call_seconds']:.1f} s  {same} as "
+                     f"{r['reference']}{path}")
     return "\n".join(lines)
 
 
-TARGET = BenchTarget("Batched greedy generation: dynamic vs static vs static+compile KV cache",
-                     add_arguments, run, summary, repeat=(3, 2))
+TARGET = BenchTarget("Batched greedy generation: HF generate (dynamic/static/static+compile) vs the fast "
+                     "decoder, against the KV-cache-read limit", add_arguments, run, summary, repeat=(3, 2))

@@ -1,0 +1,159 @@
+"""``physcene bench pada``: whole PADA optimiser steps (generation, reward, update) with the real
+trainer, on a randomly initialised model of a training config.
+
+    physcene bench pada --device cuda --config small --tokens 2304 --steps 3 --json
+    physcene bench pada --device cuda --config small --caches fast dynamic --constrained
+    physcene bench pada --device cpu --config tiny --tokens 16 --set pada.global_batch_size=4 \\
+        pada.per_device_batch_size=2 pada.num_generations=2
+
+The settings are ``configs/train_<config>.yaml``'s ``pada`` section (global batch, G, LoRA, precision;
+``--set key=value`` overrides), with ``pada.max_completion_length = --tokens`` and every
+rollout forced to that length (``min_new_tokens``: a random model would stop anywhere). The anchors
+are the synthetic records' reference completions. Each ``--caches`` entry trains ``1 + --steps``
+optimiser steps (the first, which captures graphs and allocates, is not counted) and reports the
+median seconds per step split into generation (``time/generate_s``), reward (the reward function's
+calls) and the rest (log-probabilities, loss, backward, optimiser: ``update``).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import statistics
+import sys
+import tempfile
+import time
+
+import torch
+
+from physcene.commands.bench.timing import BenchTarget, device_name
+
+__all__ = ["TARGET"]
+
+
+def add_arguments(parser) -> None:
+    parser.add_argument("--config", default="small", help="training config (tiny, small)")
+    parser.add_argument("--tokens", type=int, default=2304,
+                        help="rollout length (pada.max_completion_length)")
+    parser.add_argument("--steps", type=int, default=3, help="timed optimiser steps (after one warm-up step)")
+    parser.add_argument("--caches", nargs="+", default=["fast"],
+                        choices=["dynamic", "static", "static_compile", "fast"],
+                        help="pada.cache values timed one after the other")
+    parser.add_argument("--constrained", action="store_true", help="sample under the CTRC constraint")
+    parser.add_argument("--variant", default="pada", choices=["pada", "pada_star", "grpo"])
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--set", dest="config_set", nargs="+", default=[], metavar="KEY=VALUE",
+                        help="overrides of the training config (pada.global_batch_size=4 ...)")
+
+
+def run(args) -> dict:
+    from physcene.config import load_config
+
+    if args.tokens < 1 or args.steps < 1:
+        raise ValueError(f"--tokens {args.tokens} --steps {args.steps}: both must be >= 1")
+    device = torch.device(args.device)
+    if device.type == "cpu" and torch.cuda.is_available():
+        raise ValueError("--device cpu: the trainer takes the GPU of this machine; run on a CPU-only one")
+    result = {"target": "pada", "device": device_name(device), "config": args.config, "variant": args.variant,
+              "tokens": args.tokens, "constrained": bool(args.constrained), "caches": {}}
+    for cache in args.caches:
+        with tempfile.TemporaryDirectory() as tmp:
+            cfg = load_config(f"train_{args.config}", [
+                f"output_dir={tmp}", f"pada.max_completion_length={args.tokens}", f"pada.cache={cache}",
+                f"pada.constrained={str(bool(args.constrained)).lower()}", "pada.save_steps=1000000",
+                "pada.logging_steps=1", *args.config_set, *getattr(args, "overrides", [])])
+            row = result["caches"][cache] = _time_steps(cfg, args, device)
+        result.update({k: row.pop(k) for k in ("global_batch", "num_generations", "parameters")})
+    return result
+
+
+def _time_steps(cfg, args, device: torch.device) -> dict:
+    from transformers import TrainerCallback
+
+    from physcene.data import synthesize
+    from physcene.reward.trl import PhysicsRewardFunction
+    from physcene.train.config import pada_arguments
+    from physcene.train.models import build_scratch_model, count_parameters, set_attention_kernels
+    from physcene.train.pada import PADATrainer
+    from physcene.train.records import training_dataset
+    from physcene.train.sft import lora_config
+    from physcene.train.tokenizer import build_tokenizer
+
+    steps = 1 + args.steps
+    pada_args = pada_arguments(cfg, args.variant)
+    pada_args.max_steps = steps
+    pada_args.generation_kwargs = {**(pada_args.generation_kwargs or {}), "min_new_tokens": args.tokens}
+    records = list(synthesize("train", n=max(64, pada_args.per_device_train_batch_size * 4), seed=args.seed))
+    for r in records:
+        r["anchor"] = r["anchor_raw"] = r["completion"]
+    tokenizer = build_tokenizer([r["prompt"] for r in records[:32]] + [r["completion"] for r in records[:32]],
+                                vocab_size=int(cfg.model.tokenizer.vocab_size))
+    dtype = str(cfg.model.dtype) if device.type == "cuda" else "float32"
+    set_attention_kernels(cfg.model)
+    model = build_scratch_model(cfg.model.arch, tokenizer, seed=args.seed, dtype=dtype)
+    reward = PhysicsRewardFunction(device)
+    reward_seconds: list[float] = []
+
+    def timed_reward(*a, **kw):
+        start = time.perf_counter()
+        try:
+            return reward(*a, **kw)
+        finally:
+            reward_seconds.append(time.perf_counter() - start)
+
+    timed_reward.__name__ = getattr(reward, "__name__", "physics_reward")
+    step_seconds: list[float] = []
+
+    class StepClock(TrainerCallback):
+        def on_step_begin(self, *_, **__):
+            if device.type == "cuda":
+                torch.cuda.synchronize(device)
+            self.start = time.perf_counter()
+
+        def on_step_end(self, *_, **__):
+            if device.type == "cuda":
+                torch.cuda.synchronize(device)
+            step_seconds.append(time.perf_counter() - self.start)
+
+    trainer = PADATrainer(model=model, reward_funcs=[timed_reward], args=pada_args,
+                          train_dataset=training_dataset(records, chat_format=False,
+                                                         columns=("anchor", "anchor_raw")),
+                          processing_class=tokenizer, peft_config=lora_config(cfg.pada.lora),
+                          callbacks=[StepClock()])
+    with contextlib.redirect_stdout(sys.stderr):  # the trainer's log lines: stdout is the figures' (--json)
+        trainer.train()
+    history = trainer.state.log_history
+    generate = [h["time/generate_s"] for h in history if "time/generate_s" in h]
+    graphs = [h["time/decode_graphs"] for h in history if "time/decode_graphs" in h]
+    rounds = max(len(reward_seconds) // max(len(step_seconds), 1), 1)  # reward calls per step
+    per_step_reward = [sum(reward_seconds[i * rounds:(i + 1) * rounds]) for i in range(len(step_seconds))]
+    timed = slice(1, None)  # the first step captures graphs and allocates
+    total = statistics.median(step_seconds[timed])
+    gen = statistics.median(generate[timed]) if len(generate) > 1 else None
+    rew = statistics.median(per_step_reward[timed])
+    row = {"seconds_per_step": total, "generate_s": gen, "reward_s": rew,
+           "update_s": total - (gen or 0.0) - rew, "steps_timed": len(step_seconds) - 1,
+           "first_step_s": step_seconds[0], "all_steps_s": step_seconds,
+           "path": ("cuda_graphs" if graphs and min(graphs) == 1.0 else "eager") if graphs else "hf_generate",
+           "global_batch": pada_args.per_device_train_batch_size * pada_args.gradient_accumulation_steps,
+           "num_generations": pada_args.num_generations, "parameters": count_parameters(model)}
+    if device.type == "cuda":
+        row["max_memory_gib"] = torch.cuda.max_memory_allocated(device) / 2**30
+        torch.cuda.reset_peak_memory_stats(device)
+    return row
+
+
+def summary(r: dict) -> str:
+    lines = [f"device {r['device']}: {r['config']} ({r['parameters'] / 1e6:.2f} M parameters), "
+             f"{r['variant']}, "
+             f"global batch {r['global_batch']}, G = {r['num_generations']}, rollouts of {r['tokens']} tokens"
+             f"{', CTRC-constrained' if r['constrained'] else ''}"]
+    for cache, v in r["caches"].items():
+        gen = "-" if v["generate_s"] is None else f"{v['generate_s']:.2f}"
+        lines.append(f"{cache:15s} {v['seconds_per_step']:7.2f} s/step (generation {gen} s, reward "
+                     f"{v['reward_s']:.2f} s, update {v['update_s']:.2f} s; median of {v['steps_timed']}; "
+                     f"first step {v['first_step_s']:.1f} s) [{v['path']}]")
+    return "\n".join(lines)
+
+
+TARGET = BenchTarget("Whole PADA optimiser steps (generation, reward, update) with the real trainer",
+                     add_arguments, run, summary, repeat=(1, 1))

@@ -1,0 +1,119 @@
+"""Fast decoding for rollouts and evaluation (``cache: fast``): near the KV-cache-read limit.
+
+HF ``generate`` (``train/generate.py``'s other cache modes) stays the reference the fast path is
+tested against. What the fast path changes, each part in its own module:
+
+- :mod:`~physcene.train.decode.attention`: GQA attention without K/V expansion (the query heads of a
+  KV head folded into the query axis), registered with transformers' ``AttentionInterface``;
+- :mod:`~physcene.train.decode.cache`: a static KV cache with per-row write positions;
+- :mod:`~physcene.train.decode.loop`: one prompt pass, then fixed-shape decoding steps replayed as
+  CUDA graphs, reading the cache only up to a bucketed length, rows stopping at EOS;
+- :mod:`~physcene.train.decode.overlap`: the CTRC constraint checked on the host while the GPU runs
+  the next step, a refused row repaired by standing still for one step.
+
+:func:`fast_generate` is the entry point: it switches the model to eval mode (no dropout, LoRA's
+included) and to the folded attention for the call, and restores both afterwards.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import weakref
+
+import torch
+
+from physcene.train.decode.attention import (
+    ATTENTIONS,
+    FOLDED_ATTENTION,
+    folded_gqa_attention,
+    folded_matmul_attention,
+    register_folded_attention,
+)
+from physcene.train.decode.cache import StaticKV
+from physcene.train.decode.loop import DecodeResult, FastDecoder, text_model
+from physcene.train.decode.overlap import OverlappedConstraint
+
+__all__ = ["ATTENTIONS", "FOLDED_ATTENTION", "DecodeResult", "FastDecoder", "OverlappedConstraint",
+           "StaticKV", "decoder_for", "fast_generate", "folded_gqa_attention", "folded_matmul_attention",
+           "register_folded_attention", "sampling_mode", "text_model"]
+
+logger = logging.getLogger(__name__)
+
+# model -> {(batch, length, graphs, attention): decoder}
+_DECODERS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+_KEPT_SHARE = 0.25  # a decoder whose cache takes more of the GPU is dropped after its call (an 8B model's)
+_KEPT_BYTES_CPU = 4 << 30
+
+
+@contextlib.contextmanager
+def sampling_mode(model: torch.nn.Module, attention: str = "sdpa"):
+    """The model in eval mode (dropout off: attention, LoRA) with the folded GQA attention ``attention``
+    (:data:`ATTENTIONS`) on its text model, restored on exit."""
+    text = text_model(model)
+    training = model.training
+    previous = text.config._attn_implementation
+    switched = False
+    model.eval()
+    try:
+        folded = {name for name, _ in ATTENTIONS.values()}
+        if (previous == "sdpa" or previous in folded) and hasattr(text, "set_attn_implementation"):
+            try:
+                text.set_attn_implementation(register_folded_attention(attention))
+                switched = True
+            except (ValueError, KeyError, AttributeError) as error:  # an older transformers: plain sdpa
+                logger.warning("folded GQA attention not set (%s): decoding with %s", error, previous)
+        yield model
+    finally:
+        if switched:
+            text.set_attn_implementation(previous)
+        model.train(training)
+
+
+def decoder_for(model: torch.nn.Module, batch: int, length: int, graphs: bool = True,
+                attention: str = "sdpa") -> FastDecoder:
+    """The model's :class:`FastDecoder` for ``batch`` rows x ``length`` columns (made once, kept while
+    the model lives unless its cache takes over a quarter of the GPU's memory (4 GiB on CPU): training
+    needs it back; another shape replaces it)."""
+    kept = _DECODERS.setdefault(model, {})
+    key = (int(batch), int(length), bool(graphs), attention)  # a graph bakes its attention in
+    decoder = kept.get(key)
+    if decoder is None:
+        kept.clear()  # one shape at a time: PADA's rounds and eval's batches keep theirs
+        decoder = FastDecoder(model, batch=batch, length=length, graphs=graphs, attention=attention)
+        device = decoder.device
+        limit = (_KEPT_SHARE * torch.cuda.get_device_properties(device).total_memory
+                 if device.type == "cuda" else _KEPT_BYTES_CPU)
+        if decoder.cache.bytes_per_column() * batch * length <= limit:
+            kept[key] = decoder
+    return decoder
+
+
+@torch.no_grad()
+def fast_generate(model: torch.nn.Module, input_ids: torch.Tensor, attention_mask: torch.Tensor, *,
+                  max_new_tokens: int, eos: list[int], pad: int, min_new_tokens: int = 0,
+                  warpers=None, sampling: bool = False, constraint=None, length: int | None = None,
+                  graphs: bool = True, attention: str = "sdpa") -> DecodeResult:
+    """Completions of left-padded prompts with the fast decoder.
+
+    ``sampling`` with ``warpers`` (temperature/top-k/top-p as transformers' warpers,
+    :func:`~physcene.train.constrained.sampling_warpers`) or greedy; ``constraint``: a
+    :class:`~physcene.train.constrained.CTRCConstraint` built for these rows. ``length``: the cache's
+    columns (default: this prompt length + ``max_new_tokens``); pass one value for calls of varying
+    prompt length so one decoder and its graphs serve them all. ``attention``: ``sdpa`` (the folded
+    query heads through torch's sdpa: HF generate's numbers) or ``matmul`` (two batched matmuls; see
+    :func:`~physcene.train.decode.attention.folded_matmul_attention`).
+    """
+    batch, prompt = input_ids.shape
+    length = max(int(length or 0), prompt + int(max_new_tokens))
+    if attention not in ATTENTIONS:
+        raise ValueError(f"fast decoding attention {attention!r}: expected one of {', '.join(ATTENTIONS)}")
+    decoder = decoder_for(model, batch, length, graphs, attention)
+    overlapped = None
+    if constraint is not None:
+        overlapped = OverlappedConstraint(constraint, max_new_tokens=max_new_tokens, eos=eos,
+                                          warpers=warpers if sampling else None)
+    with sampling_mode(model, attention):
+        return decoder.generate(input_ids, attention_mask, max_new_tokens=max_new_tokens, eos=eos, pad=pad,
+                                min_new_tokens=min_new_tokens, sampling=sampling, warpers=warpers,
+                                constraint=overlapped)

@@ -1,0 +1,127 @@
+"""The CTRC constraint's host work beside the GPU: each row's token of step t checked against its rule
+while the GPU computes step t + 1 (:class:`~physcene.train.decode.loop.FastDecoder`), with the
+constraint's own rules and choices (:class:`~physcene.train.constrained.CTRCConstraint`).
+
+The decisions are the processor's: greedy keeps the model's first choice when it is allowed, else
+the best allowed token (of the top ``top_k``, else of the vocabulary); sampling takes the first
+allowed token of one draw without replacement from the warped distribution (Gumbel-top-k, drawn on
+the GPU), else samples afresh among the allowed tokens of the vocabulary. Only the step's token and
+its first candidates come to the host each step; a row's logits only when those are all refused.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+
+import torch
+
+from physcene.train.constrained import CTRCConstraint
+
+__all__ = ["OverlappedConstraint"]
+
+
+class OverlappedConstraint:
+    """Each row's accepted tokens under ``constraint`` (one per row and step the decoder ran for it);
+    a row is done at its EOS or after ``max_new_tokens`` tokens. ``warpers``: the sampling warpers
+    (None: greedy)."""
+
+    def __init__(self, constraint: CTRCConstraint, *, max_new_tokens: int, eos: list[int], warpers=None):
+        self.constraint = constraint
+        self.max_new_tokens = int(max_new_tokens)
+        self.eos = set(eos) | {constraint.eos}
+        self.warpers = warpers
+        rows = len(constraint.texts)
+        self.accepted: list[list[int]] = [[] for _ in range(rows)]
+        self.finished = [False] * rows
+        self.rules = [constraint.advance_row(b, []) for b in range(rows)]
+        self.open = rows
+
+    def done(self) -> bool:
+        """Every row has its EOS or its ``max_new_tokens`` tokens."""
+        return self.open == 0
+
+    def tokens(self) -> list[list[int]]:
+        return [list(row) for row in self.accepted]
+
+    def check(self, tokens: list[int], candidates: list[list[int]], skip: set[int],
+              logits_row: Callable[[int], torch.Tensor]) -> dict[int, int]:
+        """Accept one token per open row not in ``skip`` (rows whose step was speculative on a refused
+        token): the decoder's ``tokens[b]`` when the rule allows it, else the constraint's choice
+        (``candidates[b]``: the row's next best / next drawn tokens, -1 past the finite ones;
+        ``logits_row(b)``: the row's logits, read only when those are refused). Returns the rows whose
+        token was replaced, with their tokens."""
+        start = time.perf_counter()
+        stats = self.constraint.stats
+        corrections: dict[int, int] = {}
+        free_text = self.constraint.advance_free_text
+        for b, token in enumerate(tokens):
+            if self.finished[b] or b in skip:
+                continue
+            if self.rules[b] is None and free_text(b, token):  # most rows: free text, no anchor ends
+                self.accepted[b].append(token)
+                if len(self.accepted[b]) >= self.max_new_tokens:
+                    self._finish(b)
+                continue
+            chosen = self._choose(b, token, [t for t in candidates[b] if t >= 0], logits_row)
+            if chosen != token:
+                corrections[b] = chosen
+            self.accepted[b].append(chosen)
+            if chosen not in self.eos:
+                self.rules[b] = self.constraint.advance_row(b, [chosen])
+            if chosen in self.eos or len(self.accepted[b]) >= self.max_new_tokens:
+                self._finish(b)
+        stats.seconds += time.perf_counter() - start
+        return corrections
+
+    def _finish(self, b: int) -> None:
+        self.finished[b] = True
+        self.open -= 1
+        self.constraint.finished[b] = True
+
+    def _choose(self, b: int, token: int, candidates: list[int], logits_row) -> int:
+        c, rule = self.constraint, self.rules[b]
+        if rule is None and c.token_text[token] == "" or c.allowed_tokens(b, rule, [token]):
+            return token  # the model's token (its first choice, or its draw) is allowed: most rows
+        position = len(self.accepted[b])
+        if self.warpers is not None:
+            return self._redraw(b, token, candidates, logits_row, position)
+        allowed = c.allowed_tokens(b, rule, [t for t in candidates if t != token])
+        row = None
+        if not allowed:
+            row = logits_row(b).float()
+            values, top = row.topk(min(c.top_k, row.shape[-1]))
+            seen = set(candidates)
+            rest = [t for t, v in zip(top.tolist(), values.tolist()) if v > float("-inf") and t not in seen]
+            allowed = c.allowed_tokens(b, rule, rest)
+        if not allowed:
+            allowed = c.allowed_in_vocabulary(b, rule, row[None], torch.isfinite(row).cpu())
+            if allowed:
+                host = row.cpu()
+                allowed = [max(allowed, key=lambda t: float(host[t]))]
+        if not allowed:  # nothing in the vocabulary continues the rule: leave it to the parser
+            return token
+        c.stats.masked_steps += 1
+        c.stats.overruled[b].append(position)
+        return allowed[0]
+
+    def _redraw(self, b: int, token: int, candidates: list[int], logits_row, position: int) -> int:
+        """Sampling: the first allowed token of the row's draw order, else a fresh sample among the
+        allowed tokens of the vocabulary (the processor's rejection draw)."""
+        c, rule = self.constraint, self.rules[b]
+        c.stats.masked_steps += 1
+        c.stats.overruled[b].append(position)
+        for n, t in enumerate([t for t in candidates if t != token][:c.redraws - 1], start=1):
+            if c.allowed_tokens(b, rule, [t]):
+                c.stats.refused_draws += n
+                return t
+        c.stats.refused_draws += min(len(candidates), c.redraws)
+        row = logits_row(b).float()
+        allowed = c.allowed_in_vocabulary(b, rule, row[None], torch.isfinite(row).cpu())
+        if not allowed:
+            return token
+        restricted = torch.full_like(row, float("-inf"))
+        index = torch.tensor(allowed, device=row.device)
+        restricted[index] = row[index]
+        probs = self.warpers(None, restricted[None]).softmax(dim=-1)
+        return int(torch.multinomial(probs, 1).item())
