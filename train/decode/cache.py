@@ -24,7 +24,9 @@ class StaticKV:
     def __init__(self, layers: int, batch: int, kv_heads: int, length: int, head_dim: int, *,
                  dtype: torch.dtype, device: torch.device, positions: torch.Tensor):
         self.shape = (batch, kv_heads, length, head_dim)
-        self.dtype, self.device = dtype, device
+        # not ``dtype``: accelerate's mixed-precision forward wrapper casts every output that has a
+        # bf16 ``dtype`` to float32, this cache included (StaticKV has no ``.float()``)
+        self.kv_dtype, self.device = dtype, device
         # allocated by the first prompt pass in the dtypes the layers produce (under autocast keys
         # and values can differ from the weights and from each other); later writes are cast to them
         self.keys: list[torch.Tensor | None] = [None] * layers
@@ -57,5 +59,5 @@ class StaticKV:
 
     def bytes_per_column(self) -> int:
         """KV bytes of one column (one token of one row) over all layers."""
-        size = self.keys[0].element_size() if self.keys[0] is not None else self.dtype.itemsize
+        size = self.keys[0].element_size() if self.keys[0] is not None else self.kv_dtype.itemsize
         return 2 * len(self.keys) * self.shape[1] * self.shape[3] * size
