@@ -4,6 +4,7 @@
     physcene bench reward --device cpu --scenes 256 --objects 12 --json
     physcene bench tto --device cuda
     physcene bench generate --device cuda --config small
+    physcene bench tokens --config small --json               # tokens per object, bpe vs ctrc tokenizer
 
 ``TARGETS`` is the one registry (name -> :class:`BenchTarget`). A new target is a module of this
 package with ``TARGET = BenchTarget(help, add_arguments, run, summary)`` (``run(args) -> dict``:
@@ -18,18 +19,19 @@ import json
 
 import torch
 
-from physcene.commands.bench import generate, reward, tto
+from physcene.commands.bench import generate, reward, tokens, tto
 from physcene.commands.bench.reward import bench_scenes
 from physcene.commands.bench.timing import BenchTarget, Timing, device_name, timed
 
 NAME = "bench"
-HELP = "Throughput benchmarks (targets: reward, tto, generate)"
+HELP = "Throughput benchmarks (targets: reward, tto, generate, tokens)"
 SETTINGS = ("configs/physics.yaml for reward, configs/tto.yaml for tto, configs/train/<--config>.yaml for "
             "generate (docs/physics.md, docs/tto.md)")
 
 __all__ = ["TARGETS", "BenchTarget", "Timing", "bench_scenes", "device_name", "timed"]
 
-TARGETS: dict[str, BenchTarget] = {"reward": reward.TARGET, "tto": tto.TARGET, "generate": generate.TARGET}
+TARGETS: dict[str, BenchTarget] = {"reward": reward.TARGET, "tto": tto.TARGET, "generate": generate.TARGET,
+                                   "tokens": tokens.TARGET}
 
 
 def add_arguments(parser) -> None:
