@@ -2,6 +2,8 @@
 exactly, the format's units as single tokens, and the CTRC constraint and the training config work with it.
 (tests/train/test_constrained.py runs the constraint's own tests with both kinds.)"""
 
+import json
+
 import pytest
 import torch
 
@@ -130,3 +132,22 @@ def test_tiny_config_with_the_ctrc_kind_saves_and_decodes_constrained(tmp_path, 
     rows = generate_token_ids(model.eval(), loaded, [x["prompt"] for x in references[:2]], max_new_tokens=16,
                               batch_size=2, constrained=True)
     assert len(rows) == 2 and all(0 < len(row) <= 16 for row in rows)
+
+
+def test_bench_tokens_reports_both_kinds(capsys):
+    """``physcene bench tokens``: tokens per object, characters, vocabulary and the round trip per kind;
+    an unknown kind is one error on stderr."""
+    from physcene.cli import main
+
+    args = ["bench", "tokens", "--config", "tiny", "--train", "synth:train:8", "--n", "3", "--fuzz", "12",
+            "--vocab-size", "2048"]
+    assert main([*args, "--json"]) == 0
+    r = json.loads(capsys.readouterr().out)
+    assert r["target"] == "tokens" and r["references"] == 3 and r["train_records"] == 8
+    assert r["objects"] > 0 and r["chars_per_object"] > 100
+    bpe, ctrc = r["kinds"]["bpe"], r["kinds"]["ctrc"]
+    assert bpe["round_trip_failures"] == ctrc["round_trip_failures"] == 0 and bpe["round_trip_texts"] == 18
+    assert bpe["tokens_per_object_ratio"] == 1.0 and ctrc["tokens_per_object_ratio"] < 0.6
+    assert ctrc["vocab_size"] <= 2048
+    assert main([*args, "--kinds", "ctrc", "wordpiece"]) == 2
+    assert "--kinds wordpiece" in capsys.readouterr().err

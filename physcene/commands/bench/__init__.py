@@ -26,7 +26,7 @@ from physcene.commands.bench.timing import BenchTarget, Timing, device_name, tim
 NAME = "bench"
 HELP = "Throughput benchmarks (targets: reward, tto, generate, tokens)"
 SETTINGS = ("configs/physics.yaml for reward, configs/tto.yaml for tto, configs/train/<--config>.yaml for "
-            "generate (docs/physics.md, docs/tto.md)")
+            "generate and tokens (docs/physics.md, docs/tto.md, docs/training.md)")
 
 __all__ = ["TARGETS", "BenchTarget", "Timing", "bench_scenes", "device_name", "timed"]
 
