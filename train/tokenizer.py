@@ -9,11 +9,11 @@ with HF ``tokenizers`` on the training prompts and completions. Two kinds (``mod
 - ``ctrc``: a byte-level BPE whose pre-tokenizer cuts the text into the units of the CTRC format
   (:func:`ctrc_units_pattern`, derived from :mod:`physcene.ctrc.grammar`): the writer's fixed runs
   (``**Sub-instruction:**\\n``, ``},\\n    {"layer": ``), each key with its quotes, colon, space and
-  the quotes or bracket around it (``", "relative_bbox": [``), whole words and names
-  (``lotion_bottle``), and numbers as an integer part with its separator (``, -12``), the point
-  with up to three fraction digits (``.006``) and the digits left (``37``). BPE then learns each
-  frequent unit as one token, so ``, 40.00637`` is three tokens instead of eight. The text is the
-  same; only its cut into tokens changes.
+  the quotes or bracket around it (``", "relative_bbox": [``), runs of words and names
+  (``lotion_bottle``, `` of the table``), and numbers as an integer part with its separator
+  (``, -12``), the point with up to three fraction digits (``.006``) and the digits left (``37``).
+  BPE then learns each frequent unit as one token, so ``, 40.00637`` is three tokens instead of ten.
+  The text is the same; only its cut into tokens changes.
 
 Both keep the 256 byte symbols in the alphabet, so any string (model output never seen in training,
 any unicode) round-trips exactly through encode/decode, and both are saved as a
@@ -84,8 +84,9 @@ def ctrc_units_pattern() -> str:
        closing quote or bracket and its own value's opening one;
     3. a number's integer part with the item separator or space before it (``, -12``);
     4. the point with up to three fraction digits (``.006``);
-    5. a word or name with the space or underscore before it and an underscore after it (``_comb_``
-       of ``4_comb_0``, `` lotion``, ``picture_frame``).
+    5. a run of words and names, each with the space or underscore before it and an underscore after
+       it (``_comb_`` of ``4_comb_0``, `` at the left front of the table``, ``picture_frame``): BPE
+       merges the plan's and descriptions' frequent phrases (67 -> 57 tokens per object).
 
     Everything else (other punctuation, newlines, non-letters) is cut between the matches.
     """
@@ -105,7 +106,7 @@ def ctrc_units_pattern() -> str:
     units = [_literal(t) for t in sorted(fixed, key=len, reverse=True)] + key_runs + [
         _optional(ITEM_SEPARATOR, VALUE_SPACE) + r"-?\d+",
         r"\." + rf"\d{{1,{_FRACTION_HEAD}}}",
-        r"[ _]?\p{L}+(?:_\p{L}+)*_?",
+        r"(?:[ _]?\p{L}+(?:_\p{L}+)*_?)+",
     ]
     return "|".join(units)
 
