@@ -1,7 +1,8 @@
 """Models for the training configs: Qwen3 built from a config (``tiny``, ``small``) or a local checkpoint.
 
 - ``scratch``: a ``transformers.Qwen3ForCausalLM`` built from ``Qwen3Config`` with the sizes in the
-  config's ``model.arch`` and a tokenizer trained locally (:mod:`physcene.train.tokenizer`). The same
+  config's ``model.arch`` and a tokenizer trained locally (:mod:`physcene.train.tokenizer`, of the kind
+  ``model.tokenizer.kind`` names: ``bpe`` or ``ctrc``). The same
   architecture as the paper's backbone family, small enough for CPU tests (``tiny``, 0.24 M parameters)
   or one GPU (``small``, ~27 M parameters, a 55 MB bf16 checkpoint).
 - ``pretrained``: any local Hugging Face checkpoint, e.g. Qwen3-VL-8B-Instruct. Vision-language
@@ -51,6 +52,7 @@ __all__ = [
     "read_run_info",
     "save_train_log",
     "set_attention_kernels",
+    "tokenizer_settings",
     "torch_dtype",
     "write_run_info",
 ]
@@ -187,6 +189,13 @@ def set_attention_kernels(model_cfg: DictConfig | dict) -> bool:
     return allowed
 
 
+def tokenizer_settings(model_cfg: DictConfig | dict) -> dict:
+    """``model.tokenizer`` as :func:`~physcene.train.tokenizer.build_tokenizer`'s keywords: ``vocab_size``
+    and ``kind`` (``bpe`` when the config has none)."""
+    t = model_cfg["tokenizer"]
+    return {"vocab_size": int(t["vocab_size"]), "kind": str(t.get("kind") or "bpe")}
+
+
 def prepare_model_and_tokenizer(cfg: DictConfig, texts: Iterable[str] | None = None,
                                 out_dir: str | Path | None = None):
     """The stage-1 starting point of ``cfg.model``: (model, tokenizer).
@@ -210,10 +219,10 @@ def prepare_model_and_tokenizer(cfg: DictConfig, texts: Iterable[str] | None = N
             tokenizer = load_tokenizer(tok_dir)  # resume: the vocabulary must not change under a checkpoint
         elif tok_dir is not None:
             with replace_dir(tok_dir) as tmp:  # a resume must never find half a vocabulary
-                train_tokenizer(texts, tmp, vocab_size=int(m.tokenizer.vocab_size))
+                train_tokenizer(texts, tmp, **tokenizer_settings(m))
             tokenizer = load_tokenizer(tok_dir)
         else:
-            tokenizer = build_tokenizer(texts, vocab_size=int(m.tokenizer.vocab_size))
+            tokenizer = build_tokenizer(texts, **tokenizer_settings(m))
         # Train from scratch in fp32 (bf16 autocast on GPU); model.dtype is the dtype it is saved in.
         model = build_scratch_model(m.arch, tokenizer, seed=int(cfg.seed), dtype="float32")
         return model, tokenizer

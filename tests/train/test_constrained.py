@@ -19,7 +19,7 @@ from physcene.train.constrained import (
 )
 from physcene.train.constrained.grammar import may_end_anchor
 from physcene.train.constrained.sampling import TokenIndex, vocabulary
-from physcene.train.tokenizer import build_tokenizer
+from physcene.train.tokenizer import KINDS, build_tokenizer
 
 PROMPT_TAIL = "**Object List**: mirror (1), tray (1), comb (2)\n\nFirst write"
 
@@ -29,10 +29,10 @@ def records():
     return list(synthesize("train", 6, seed=3))
 
 
-@pytest.fixture(scope="module")
-def tokenizer(records):
+@pytest.fixture(scope="module", params=KINDS)
+def tokenizer(records, request):
     texts = [r["prompt"] for r in records] + [r["completion"] for r in records]
-    return build_tokenizer(texts, vocab_size=600)
+    return build_tokenizer(texts, vocab_size=600, kind=request.param)
 
 
 # greedy; sampling that checks the candidates within a margin; sampling by rejection (warpers given)

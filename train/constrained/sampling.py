@@ -4,6 +4,7 @@ and the rejection draw that samples exactly the allowed part of the warped distr
 from __future__ import annotations
 
 import bisect
+import weakref
 
 import torch
 from transformers import GenerationConfig, LogitsProcessorList, PreTrainedTokenizerBase
@@ -145,14 +146,14 @@ class TokenIndex:
 
 def vocabulary(tokenizer: PreTrainedTokenizerBase) -> TokenIndex:
     """The :class:`TokenIndex` of the tokenizer's token texts ("" for special tokens, which no rule
-    allows), built once per vocabulary."""
-    key = (type(tokenizer).__name__, getattr(tokenizer, "name_or_path", ""), len(tokenizer))
-    cached = _VOCABULARIES.get(key)
-    if cached is None:
+    allows), built once per tokenizer object (two tokenizers trained in one process have no path and
+    may have the same size, yet different vocabularies) and again when its size changes."""
+    cached = _VOCABULARIES.get(tokenizer)
+    if cached is None or len(cached.texts) != len(tokenizer):
         special = set(tokenizer.all_special_ids)
         texts = ["" if i in special else tokenizer.decode([i]) for i in range(len(tokenizer))]
-        cached = _VOCABULARIES[key] = TokenIndex(texts)
+        cached = _VOCABULARIES[tokenizer] = TokenIndex(texts)
     return cached
 
 
-_VOCABULARIES: dict[tuple, TokenIndex] = {}
+_VOCABULARIES: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()

@@ -6,6 +6,7 @@
     physcene bench generate --device cuda --config small
     physcene bench train8b --device cuda --stage sft --out sft.json   # Qwen3-VL-8B's size, random weights
     physcene bench pada --device cuda --config small --tokens 2304
+    physcene bench tokens --config small --json               # tokens per object, bpe vs ctrc tokenizer
 
 ``TARGETS`` is the one registry (name -> :class:`BenchTarget`). A new target is a module of this
 package with ``TARGET = BenchTarget(help, add_arguments, run, summary)`` (``run(args) -> dict``:
@@ -20,19 +21,19 @@ import json
 
 import torch
 
-from physcene.commands.bench import generate, pada, reward, train8b, tto
+from physcene.commands.bench import generate, pada, reward, tokens, train8b, tto
 from physcene.commands.bench.reward import bench_scenes
 from physcene.commands.bench.timing import BenchTarget, Timing, device_name, timed
 
 NAME = "bench"
-HELP = "Throughput benchmarks (targets: reward, tto, generate, pada, train8b)"
+HELP = "Throughput benchmarks (targets: reward, tto, generate, pada, tokens, train8b)"
 SETTINGS = ("configs/physics.yaml for reward, configs/tto.yaml for tto, configs/train/<--config>.yaml for "
-            "generate and pada (docs/physics.md, docs/tto.md, docs/training.md)")
+            "generate, pada and tokens (docs/physics.md, docs/tto.md, docs/training.md)")
 
 __all__ = ["TARGETS", "BenchTarget", "Timing", "bench_scenes", "device_name", "timed"]
 
 TARGETS: dict[str, BenchTarget] = {"reward": reward.TARGET, "tto": tto.TARGET, "generate": generate.TARGET,
-                                   "pada": pada.TARGET, "train8b": train8b.TARGET}
+                                   "pada": pada.TARGET, "tokens": tokens.TARGET, "train8b": train8b.TARGET}
 
 
 def add_arguments(parser) -> None:
