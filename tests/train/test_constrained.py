@@ -29,7 +29,10 @@ def records():
     return list(synthesize("train", 6, seed=3))
 
 
-@pytest.fixture(scope="module", params=KINDS)
+# every rule under each tokenizer kind; the kinds after the default run under --slow (the ctrc kind's
+# constraint is also exercised end to end by tests/train/test_tokenizer_ctrc.py in every run)
+@pytest.fixture(scope="module",
+                params=[KINDS[0], *(pytest.param(k, marks=pytest.mark.slow) for k in KINDS[1:])])
 def tokenizer(records, request):
     texts = [r["prompt"] for r in records] + [r["completion"] for r in records]
     return build_tokenizer(texts, vocab_size=600, kind=request.param)

@@ -11,7 +11,6 @@ import torch
 from datasets import Dataset
 
 from physcene.config import load_config
-from physcene.data import synthesize
 from physcene.train.generate import (
     CACHE_MODES,
     cache_generate_kwargs,
@@ -19,29 +18,12 @@ from physcene.train.generate import (
     generate_with,
 )
 from physcene.train.models import TrainingSetupError, build_scratch_model
-from physcene.train.tokenizer import build_tokenizer
 
 ARCH = dict(hidden_size=48, intermediate_size=96, num_hidden_layers=2, num_attention_heads=4,
             num_key_value_heads=2, head_dim=12, max_position_embeddings=2048)
 
 
-@pytest.fixture(autouse=True)
-def one_thread():
-    old = torch.get_num_threads()
-    torch.set_num_threads(1)  # two busy shared cores
-    yield
-    torch.set_num_threads(old)
-
-
-@pytest.fixture(scope="module")
-def records():
-    return list(synthesize("train", n=8))
-
-
-@pytest.fixture(scope="module")
-def tokenizer(records):
-    texts = [r["prompt"] for r in records] + [r["completion"] for r in records]
-    return build_tokenizer(texts, vocab_size=320)
+pytestmark = pytest.mark.usefixtures("one_thread")  # fixtures: tests/train/conftest.py
 
 
 @pytest.fixture(scope="module")
