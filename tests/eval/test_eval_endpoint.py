@@ -4,11 +4,11 @@ from __future__ import annotations
 
 import base64
 import json
-import threading
-from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
+from http.server import BaseHTTPRequestHandler
 from pathlib import Path
 
 import pytest
+from loopback import LoopbackServer
 
 from physcene.eval.endpoint import SYSTEM_PROMPT, EndpointJudge, parse_judge_reply
 from physcene.eval.judges import EvalCase
@@ -24,7 +24,7 @@ SCORES = {
 }
 
 
-class _ChatServer:
+class _ChatServer(LoopbackServer):
     """A minimal OpenAI-style /v1/chat/completions server; ``fail_first`` requests answer HTTP 500."""
 
     def __init__(self, fail_first: int = 0, reply: str | None = None):
@@ -79,18 +79,7 @@ class _ChatServer:
                 self.end_headers()
                 self.wfile.write(data)
 
-        self.httpd = ThreadingHTTPServer(("127.0.0.1", 0), Handler)
-        self.url = f"http://127.0.0.1:{self.httpd.server_address[1]}/v1"
-        self.thread = threading.Thread(target=self.httpd.serve_forever, daemon=True)
-
-    def __enter__(self):
-        self.thread.start()
-        return self
-
-    def __exit__(self, *exc):
-        self.httpd.shutdown()
-        self.httpd.server_close()
-        self.thread.join(timeout=5)
+        super().__init__(Handler)
 
 
 @pytest.fixture(scope="module")

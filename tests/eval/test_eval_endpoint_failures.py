@@ -9,11 +9,11 @@ import math
 import socket
 import subprocess
 import sys
-import threading
-from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
+from http.server import BaseHTTPRequestHandler
 from pathlib import Path
 
 import pytest
+from loopback import LoopbackServer
 
 from physcene.eval.endpoint import (
     EndpointError,
@@ -38,7 +38,7 @@ def _flat_layout() -> str:
     return "<json>\n" + EXAMPLE.read_text() + "\n<json>"
 
 
-class Server:
+class Server(LoopbackServer):
     """A chat-completions server on loopback. ``reply``: the assistant text; ``fail_every``: every
     k-th request answers HTTP 500; ``redirect`` (set after start): answer every POST with 301 to
     this URL. Each request is recorded with its method, path and Authorization header."""
@@ -78,19 +78,7 @@ class Server:
 
             do_GET = _answer  # where urllib follows a 301 to (as a GET)
 
-        self.httpd = ThreadingHTTPServer(("127.0.0.1", 0), Handler)
-        self.port = self.httpd.server_address[1]
-        self.url = f"http://127.0.0.1:{self.port}/v1"
-        self.thread = threading.Thread(target=self.httpd.serve_forever, daemon=True)
-
-    def __enter__(self):
-        self.thread.start()
-        return self
-
-    def __exit__(self, *exc):
-        self.httpd.shutdown()
-        self.httpd.server_close()
-        self.thread.join(timeout=5)
+        super().__init__(Handler)
 
 
 def _closed_port() -> int:
