@@ -175,12 +175,14 @@ def test_pada_cache_reaches_trl_generation_config(tmp_path, tokenizer):
     assert g.max_cache_len == longest + 8
 
 
-def test_bench_generate_runs_at_tiny_sizes(capsys):
+def test_bench_generate_runs_at_tiny_sizes(capsys, tmp_path):
     from physcene.cli import main
 
+    out = tmp_path / "generate.json"
     assert main(["bench", "generate", "--config", "tiny", "--batch", "2", "--tokens", "8", "--repeat", "1",
-                 "--variants", "dynamic", "static", "--json"]) == 0
+                 "--variants", "dynamic", "static", "--json", "--out", str(out)]) == 0
     r = json.loads(capsys.readouterr().out)
+    assert json.loads(out.read_text()) == r  # the file after the last variant = the printed figures
     assert r["target"] == "generate" and r["batch"] == 2 and r["tokens"] == 8 and r["reference"] == "dynamic"
     for name in ("dynamic", "static"):
         v = r["variants"][name]

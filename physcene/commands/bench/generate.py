@@ -29,11 +29,13 @@ the cache up to a bucketed length (``kv_bytes_read``: what it actually read).
 
 from __future__ import annotations
 
+import json
 import time
 
 import torch
 
 from physcene.commands.bench.timing import BenchTarget, device_name, timed
+from physcene.files import write_atomic
 
 __all__ = ["BANDWIDTH_TB_S", "TARGET", "VARIANT_ATTENTION", "VARIANT_CACHE", "memory_bandwidth"]
 
@@ -63,6 +65,9 @@ def add_arguments(parser) -> None:
                         help="allow torch's cuDNN attention (off by default, as in training: "
                              "physcene.train.models.set_attention_kernels)")
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--out", default=None,
+                        help="also write the figures to this JSON file after each variant (a run stopped "
+                             "by a time limit keeps the variants it finished)")
 
 
 def memory_bandwidth(device: torch.device) -> tuple[float, str]:
@@ -178,10 +183,14 @@ def run(args) -> dict:
         if reference is None:
             reference, result["reference"] = ids, name
         row.update(_agreement(ids, reference))
+        if args.out:
+            write_atomic(args.out, json.dumps(result, indent=1) + "\n")
     timed_rows = [r for r in result["variants"].values() if "seconds" in r]
     base = result["variants"].get(result.get("reference"), {}).get("seconds")
     for row in timed_rows:
         row["speedup"] = base / row["seconds"] if base else None
+    if args.out:
+        write_atomic(args.out, json.dumps(result, indent=1) + "\n")
     return result
 
 
