@@ -173,6 +173,17 @@ def _timed_steps(step, steps: int, device: torch.device) -> tuple[list[dict], di
     return figures, memory.figures()
 
 
+def _measured(step, info: dict, steps: int, device: torch.device) -> dict:
+    """``info`` with :func:`_timed_steps`' figures and memory (``fits: true``), or with the error and
+    the memory held when a step ran out of memory (``fits: false``): not fitting is a figure too."""
+    try:
+        figures, memory = _timed_steps(step, steps, device)
+    except torch.cuda.OutOfMemoryError as exc:
+        peak = torch.cuda.max_memory_allocated(device) / GB
+        return {**info, "fits": False, "error": str(exc).splitlines()[0], "peak_gb_at_oom": peak}
+    return {**info, "fits": True, "figures": figures, **memory}
+
+
 def _sft(args, accelerator, model, tokenizer, records) -> dict:
     cfg = _config()
     batch = args.batch or int(cfg.sft.per_device_batch_size)
@@ -197,12 +208,7 @@ def _sft(args, accelerator, model, tokenizer, records) -> dict:
     info = {"per_device_batch": batch, "seq_len": length, "tokens_per_step_per_gpu": batch * length,
             "optimizer": "torch AdamW, states in the parameter dtype (bf16)",
             "gradient_checkpointing": True, "sharding": accelerator.distributed_type.value}
-    try:
-        figures, memory = _timed_steps(step, args.steps, accelerator.device)
-    except torch.cuda.OutOfMemoryError as exc:
-        peak = torch.cuda.max_memory_allocated(accelerator.device) / GB
-        return {**info, "fits": False, "error": str(exc).splitlines()[0], "peak_gb_at_oom": peak}
-    return {**info, "fits": True, "figures": figures, **memory}
+    return _measured(step, info, args.steps, accelerator.device)
 
 
 def _lora_model(model):
@@ -287,12 +293,7 @@ def _pada(args, accelerator, model, tokenizer, records) -> dict:
     info = {"per_device_batch": batch, "G": group, "completion_len": length, "cache": args.cache,
             "lora": {"r": int(cfg.pada.lora.r), "alpha": int(cfg.pada.lora.alpha)},
             "trainable_params": sum(p.numel() for p in model.parameters() if p.requires_grad)}
-    try:
-        figures, memory = _timed_steps(step, args.steps, accelerator.device)
-    except torch.cuda.OutOfMemoryError as exc:
-        peak = torch.cuda.max_memory_allocated(accelerator.device) / GB
-        return {**info, "fits": False, "error": str(exc).splitlines()[0], "peak_gb_at_oom": peak}
-    return {**info, "fits": True, "figures": figures, **memory}
+    return _measured(step, info, args.steps, accelerator.device)
 
 
 def _generate(args, accelerator, model, tokenizer, records) -> dict:
