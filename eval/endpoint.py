@@ -29,6 +29,7 @@ import numpy as np
 
 from physcene.eval.judges import EvalCase, JudgeError
 from physcene.eval.metrics import CRITERIA, ScenePhysics
+from physcene.files import write_atomic
 from physcene.scene import Scene
 
 __all__ = ["SYSTEM_PROMPT", "USER_PROMPT", "AuthStrippingRedirectHandler", "EndpointError", "EndpointJudge",
@@ -342,10 +343,8 @@ class EndpointJudge:
         text = reply_text(response)
         scores = parse_judge_reply(text)
         if path is not None and "error" not in scores:  # only good answers are worth keeping
-            path.parent.mkdir(parents=True, exist_ok=True)  # only once there is an answer to keep
-            tmp = path.with_suffix(".tmp")
-            tmp.write_text(json.dumps({"model": self.model, "reply": text}))
-            os.replace(tmp, path)
+            # the folder is made only once there is an answer to keep
+            write_atomic(path, json.dumps({"model": self.model, "reply": text}))
         return scores
 
     def score(self, scene: Scene, case: EvalCase, physics: ScenePhysics | None = None) -> dict:

@@ -29,6 +29,8 @@ from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
+from physcene.files import temp_path, write_atomic
+
 __all__ = ["MANIFEST", "RESTORED", "Artifact", "ArtifactError", "add_artifact", "checkpoint_digest",
            "file_sha256", "is_restored", "load_manifest", "pin_artifact", "repo_root", "resolve_generators",
            "resolve_model", "restore_artifact", "restored_dir"]
@@ -130,14 +132,6 @@ def checkpoint_digest(model_dir: str | Path) -> str:
     return _digest({"path": p.name, "sha256": file_sha256(p)} for p in files)
 
 
-def _write_atomic(path: Path, data: bytes) -> None:
-    """Write to a temp file beside ``path``, then rename: a crash leaves the old file or none."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
-    tmp.write_bytes(data)
-    os.replace(tmp, path)
-
-
 def load_manifest(root: Path) -> dict[str, Artifact]:
     """The artifacts of ``root/artifacts.json`` by name (none when the file does not exist)."""
     path = root / MANIFEST
@@ -153,7 +147,7 @@ def load_manifest(root: Path) -> dict[str, Artifact]:
 
 def _save_manifest(root: Path, artifacts: dict[str, Artifact]) -> None:
     body = {"artifacts": {name: artifacts[name].to_dict() for name in sorted(artifacts)}}
-    _write_atomic(root / MANIFEST, (json.dumps(body, indent=1) + "\n").encode())
+    write_atomic(root / MANIFEST, (json.dumps(body, indent=1) + "\n").encode())
 
 
 def _entry(root: Path, name: str) -> Artifact:
@@ -230,7 +224,8 @@ def _blob_digests(root: Path, commit: str, paths: Sequence[str],
                 continue
             blob = header[1] == "blob"
             h = hashlib.sha256()
-            with open(target, "wb") if blob and target is not None else _Discard() as out:
+            sink = target if blob and target is not None else os.devnull  # devnull: only hashed
+            with open(sink, "wb") as out:
                 remaining = int(header[2])
                 while remaining:
                     chunk = proc.stdout.read(min(remaining, 1 << 20))
@@ -246,19 +241,6 @@ def _blob_digests(root: Path, commit: str, paths: Sequence[str],
         proc.stdout.close()
         proc.wait()
     return digests
-
-
-class _Discard:
-    """A sink for blobs that are only hashed."""
-
-    def __enter__(self):
-        return self
-
-    def __exit__(self, *exc):
-        return False
-
-    def write(self, data: bytes) -> None:
-        pass
 
 
 def _commit_present(root: Path, commit: str, name: str) -> None:
@@ -331,7 +313,7 @@ def restore_artifact(name: str, to: str | Path | None = None, *, cwd: str | Path
     _commit_present(root, artifact.commit, name)
     paths = [_committed_path(artifact, f) for f in artifact.files]
     finals = [folder / f["path"] for f in artifact.files]
-    temps = [p.with_name(f".{p.name}.tmp-{os.getpid()}") for p in finals]
+    temps = [temp_path(p) for p in finals]
     for p in temps:
         p.parent.mkdir(parents=True, exist_ok=True)
     try:  # every file checked before any is renamed into place: a mismatch writes nothing
@@ -347,7 +329,7 @@ def restore_artifact(name: str, to: str | Path | None = None, *, cwd: str | Path
         raise
     for tmp, final in zip(temps, finals):
         os.replace(tmp, final)
-    _write_atomic(folder / _MARKER, json.dumps({"name": name, "commit": artifact.commit,
+    write_atomic(folder / _MARKER, json.dumps({"name": name, "commit": artifact.commit,
                                                 "digest": artifact.digest}).encode())
     return folder
 
@@ -383,10 +365,10 @@ def _point_adapter_at(folder: Path, base_folder: Path) -> None:
     if Path(str(config.get("base_model_name_or_path", ""))).is_dir():
         return
     config["base_model_name_or_path"] = str(base_folder)
-    _write_atomic(config_path, json.dumps(config, indent=2).encode())
+    write_atomic(config_path, json.dumps(config, indent=2).encode())
     marker = json.loads((folder / _MARKER).read_text())
     marker["rewritten"] = sorted({*marker.get("rewritten", ()), "adapter_config.json"})
-    _write_atomic(folder / _MARKER, json.dumps(marker).encode())
+    write_atomic(folder / _MARKER, json.dumps(marker).encode())
 
 
 def resolve_generators(generators: str, *, cwd: str | Path | None = None) -> str:
