@@ -39,8 +39,8 @@ __all__ = [
     "PLAN_HEADER", "PLAN_OPEN", "RELATIONS", "RELATION_ALIASES", "RELATION_TYPE", "RELATIVE_BBOX",
     "RELATIVE_ROTATION", "STEP_END", "STEP_NUMBER_END", "STEP_SEPARATOR", "TABLE", "TABLE_RELATION",
     "TOP_KEYS", "TYPE", "VALUE_SPACE", "ZONE", "ZONE_BBOX", "ZONE_ENTRY_KEYS", "ZONE_LENGTH",
-    "ZONE_ROTATION", "ZONE_TYPE", "key_text", "next_key", "plan_step", "quoted", "step_start",
-    "step_start_pattern", "string_value_pattern",
+    "ZONE_ROTATION", "ZONE_TYPE", "child_step", "child_step_pattern", "key_text", "next_key", "plan_step",
+    "quoted", "step_start", "step_start_pattern", "string_value_pattern",
 ]
 
 # Numbers ---------------------------------------------------------------------------------------
@@ -142,6 +142,20 @@ STEP_END = "."  # a step's sentence ends at its first full stop (ids and words c
 def plan_step(number: int, sub_instruction: str) -> str:
     """One line of the plan: ``3. Place 7_mug_0 on 6_saucer_0.``."""
     return f"{number}{STEP_NUMBER_END}{sub_instruction}"
+
+
+def child_step(iid: str, relation: str, parent: str) -> str:
+    """The sentence of the plan step that puts ``iid`` in or on ``parent``: ``Place 2_pen_0 in 1_cup_0.``
+    (a table-level object's sentence says where on the table instead)."""
+    return f"{PLACE} {iid} {relation} {parent}{STEP_END}"
+
+
+def child_step_pattern() -> str:
+    """The regex of a whole plan line written by :func:`child_step` (after its ``N. ``): groups
+    ``iid``, ``relation`` (one of :data:`CHILD_RELATIONS`) and ``parent``. Ids carry no spaces or
+    full stops, so ``Place X in front of Y, ...`` (a table-level step) does not match."""
+    return (re.escape(PLACE) + r" (?P<iid>[^\s.]+) (?P<relation>" + "|".join(CHILD_RELATIONS)
+            + r") (?P<parent>[^\s.]+)" + re.escape(STEP_END) + "$")
 
 
 def step_start(number: int) -> str:

@@ -32,6 +32,7 @@ from physcene.ctrc.grammar import (
     VALUE_SPACE,
     ZONE_ENTRY_KEYS,
     ZONE_TYPE,
+    child_step,
     plan_step,
 )
 from physcene.graph import anchor_order, ensure_hierarchy, near_references
@@ -101,7 +102,7 @@ def sub_instructions(scene: Scene) -> list[tuple[str, str]]:
     for iid in anchor_order(scene):
         o = by_id[iid]
         if o.parent != TABLE:
-            out.append((iid, f"{PLACE} {iid} {o.relation} {o.parent}."))
+            out.append((iid, child_step(iid, o.relation, o.parent)))
             continue
         where = coarse_location(o, scene.zone)
         ref = refs.get(iid)

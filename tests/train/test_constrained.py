@@ -17,7 +17,7 @@ from physcene.train.constrained import (
     prompt_zone,
     sampling_warpers,
 )
-from physcene.train.constrained.grammar import may_end_anchor
+from physcene.train.constrained.grammar import may_end_anchor, planned_entries
 from physcene.train.constrained.sampling import TokenIndex, vocabulary
 from physcene.train.tokenizer import KINDS, build_tokenizer
 
@@ -98,6 +98,61 @@ def test_repeated_instance_id_is_refused():
     assert allowed(relation, listed, ' "on"') and not allowed(relation, listed, ' "near"')
     table = parent + ' "root_zone", "relation_type":'
     assert allowed(table, listed, ' "near"') and not allowed(table, listed, ' "in"')
+
+
+PLAN = ("**Sub-instruction:**\n1. Place 2_tray_0 at the center of the table.\n2. Place 3_comb_0 on 2_tray_0."
+        "\n3. Place 3_comb_1 in 1_mirror_0."
+        "\n4. Place 1_mirror_0 behind 2_tray_0, about 20 cm away, at the back of the table."
+        '\n\n**Scene Layout:**\n{\n  "objects": [\n'
+        '    {"layer": 0, "instance_id": "root_zone", "type": "zone", '
+        '"bbox": [0.0, 9.0, 0.0, 9.0, 0.0, 0.0], "z_rotation": 0.0},\n    {"layer": 1, "instance_id":')
+TRAY = (' "2_tray_0", "category": "tray", "parent_id": "root_zone", "relation_type": "near", "description": '
+        '"A tray.", "relative_bbox": [1.0, 5.0, 1.0, 5.0, 0.0, 1.0], "relative_rotation_deg": 0.0},\n'
+        '    {"layer": 2, "instance_id":')
+
+
+def test_the_layout_follows_its_plan():
+    """Order, parent and relation of each entry are the ones its plan step names (physcene.ctrc writes
+    both in Algorithm 1's order); ``follow_plan=False`` leaves them to the model."""
+    listed = ["1_mirror_0", "2_tray_0", "3_comb_0", "3_comb_1"]
+    plan = planned_entries(PLAN, listed)
+    assert [(e.iid, e.parent, e.relation) for e in plan] == [
+        ("2_tray_0", "root_zone", "near"), ("3_comb_0", "2_tray_0", "on"),
+        ("3_comb_1", None, None), ("1_mirror_0", "root_zone", "near")]  # 3's parent comes after it
+
+    def admits(text, added, follow_plan=True):
+        rule = constraint_rule(text, listed, None, follow_plan)
+        return rule is None or rule.admits(added)
+
+    assert admits(PLAN, ' "2_tray_0"') and not admits(PLAN, ' "1_mirror_0"')
+    assert admits(PLAN, ' "1_mirror_0"', follow_plan=False)
+    comb = PLAN + TRAY
+    assert admits(comb, ' "3_comb_0"') and not admits(comb, ' "3_comb_1"')
+    parent = comb + ' "3_comb_0", "category": "comb", "parent_id":'
+    assert admits(parent, ' "2_tray_0"') and not admits(parent, ' "root_zone"')
+    assert admits(parent, ' "root_zone"', follow_plan=False)
+    relation = parent + ' "2_tray_0", "relation_type":'
+    assert admits(relation, ' "on"') and not admits(relation, ' "in"')
+    assert admits(relation, ' "in"', follow_plan=False)
+    # a step whose parent is not placed before it leaves the parent to the model (any earlier entry)
+    free = (relation + ' "on", "description": "A comb.", "relative_bbox": [1.0, 2.0, 1.0, 2.0, 0.0, 1.0], '
+            '"relative_rotation_deg": 0.0},\n    {"layer": 2, "instance_id":')
+    assert admits(free, ' "3_comb_1"') and not admits(free, ' "1_mirror_0"')
+    free += ' "3_comb_1", "category": "comb", "parent_id":'
+    assert admits(free, ' "2_tray_0"') and admits(free, ' "root_zone"') and admits(free, ' "3_comb_0"')
+    # a plan that does not name every listed id once is not followed
+    assert planned_entries(PLAN.replace("4. Place 1_mirror_0", "4. Place 3_comb_0"), listed) is None
+    assert planned_entries(PLAN.split("**Scene")[0], listed) is None  # no layout yet
+
+
+def test_synthesised_completions_follow_their_plans(records):
+    for r in records:
+        listed = listed_instance_ids(r["prompt"])
+        plan = planned_entries(r["completion"], listed)
+        scene = parse(r["completion"])
+        assert [e.iid for e in plan] == [o.instance_id for o in scene.objects]
+        for e, o in zip(plan, scene.objects):
+            assert (e.parent, e.relation) == (o.parent, o.relation if o.parent != "root_zone" else "near")
 
 
 def test_numbers_and_entry_ends():
@@ -361,6 +416,10 @@ def test_a_model_of_random_logits_still_writes_layouts_that_parse(records, token
         scene = parse(text)
         assert not isinstance(scene, ParseError), (scene.reason, text[-400:])
         assert sorted(o.instance_id for o in scene.objects) == sorted(listed_instance_ids(r["prompt"]))
+        # the layout follows the (reference) plan: the reference's order, parents and relations
+        reference = parse(r["completion"])
+        assert ([(o.instance_id, o.parent, o.relation) for o in scene.objects]
+                == [(o.instance_id, o.parent, o.relation) for o in reference.objects])
         # the zone is the prompt's, in the root entry and at the end, whatever the logits said
         zone = prompt_zone(r["prompt"])
         assert scene.zone.to_list() == pytest.approx(zone)
@@ -466,3 +525,49 @@ def test_the_rule_kept_between_steps_is_the_rule_of_the_whole_text(records, toke
     assert not may_end_anchor('**Scene Layout:**\n{"objects": [{"bbox": [12', ".")
     assert may_end_anchor("1. Place 1_mirror_0 on the table\n2. Place 2_tray_0 near it", ".")
     assert not may_end_anchor("1. Place 1_mirror_0 on the table\n2", ".")
+
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_the_trie_scan_allows_exactly_what_checking_every_token_does(kind):
+    """A regex rule's vocabulary scan walks the vocabulary's trie and checks only the tokens under the
+    prefixes its pattern can continue: at every regex-ruled position of real completions, and off them
+    (a random allowed token after a true prefix, then a few more), under a 4,096-token vocabulary with
+    some tokens already at -inf, it allows exactly the tokens that checking every token allows."""
+    records = list(synthesize("train", 32, seed=5))
+    tokenizer = build_tokenizer([r["prompt"] for r in records] + [r["completion"] for r in records],
+                                vocab_size=4096, kind=kind)
+    vocab = len(tokenizer)
+    rng = random.Random(kind)
+    gen = torch.Generator().manual_seed(0)
+
+    def same_as_every_token(proc, rule, keep: int = 0) -> list[int]:
+        scores = torch.zeros(1, vocab).masked_fill_(torch.rand(1, vocab, generator=gen) < 0.1, float("-inf"))
+        scores[0, keep] = 0.0  # the true token stays finite
+        every = proc.allowed_tokens(0, rule, torch.isfinite(scores[0]).nonzero().flatten().tolist())
+        assert proc.allowed_in_vocabulary(0, rule, scores) == every, (rule.partial, rule.pattern)
+        assert proc.stats.trie_scans == proc.stats.vocabulary_scans  # the trie did the scan
+        checked.append(len(every))
+        return every
+
+    def regex(rule) -> bool:
+        return rule is not None and rule.pattern is not None and not rule.choices
+
+    checked: list[int] = []  # the allowed set's size at each position checked
+    for r in sorted(records, key=lambda r: len(r["completion"]))[:2]:
+        ids = tokenizer(r["completion"], add_special_tokens=False)["input_ids"]
+        proc = CTRCConstraint(tokenizer, [r["prompt"]])
+        rule, ruled = proc.advance_row(0, []), []
+        for k, t in enumerate(ids):
+            if regex(rule):
+                assert t in same_as_every_token(proc, rule, keep=t)
+                ruled.append(k)
+            rule = proc.advance_row(0, [t])
+        for k in rng.sample(ruled, 20):  # corrupted prefixes: a random allowed token, then a few more
+            proc = CTRCConstraint(tokenizer, [r["prompt"]])
+            rule = proc.advance_row(0, ids[:k])
+            for _ in range(4):
+                allowed_ids = same_as_every_token(proc, rule) if regex(rule) else []
+                if not allowed_ids:  # out of the regex rules, or all it allows is at -inf
+                    break
+                rule = proc.advance_row(0, [rng.choice(allowed_ids)])
+    assert len(checked) > 300 and min(checked) <= 2 and max(checked) > vocab // 2

@@ -42,6 +42,7 @@ from physcene.ctrc.grammar import (
     RELATIVE_BBOX,
     RELATIVE_ROTATION,
     STEP_END,
+    STEP_NUMBER_END,
     STEP_SEPARATOR,
     TABLE,
     TABLE_RELATION,
@@ -52,6 +53,7 @@ from physcene.ctrc.grammar import (
     ZONE_LENGTH,
     ZONE_ROTATION,
     ZONE_TYPE,
+    child_step_pattern,
     key_text,
     next_key,
     quoted,
@@ -63,8 +65,8 @@ from physcene.ctrc.prompts import OBJECT_LIST_LABEL, ZONE_LABEL
 from physcene.ctrc.writer import json_line
 from physcene.layout import category_from_instance
 
-__all__ = ["ANCHOR", "Rule", "active_rule", "constraint_rule", "last_anchor", "listed_instance_ids",
-           "may_end_anchor", "prompt_zone", "within_rule"]
+__all__ = ["ANCHOR", "PlannedEntry", "Rule", "active_rule", "constraint_rule", "last_anchor",
+           "listed_instance_ids", "may_end_anchor", "planned_entries", "prompt_zone", "within_rule"]
 
 _OBJECT_LIST = re.compile(re.escape(OBJECT_LIST_LABEL) + r"([^\n]*)")
 _ZONE = re.compile(re.escape(ZONE_LABEL) + r"(\[[^\]\n]*\])")
@@ -89,6 +91,10 @@ ANCHOR = re.compile(
     + re.escape(STEP_END))
 _PLACED_IN_PLAN = re.compile(_STEP_START + r" (\S+?)" + f"[ {re.escape(STEP_END)}]")
 _STEP_LINE = re.compile(_STEP_START)
+# A plan line's sentence (group 1), after its number.
+_PLAN_LINE = re.compile(re.escape(STEP_SEPARATOR) + r"\d+" + re.escape(STEP_NUMBER_END) + r"([^\n]*)")
+_CHILD_STEP = re.compile(child_step_pattern())
+_STEP_ID = re.compile(re.escape(PLACE) + r" (\S+?)" + f"[ {re.escape(STEP_END)}]")  # a sentence's id
 _INSTANCE_IDS = re.compile(string_value_pattern(INSTANCE_ID))
 _PARENT_IDS = re.compile(string_value_pattern(PARENT_ID))
 # The completion's fixed text, as physcene.ctrc.completion_text writes it: the layout's start up to the
@@ -233,15 +239,16 @@ def _alternatives(strings: Sequence[str]) -> str:
     return "(?:" + "|".join(regex.escape(s) for s in strings) + ")"
 
 
-def constraint_rule(text: str, listed: Sequence[str] | None,
-                    zone: Sequence[float] | None = None) -> Rule | None:
+def constraint_rule(text: str, listed: Sequence[str] | None, zone: Sequence[float] | None = None,
+                    follow_plan: bool = True) -> Rule | None:
     """The :class:`Rule` the next token of a completion prefix must keep, or None. ``listed``: the
-    prompt's ids (:func:`listed_instance_ids`); ``zone``: its placement zone (:func:`prompt_zone`).
+    prompt's ids (:func:`listed_instance_ids`); ``zone``: its placement zone (:func:`prompt_zone`);
+    ``follow_plan``: the layout's entries follow the completion's own plan (:func:`planned_entries`).
 
     None: nothing constrains the next token (free text, a finished segment, or a prefix that already
     broke the rule: the parser will reject it; no mask can repair it).
     """
-    found = last_anchor(text, listed, zone)
+    found = last_anchor(text, listed, zone, follow_plan)
     return None if found is None else active_rule(text[found[0]:], found[1])
 
 
@@ -262,8 +269,8 @@ def within_rule(partial: str, core: _Core | None) -> bool:
     return core is None or core.prefix_rule("").admits(partial)
 
 
-def last_anchor(text: str, listed: Sequence[str] | None,
-                zone: Sequence[float] | None = None) -> tuple[int, _Core | None] | None:
+def last_anchor(text: str, listed: Sequence[str] | None, zone: Sequence[float] | None = None,
+                follow_plan: bool = True) -> tuple[int, _Core | None] | None:
     """(position in ``text`` where its last anchor ends, the rule of what must follow it or None).
 
     None: no anchor in the last ``_TAIL`` characters. The rule stays valid until the next anchor, so
@@ -275,10 +282,53 @@ def last_anchor(text: str, listed: Sequence[str] | None,
         return None
     anchor = anchors[-1]
     position = len(text) - len(tail) + anchor.end()
-    return position, _core(text[:position], anchor, listed, zone)
+    return position, _core(text[:position], anchor, listed, zone, follow_plan)
 
 
-def _core(text: str, anchor, listed: Sequence[str] | None, zone: Sequence[float] | None) -> _Core | None:
+class PlannedEntry(NamedTuple):
+    """What a completion's plan says of one layout entry."""
+
+    iid: str
+    parent: str | None
+    """The object its step puts it in or on, :data:`TABLE` for a table-level step, None for a step
+    that names no object placed before it (the layout's parent is then the model's choice)."""
+    relation: str | None
+    """``in`` / ``on`` (with ``parent``), :data:`TABLE_RELATION` on the table, None as ``parent``."""
+
+
+def planned_entries(text: str, listed: Sequence[str] | None) -> tuple[PlannedEntry, ...] | None:
+    """The layout entries the plan of ``text`` implies, in its order (physcene.ctrc writes both in one
+    order, Algorithm 1's: the plan's k-th step is the layout's k-th object, and a step ``Place X in|on
+    Y.`` is the entry of X under Y); None before the layout header, or when the plan does not name
+    each id of ``listed`` once (then the layout's ids are only the list's)."""
+    end = text.find(LAYOUT_HEADER)
+    if end < 0 or not listed:
+        return None
+    return _planned(text[:end], tuple(listed))
+
+
+@functools.lru_cache(maxsize=1024)
+def _planned(plan: str, listed: tuple[str, ...]) -> tuple[PlannedEntry, ...] | None:
+    entries: list[PlannedEntry] = []
+    placed: set[str] = set()
+    for sentence in _PLAN_LINE.findall(plan):
+        step = _CHILD_STEP.match(sentence)
+        named = _STEP_ID.match(sentence)
+        if named is None or named.group(1) in placed:
+            return None
+        iid = named.group(1)
+        if step is None:
+            entries.append(PlannedEntry(iid, TABLE, TABLE_RELATION))
+        elif step.group("parent") in placed:
+            entries.append(PlannedEntry(iid, step.group("parent"), step.group("relation")))
+        else:
+            entries.append(PlannedEntry(iid, None, None))
+        placed.add(iid)
+    return tuple(entries) if placed == set(listed) and len(entries) == len(listed) else None
+
+
+def _core(text: str, anchor, listed: Sequence[str] | None, zone: Sequence[float] | None,
+          follow_plan: bool = True) -> _Core | None:
     """The rule of ``anchor``, the last anchor of ``text`` (which ends with it)."""
     in_plan = LAYOUT_HEADER not in text  # the anchor lies in the plan
     key = anchor.group("key")
@@ -311,23 +361,33 @@ def _core(text: str, anchor, listed: Sequence[str] | None, zone: Sequence[float]
         return _Core(core)
     ids = _INSTANCE_IDS.findall(text)
     follow = key_text(next_key(key))
+    plan = planned_entries(text, listed) if follow_plan else None
+    planned = {e.iid: e for e in plan} if plan else {}
     if key == INSTANCE_ID:
         if not ids:
             return _literal(VALUE_SPACE + f'"{TABLE}"' + _ROOT_KEYS)
         if listed is None:
             return None
         allowed = [i for i in listed if i not in ids]
+        if plan and len(ids) - 1 < len(plan) and plan[len(ids) - 1].iid in allowed:
+            allowed = [plan[len(ids) - 1].iid]  # the plan's next object (ids[0] is the root)
     elif key == CATEGORY:
         if not ids or ids[-1] == TABLE:
             return None
         allowed = [category_from_instance(ids[-1])]
     elif key == PARENT_ID:
         allowed = [TABLE, *[i for i in ids[:-1] if i != TABLE]]
-    else:  # relation_type, then the free description: a regex (two patterns in all: near / in, on)
+        step = planned.get(ids[-1]) if ids else None
+        if step is not None and step.parent in allowed:
+            allowed = [step.parent]
+    else:  # relation_type, then the free description: a regex (three patterns in all: near / in / on)
         parents = _PARENT_IDS.findall(text)
         if not parents:
             return None
         allowed = [TABLE_RELATION] if parents[-1] == TABLE else list(CHILD_RELATIONS)
+        step = planned.get(ids[-1]) if ids else None
+        if step is not None and step.parent == parents[-1] and step.relation in allowed:
+            allowed = [step.relation]
         return _Core(regex.escape(VALUE_SPACE) + '"' + _alternatives(allowed) + '"' + regex.escape(follow)
                      + _DESCRIPTION + _key(next_key(DESCRIPTION)))
     if not allowed:

@@ -51,6 +51,8 @@ class ConstraintStats:
     """Of ``seconds``, the time in those scans (one check per token), s."""
     indexed_scans: int = 0
     """Of the scans, those of a literal rule: only the tokens that fit its text."""
+    trie_scans: int = 0
+    """Of the scans, those of a regex rule through the vocabulary's trie (:attr:`CTRCConstraint.scan`)."""
 
 
 class CTRCConstraint(LogitsProcessor):
@@ -69,17 +71,21 @@ class CTRCConstraint(LogitsProcessor):
     row's token is drawn here by rejection (:func:`~physcene.train.constrained.sampling.rejection_draw`):
     an exact sample of the allowed part of the distribution at about one check per row and step,
     instead of checking every candidate within ``margin``; ``redraws`` tokens of the
-    draw are checked before the whole vocabulary is.
+    draw are checked before the whole vocabulary is. ``follow_plan``: the layout writes the objects in
+    the order of the completion's own plan, each under the parent and with the relation its step names
+    (:func:`~physcene.train.constrained.grammar.planned_entries`); False leaves order and parents to the
+    model within the list's ids and the earlier entries.
     """
 
     def __init__(self, tokenizer: PreTrainedTokenizerBase, prompts: Sequence[str], *, top_k: int = 32,
                  greedy: bool = True, margin: float = 12.0, warpers: LogitsProcessorList | None = None,
-                 redraws: int = 8):
+                 redraws: int = 8, follow_plan: bool = True):
         self.token_index = vocabulary(tokenizer)
         self.token_text = self.token_index.texts
         self.eos = tokenizer.eos_token_id
         self.listed = [listed_instance_ids(p) for p in prompts]
         self.zones = [prompt_zone(p) for p in prompts]
+        self.follow_plan = bool(follow_plan)
         self.texts = [""] * len(prompts)
         # each row's last anchor (position, rule regex): looked for again only when a token that can
         # end an anchor arrives (_may_end_anchor), so a step costs O(1) regex work per row
@@ -127,7 +133,7 @@ class CTRCConstraint(LogitsProcessor):
         if not may_end_anchor(text, added):
             return True
         full = text + added
-        found = last_anchor(full, self.listed[row], self.zones[row])
+        found = last_anchor(full, self.listed[row], self.zones[row], self.follow_plan)
         self.ahead[row][added] = found
         if found is None or found[0] <= len(text):  # no anchor ends inside the new token
             return True
@@ -236,7 +242,7 @@ class CTRCConstraint(LogitsProcessor):
         ahead, self.ahead[b] = self.ahead[b], {}
         if searched:
             found = ahead.get(added, _UNSET)
-            self.anchors[b] = (last_anchor(self.texts[b], self.listed[b], self.zones[b])
+            self.anchors[b] = (last_anchor(self.texts[b], self.listed[b], self.zones[b], self.follow_plan)
                                if found is _UNSET else found)
         found = self.anchors[b]
         if found is None:
@@ -244,26 +250,38 @@ class CTRCConstraint(LogitsProcessor):
         partial = self.texts[b][found[0]:]
         return active_rule(partial, found[1], within=not searched and partial in admitted)
 
+    scan = "trie"
+    """How :meth:`allowed_in_vocabulary` finds a regex rule's candidates: "trie" (a walk of the
+    vocabulary's trie that prunes every token under a prefix the rule refuses) or "brute" (every
+    token checked: the reference the benchmark compares it with)."""
+
     def allowed_in_vocabulary(self, row: int, rule: Rule | None, scores: torch.Tensor,
                                finite_row: torch.Tensor | None = None) -> list[int]:
-        """The allowed tokens of the whole vocabulary, less what other processors ruled out (-inf;
-        ``finite_row``: the row's finite mask already on the host, else it is copied here).
-        Under a literal rule (a copied zone, an id, the layout's start: where a small model that will
-        not copy exhausts its draws) only the tokens whose text fits one of its strings are checked
-        (:meth:`TokenIndex.literal_candidates`: the same allowed set, from ~10 checks instead of one
-        per token of the vocabulary)."""
+        """The allowed tokens of the whole vocabulary (ascending ids), less what other processors
+        ruled out (-inf; ``finite_row``: the row's finite mask already on the host, else it is copied
+        here). Only the tokens that can fit the rule are checked: under a literal rule (a copied zone,
+        an id, the layout's start: where a small model that will not copy exhausts its draws) those
+        whose text fits one of its strings (:meth:`TokenIndex.literal_candidates`), under a regex rule
+        (numbers, a relation and its description) those its pattern can continue
+        (:meth:`TokenIndex.regex_candidates`, cached per pattern and text so far): the same allowed set
+        as one check per token of the vocabulary, which took most of a noisy model's PADA step."""
         start = time.perf_counter()
         if finite_row is None:
             finite_row = torch.isfinite(scores[row]).cpu()
-        candidates = self.token_index.literal_candidates(rule)
+        candidates = None
+        if rule is not None and rule.pattern is not None:
+            if rule.choices:
+                candidates = self.token_index.literal_candidates(rule)
+                self.stats.indexed_scans += candidates is not None
+            elif self.scan == "trie":
+                candidates = self.token_index.regex_candidates(rule.partial, rule.pattern)
+                self.stats.trie_scans += 1
         if candidates is None:
             finite = finite_row.nonzero().flatten().tolist()
         else:
-            self.stats.indexed_scans += 1
-            kept = finite_row[candidates].tolist() if candidates else []
-            finite = [t for t, ok in zip(candidates, kept) if ok]
+            candidates = torch.as_tensor(candidates, dtype=torch.long)
+            finite = candidates[finite_row[candidates]].tolist()
         allowed = self.allowed_tokens(row, rule, finite)
         self.stats.vocabulary_scans += 1
         self.stats.scan_seconds += time.perf_counter() - start
         return allowed
-

@@ -4,12 +4,14 @@ and the rejection draw that samples exactly the allowed part of the warped distr
 from __future__ import annotations
 
 import bisect
+import functools
+import os
 import weakref
 
 import torch
 from transformers import GenerationConfig, LogitsProcessorList, PreTrainedTokenizerBase
 
-from physcene.train.constrained.grammar import Rule
+from physcene.train.constrained.grammar import Rule, _compiled
 
 __all__ = ["TokenIndex", "rejection_draw", "sampling_warpers", "vocabulary"]
 
@@ -98,8 +100,8 @@ def sampling_warpers(config: GenerationConfig) -> LogitsProcessorList | None:
 
 
 class TokenIndex:
-    """The vocabulary's token texts by text and in sorted order, to find the tokens that fit a
-    literal rule without checking every token."""
+    """The vocabulary's token texts by text, in sorted order and as a trie, to find the tokens that fit
+    a rule without checking every token of the vocabulary."""
 
     def __init__(self, texts: list[str]):
         self.texts = texts  # by token id
@@ -109,6 +111,20 @@ class TokenIndex:
                 self.by_text.setdefault(text, []).append(t)
         self.sorted = sorted(self.by_text)
         self.longest = max(map(len, self.sorted), default=0)
+        # The compressed trie in preorder: its nodes are the texts and the branch points (the common
+        # prefix of two texts next in sorted order); sorted, each node's subtree is the run of nodes
+        # after it that start with it, and ``past[i]`` is the first node after node i's subtree.
+        branches = {os.path.commonprefix(pair) for pair in zip(self.sorted, self.sorted[1:])}
+        self.trie = sorted(branches.union(self.sorted) - {""})
+        self.past = [len(self.trie)] * len(self.trie)
+        path: list[int] = []  # the nodes above the current one
+        for i, prefix in enumerate(self.trie):
+            while path and not prefix.startswith(self.trie[path[-1]]):
+                self.past[path.pop()] = i
+            path.append(i)
+        # many rows share a rule's pattern and text so far (a number array's start, a key), and a
+        # row that exhausts its draws mostly does so again at its next step
+        self.regex_candidates = functools.lru_cache(maxsize=1024)(self._regex_candidates)
 
     def prefixes_of(self, text: str) -> list[int]:
         """The tokens whose text is a non-empty prefix of ``text``."""
@@ -142,6 +158,24 @@ class TokenIndex:
             if not rule.closed:
                 out.update(self.starting_with(rest))
         return sorted(out)
+
+    def _regex_candidates(self, partial: str, pattern: str) -> torch.Tensor:
+        """The tokens (ascending ids) whose text the regex rule ``Rule(partial, pattern)`` can still
+        continue with (its pattern alone, without the ordered extents :meth:`Rule.admits` adds).
+        A walk of the trie: a node whose prefix the pattern cannot continue prunes its whole subtree,
+        exactly, as no longer text can continue a partial match that failed. Under a number's or a
+        relation's rule that is ~140 checks (mostly the single characters the pattern refuses at once)
+        instead of one per token (1,314 in the 4,096-token BPE of the benchmark's 32 records)."""
+        fits = _compiled(pattern).fullmatch
+        trie, past, out = self.trie, self.past, []
+        i = 0
+        while i < len(trie):
+            if fits(partial + trie[i], partial=True) is None:
+                i = past[i]
+            else:
+                out.extend(self.by_text.get(trie[i], ()))
+                i += 1
+        return torch.tensor(sorted(out), dtype=torch.long)
 
 
 def vocabulary(tokenizer: PreTrainedTokenizerBase) -> TokenIndex:
