@@ -237,6 +237,7 @@ def _evaluate(cfg: DictConfig, models: dict[str, Path], budget_s: float) -> list
     judge = make_judge("rule", [it.reference for it in items])
     engine = PhysicsEngine(device=str(state.device))
     layouts = a.get("layouts")
+    temperature = float(cfg.eval.get("temperature", 0.0))
     rows, start = [], time.monotonic()
 
     def add_row(name, outputs, results, rl_steps=0):
@@ -251,7 +252,9 @@ def _evaluate(cfg: DictConfig, models: dict[str, Path], budget_s: float) -> list
         with state.split_between_processes(list(range(len(items)))) as shard:
             model = partial(_completions, path, max_new_tokens=int(cfg.eval.max_new_tokens),
                             device=str(state.device), cache=str(cfg.eval.get("cache", "dynamic")),
-                            constrained=bool(cfg.eval.get("constrained", False)))
+                            constrained=bool(cfg.eval.get("constrained", False)),
+                            follow_plan=bool(cfg.eval.get("follow_plan", True)),
+                            do_sample=temperature > 0, temperature=temperature or 1.0, seed=int(cfg.seed))
             part = generate([items[i] for i in shard], f"model:{path}", progress=False,
                             generators={f"model:{path}": model})
         outputs = gather_object(part)  # rank order = shard order = input order
@@ -367,6 +370,8 @@ def run_ablation(cfg: DictConfig, budget_min: float | None = None) -> dict:
         "stages": stages,
         "anchors": json.loads(anchors_summary.read_text()) if anchors_summary.is_file() else None,
         "decoding": {"eval": "constrained" if cfg.eval.get("constrained", False) else "greedy",
+                     "eval_temperature": float(cfg.eval.get("temperature", 0.0)),
+                     "follow_plan": bool(cfg.eval.get("follow_plan", True)),
                      "anchors": "constrained" if cfg.anchors.get("constrained", False) else "greedy",
                      "pada": "constrained" if cfg.pada.get("constrained", False) else "sampled",
                      "cache": str(cfg.eval.get("cache", "dynamic"))},

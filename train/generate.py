@@ -134,14 +134,15 @@ def generate_token_ids(model: PreTrainedModel, tokenizer: PreTrainedTokenizerBas
                        chat_format: bool = False, max_new_tokens: int = 1024, batch_size: int = 16,
                        do_sample: bool = False, temperature: float = 1.0, seed: int = 0,
                        cache: str = "dynamic", min_new_tokens: int | None = None,
-                       constrained: bool = False, report: list | None = None,
+                       constrained: bool = False, follow_plan: bool = True, report: list | None = None,
                        fast_attention: str = "sdpa") -> list[list[int]]:
     """Completion token ids of ``prompts`` (prompt and left padding cut off; each row is
     ``max_new_tokens`` long or ends in EOS + pad), in input order.
 
     ``cache``: one of :data:`CACHE_MODES`. ``min_new_tokens`` forbids EOS before that many tokens
     (benchmarks force equal lengths with it). ``constrained``: decode under
-    :class:`physcene.train.constrained.CTRCConstraint` (CTRC grammar + the prompt's Object List).
+    :class:`physcene.train.constrained.CTRCConstraint` (CTRC grammar + the prompt's Object List);
+    ``follow_plan``: its layout follows the completion's own plan (order, parents, relations).
     ``report``: a list that ``cache="fast"`` appends each batch's
     :class:`~physcene.train.decode.DecodeResult` to (graphs used, bytes read, repairs, timings);
     ``fast_attention``: its attention (``sdpa`` or ``matmul``, :func:`physcene.train.decode.fast_generate`).
@@ -163,7 +164,8 @@ def generate_token_ids(model: PreTrainedModel, tokenizer: PreTrainedTokenizerBas
         return _fast_token_ids(model, tokenizer, prompts, order, encoded, batch_size=batch_size,
                                max_new_tokens=max_new_tokens, min_new_tokens=min_new_tokens or 0,
                                do_sample=do_sample, temperature=temperature, constrained=constrained,
-                               length=longest + max_new_tokens, report=report, attention=fast_attention)
+                               follow_plan=follow_plan, length=longest + max_new_tokens, report=report,
+                               attention=fast_attention)
     kwargs = {"do_sample": do_sample, "max_new_tokens": max_new_tokens,
               "pad_token_id": tokenizer.pad_token_id, "eos_token_id": tokenizer.eos_token_id,
               **cache_generate_kwargs(cache, device, max_cache_len=longest + max_new_tokens)}
@@ -181,7 +183,8 @@ def generate_token_ids(model: PreTrainedModel, tokenizer: PreTrainedTokenizerBas
         enc = enc.to(device)
         if constrained:
             kwargs["logits_processor"] = LogitsProcessorList([CTRCConstraint(
-                tokenizer, [prompts[i] for i in idx], greedy=not do_sample, warpers=warpers)])
+                tokenizer, [prompts[i] for i in idx], greedy=not do_sample, warpers=warpers,
+                follow_plan=follow_plan)])
         ids = model.generate(**enc, **kwargs)[:, enc["input_ids"].shape[1]:]
         for i, row in zip(idx, ids.tolist()):
             out[i] = row
@@ -190,7 +193,7 @@ def generate_token_ids(model: PreTrainedModel, tokenizer: PreTrainedTokenizerBas
 
 def _fast_token_ids(model, tokenizer, prompts, order, encoded, *, batch_size: int, max_new_tokens: int,
                     min_new_tokens: int, do_sample: bool, temperature: float, constrained: bool,
-                    length: int, report: list | None, attention: str) -> list[list[int]]:
+                    follow_plan: bool, length: int, report: list | None, attention: str) -> list[list[int]]:
     """:func:`generate_token_ids` with :func:`physcene.train.decode.fast_generate`: the same rows (EOS
     then padding up to the batch's longest completion, as HF ``generate`` returns them)."""
     from physcene.train.decode import fast_generate
@@ -205,8 +208,8 @@ def _fast_token_ids(model, tokenizer, prompts, order, encoded, *, batch_size: in
     for k, enc in enumerate(encoded):
         idx = order[k * batch_size:(k + 1) * batch_size]
         rows = [prompts[i] for i in idx]
-        constraint = (CTRCConstraint(tokenizer, rows, greedy=not do_sample, warpers=warpers)
-                      if constrained else None)
+        constraint = (CTRCConstraint(tokenizer, rows, greedy=not do_sample, warpers=warpers,
+                                     follow_plan=follow_plan) if constrained else None)
         result = fast_generate(model, enc["input_ids"].to(device), enc["attention_mask"].to(device),
                                max_new_tokens=max_new_tokens, min_new_tokens=min_new_tokens,
                                eos=[tokenizer.eos_token_id], pad=tokenizer.pad_token_id, sampling=do_sample,
@@ -222,29 +225,32 @@ def _fast_token_ids(model, tokenizer, prompts, order, encoded, *, batch_size: in
 def generate_with(model: PreTrainedModel, tokenizer: PreTrainedTokenizerBase, prompts: Sequence[str], *,
                   chat_format: bool = False, max_new_tokens: int = 1024, batch_size: int = 16,
                   do_sample: bool = False, temperature: float = 1.0, seed: int = 0,
-                  cache: str = "dynamic", constrained: bool = False) -> list[str]:
+                  cache: str = "dynamic", constrained: bool = False, follow_plan: bool = True) -> list[str]:
     """Completions (decoded, special tokens dropped) of ``prompts`` with a loaded model, in input order.
 
     ``cache``: the KV cache, one of :data:`CACHE_MODES` (module docstring); ``constrained``: CTRC-
-    constrained decoding (:mod:`physcene.train.constrained`).
+    constrained decoding (:mod:`physcene.train.constrained`), whose layout follows the completion's
+    plan unless ``follow_plan`` is False.
     """
     ids = generate_token_ids(model, tokenizer, prompts, chat_format=chat_format,
                              max_new_tokens=max_new_tokens, batch_size=batch_size, do_sample=do_sample,
-                             temperature=temperature, seed=seed, cache=cache, constrained=constrained)
+                             temperature=temperature, seed=seed, cache=cache, constrained=constrained,
+                             follow_plan=follow_plan)
     return [tokenizer.decode(row, skip_special_tokens=True) for row in ids]
 
 
 def generate(model_path: str | Path, prompts: Sequence[str], *, max_new_tokens: int = 1024,
              batch_size: int | None = None, do_sample: bool = False, temperature: float = 1.0, seed: int = 0,
              device: str | torch.device | None = None, dtype: str | None = None,
-             cache: str = "dynamic", constrained: bool = False) -> list[str]:
+             cache: str = "dynamic", constrained: bool = False, follow_plan: bool = True) -> list[str]:
     """Completions of ``prompts`` by the checkpoint at ``model_path`` (greedy unless ``do_sample``).
 
     ``prompts`` are CTRC prompt strings (``physcene.ctrc.build_prompt``); chat-format checkpoints get
     them wrapped in a user turn. ``batch_size`` defaults to the checkpoint's ``eval_batch_size``
     (its training config's ``eval.batch_size``; 16 for foreign checkpoints). Returns one completion
     string per prompt, in order. ``cache``: the KV cache, one of :data:`CACHE_MODES`;
-    ``constrained``: CTRC-constrained decoding (:mod:`physcene.train.constrained`).
+    ``constrained``: CTRC-constrained decoding (:mod:`physcene.train.constrained`; ``follow_plan``: its
+    layout follows the completion's own plan).
     """
     check_cache(cache)
     if dtype is not None:
@@ -253,4 +259,5 @@ def generate(model_path: str | Path, prompts: Sequence[str], *, max_new_tokens: 
     batch_size = batch_size or int(info.get("eval_batch_size", 16))
     return generate_with(model, tokenizer, prompts, chat_format=bool(info.get("chat_format", False)),
                          max_new_tokens=max_new_tokens, batch_size=batch_size, do_sample=do_sample,
-                         temperature=temperature, seed=seed, cache=cache, constrained=constrained)
+                         temperature=temperature, seed=seed, cache=cache, constrained=constrained,
+                         follow_plan=follow_plan)

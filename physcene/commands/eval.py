@@ -43,16 +43,22 @@ def _config(args):
         raise ValueError(f"{config_path(args.config)}: n={cfg.n!r}: expected an integer or null")
     if cfg.n is not None and cfg.n < 1:
         raise ValueError(f"--n must be >= 1, got {cfg.n}")
+    if float(cfg.get("temperature", 0.0)) < 0:
+        raise ValueError(f"{config_path(args.config)}: temperature={cfg.temperature}: expected 0 (greedy) or "
+                         "a positive number")
     return cfg
 
 
 def model_generators(cfg, *, max_new_tokens: int = 4096, device: str | None = None) -> dict:
     """A :data:`physcene.eval.harness.Generate` per ``model:PATH`` in ``cfg.generator``: the
     checkpoint's completions of the items' prompts (:func:`physcene.train.generate.generate`) with
-    the config's KV ``cache`` and ``constrained`` decoding; ``device``: None = the first GPU, else
-    CPU. The harness itself never imports the training code (eval/ sits below train/)."""
+    the config's KV ``cache``, ``constrained`` decoding, ``follow_plan`` and ``temperature`` (0:
+    greedy, else sampled with the config's ``seed``); ``device``: None = the
+    first GPU, else CPU. The harness itself never imports the training code (eval/ sits below train/)."""
     specs = [g.strip() for g in str(cfg.generator).split(",") if g.strip().startswith("model:")]
     cache, constrained = str(cfg.get("cache", "dynamic")), bool(cfg.get("constrained", False))
+    follow_plan = bool(cfg.get("follow_plan", True))
+    temperature, seed = float(cfg.get("temperature", 0.0)), int(cfg.get("seed", 0))
 
     def model(path: str):
         def run_model(items) -> list[str]:
@@ -62,7 +68,8 @@ def model_generators(cfg, *, max_new_tokens: int = 4096, device: str | None = No
                 raise EvalError(f"generator model:{path}: physcene.train.generate is unavailable "
                                 f"({exc})") from exc
             return generate(path, [it.prompt for it in items], max_new_tokens=max_new_tokens, device=device,
-                            cache=cache, constrained=constrained)
+                            cache=cache, constrained=constrained, follow_plan=follow_plan,
+                            do_sample=temperature > 0, temperature=temperature or 1.0, seed=seed)
         return run_model
 
     return {spec: model(spec[len("model:"):]) for spec in specs}

@@ -87,6 +87,9 @@ def test_eval_names_a_bad_n(tmp_path, capsys, monkeypatch):
     assert cli.main(["eval", "n=abc"]) == 2  # was "invalid literal for int()"
     _one_error(capsys.readouterr().err, "n='abc'", "eval.yaml", "expected an integer")
     assert list(tmp_path.iterdir()) == []
+    assert cli.main(["eval", "temperature=-0.5"]) == 2
+    _one_error(capsys.readouterr().err, "temperature=-0.5", "eval.yaml", "expected 0 (greedy)")
+    assert list(tmp_path.iterdir()) == []
 
 
 def test_settings_after_paths_are_settings(bad, capsys):

@@ -142,6 +142,11 @@ def test_eval_cache_reaches_the_model_generator(monkeypatch):
     cfg = load_config("eval", ["generator=model:runs/x", "cache=static", "constrained=true"])
     generate(items, "model:runs/x", progress=False, generators=model_generators(cfg))
     assert seen["cache"] == "static" and seen["constrained"] is True
+    assert seen["follow_plan"] is True and seen["do_sample"] is False  # eval.yaml: greedy, the plan followed
+    cfg = load_config("eval", ["generator=model:runs/x", "follow_plan=false", "temperature=0.7", "seed=3"])
+    generate(items, "model:runs/x", progress=False, generators=model_generators(cfg))
+    assert seen["follow_plan"] is False and seen["do_sample"] is True
+    assert seen["temperature"] == 0.7 and seen["seed"] == 3
     assert load_config("eval").cache == "dynamic" and load_config("eval").constrained is False
     for name in ("tiny", "qwen3_vl_8b"):
         cfg = load_config(f"train_{name}")
