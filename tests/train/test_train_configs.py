@@ -10,10 +10,11 @@ from physcene.commands.train import training_config
 from physcene.config import ConfigError, load_config
 
 # (name, source, dtype, arch.hidden_size, sft lr, pada global batch, pada.constrained, anchors.cache,
-#  ablation.n_test, model.path required): the values of the three configs before they were composed
+#  ablation.n_test, model.path required): the values of the configs before they were composed
 EXPECTED = [
     ("tiny", "scratch", "float32", 96, 3.0e-3, 8, False, "dynamic", 4, False),
     ("small", "scratch", "bfloat16", 512, 1.0e-3, 128, True, "fast", 200, False),
+    ("cpu", "scratch", "float32", 256, 2.0e-3, 16, True, "dynamic", 96, False),
     ("qwen3_vl_8b", "pretrained", "bfloat16", None, 1.0e-5, 128, False, "dynamic", 200, True),
 ]
 
@@ -34,7 +35,7 @@ def test_each_model_file_over_the_base_gives_the_models_values(row):
     assert cfg.pada.output_dir == f"runs/{name}/pada"  # interpolations resolve after the merge
 
 
-@pytest.mark.parametrize("name", ["tiny", "small", "qwen3_vl_8b"])
+@pytest.mark.parametrize("name", ["tiny", "small", "cpu", "qwen3_vl_8b"])
 def test_old_names_and_the_cli_name_read_the_same_config(name):
     composed = OmegaConf.to_container(load_config(f"train/{name}"), resolve=False)
     assert OmegaConf.to_container(load_config(f"train_{name}"), resolve=False) == composed
