@@ -31,9 +31,9 @@ from pathlib import Path
 
 from physcene.files import temp_path, write_atomic
 
-__all__ = ["MANIFEST", "RESTORED", "Artifact", "ArtifactError", "add_artifact", "checkpoint_digest",
-           "file_sha256", "is_restored", "load_manifest", "pin_artifact", "repo_root", "resolve_generators",
-           "resolve_model", "restore_artifact", "restored_dir"]
+__all__ = ["MANIFEST", "MAX_FILE_BYTES", "RESTORED", "Artifact", "ArtifactError", "add_artifact",
+           "checkpoint_digest", "file_sha256", "is_restored", "load_manifest", "pin_artifact", "repo_root",
+           "resolve_generators", "resolve_model", "restore_artifact", "restored_dir"]
 
 MANIFEST = "artifacts.json"
 # Where ``restore`` writes an artifact by default (ignored by .gitignore), and the marker it leaves there.
@@ -45,6 +45,8 @@ _MODEL_FILES = ("config.json", "generation_config.json", "tokenizer.json", "toke
                 "special_tokens_map.json", "vocab.json", "merges.txt", "added_tokens.json",
                 "chat_template.jinja", "chat_template.json", "adapter_config.json")
 _WEIGHT_SUFFIXES = (".safetensors", ".bin")
+# A file git hosts refuse (GitHub: 100 MiB); a checkpoint that large wants bf16 weights or fewer files.
+MAX_FILE_BYTES = 100 * 2**20
 
 
 class ArtifactError(ValueError):
@@ -188,6 +190,11 @@ def add_artifact(name: str, path: str | Path, *, made_by: str, data: Sequence[st
                                          for part in p.relative_to(folder).parts)]
     if not paths:
         raise ArtifactError(f"artifact {name}: {path} holds no files")
+    if large := [p for p in paths if p.stat().st_size > MAX_FILE_BYTES]:
+        where, mib = large[0].relative_to(root.resolve()), large[0].stat().st_size / 2**20
+        raise ArtifactError(f"artifact {name}: {where} has {mib:.1f} MiB, over the {MAX_FILE_BYTES // 2**20} "
+                            "MiB a git host takes in one file: save the weights in bf16 or --exclude what a "
+                            "later run does not read")
     files = tuple({"path": p.relative_to(folder).as_posix(), "sha256": file_sha256(p),
                    "size": p.stat().st_size} for p in paths)
     artifact = Artifact(name=name, root=folder.relative_to(root.resolve()).as_posix() or ".", files=files,

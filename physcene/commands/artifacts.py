@@ -75,8 +75,10 @@ def run(args) -> int:
     if args.action == "add":
         a = add_artifact(args.name, args.path, made_by=args.made_by, data=args.data, base=args.base,
                          exclude=args.exclude)
-        print(f"{a.name}: {len(a.files)} file(s) under {a.root}, digest {a.digest[:12]}, staged with "
-              f"{MANIFEST}; next: `git commit`, then `physcene artifacts pin {a.name}`")
+        size = sum(f["size"] for f in a.files) / 2**20
+        print(f"{a.name}: {len(a.files)} file(s), {size:.1f} MiB under {a.root}, digest {a.digest[:12]}, "
+              f"staged with {MANIFEST}; next: `git commit`, then `physcene artifacts pin {a.name}` (a push "
+              f"that adds and then removes the files carries them twice: {2 * size:.1f} MiB of diffs)")
     elif args.action == "pin":
         a = pin_artifact(args.name, args.commit)
         print(f"{a.name}: pinned at {a.commit[:12]}, its files are out of the index; next: "

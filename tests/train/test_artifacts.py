@@ -176,3 +176,13 @@ def test_a_generator_names_an_artifact_and_an_adapter_finds_its_restored_base(re
     assert is_restored(folder, load_manifest(repo)["small-pada"])  # the rewrite is not a corruption
     with pytest.raises(ArtifactError, match="--base 'nope' is not in"):
         add_artifact("x", "README.md", made_by="x", base="nope", cwd=repo)
+
+
+def test_a_file_too_large_for_a_git_host_is_refused_before_anything_is_staged(repo, monkeypatch):
+    import physcene.artifacts as artifacts
+
+    monkeypatch.setattr(artifacts, "MAX_FILE_BYTES", 1024)  # the fixture's weights: 10,243 bytes
+    with pytest.raises(ArtifactError, match=r"runs/sft/model.safetensors has 0.0 MiB, over the 0 MiB .* bf16"):
+        add_artifact("small-sft", "runs/sft", made_by="x", cwd=repo)
+    assert git(repo, "diff", "--cached", "--name-only") == "" and not (repo / "artifacts.json").exists()
+    add_artifact("small-sft", "runs/sft", made_by="x", exclude=["model.safetensors"], cwd=repo)
