@@ -7,6 +7,8 @@
 #   STAGES="synth sft" bash train/scripts/ablation_small.sh                # part of it (then the rest:
 #   STAGES="anchors grpo pada_star pada eval" EXTRA="anchors.cache=static" bash ...)
 #   NPROC=1 PARALLEL=1 PADA_MIN=14 STAGES="grpo pada_star pada" bash ...  # the 3 RL variants at once
+#   STAGES=plan bash train/scripts/ablation_small.sh        # the SFT model's layouts with the order and
+#                                                          # parents free and from its plan (first GPU)
 #
 # Stages resume: rerunning continues SFT from its last checkpoint, keeps a complete anchor file
 # and reuses finished models (`ablation.reuse`). Step times land in each stage's train_log.json.
@@ -45,7 +47,7 @@ SFT_EXTRA=${SFT_EXTRA:-}            # overrides for the SFT stage only (e.g. mod
 N_TRAIN=${N_TRAIN:-}                # synthetic training scenes (unset: the train split's 9,429)
 DECIMALS=${DECIMALS:-}              # digits after the point in the synthesised completions and the anchors
                                     # (unset: physcene.ctrc.DECIMALS = 5)
-STAGES=${STAGES:-"synth sft anchors grpo pada_star pada eval"}
+STAGES=${STAGES:-"synth sft anchors grpo pada_star pada eval"}  # also: plan (not by default)
 
 stamp() { echo "[$(date +%T)] $*"; }
 common="output_dir=$RUN data.train=$DATA eval.max_new_tokens=$MAX_TOKENS anchors.max_new_tokens=$MAX_TOKENS"
@@ -114,5 +116,10 @@ if want eval; then
   stamp "eval ($N_TEST test scenes)"
   $LAUNCH -m physcene.cli train ablation --config "$CONFIG" $common \
     ablation.budget_min="$(python3 -c "print(10 * $PADA_MIN)")"
+fi
+if want plan; then
+  stamp "plan following ($N_TEST test scenes, the SFT model, first GPU)"
+  python3 -m physcene.train.analysis.plan_following "$RUN/sft" --n "$N_TEST" --device cuda --cache fast \
+    --max-new-tokens "$MAX_TOKENS" --batch-size 128 --out "$RUN/plan_following.json"
 fi
 stamp done
