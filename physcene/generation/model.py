@@ -4,9 +4,9 @@ Qwen3-VL checkpoint with a chat template), decoded under the CTRC constraint.
 The prompt is the CTRC generation prompt (:func:`physcene.ctrc.build_prompt`) with the instruction,
 the table type, the zone and the object list of the procedural plan; decoding is constrained
 (:mod:`physcene.train.constrained`: the grammar, the listed objects and the completion's own plan),
-so every completion parses. One sample is decoded at a time under a progress bar; with more than one sample they are
-drawn (temperature ``temperature``), one seed each, else greedy. ``physcene.train`` (transformers)
-is imported when the generator runs, never at import.
+so every completion parses. One sample is decoded at a time under a progress bar; with more than one
+sample they are drawn (temperature ``temperature``), one seed each, else greedy. ``physcene.train``
+(transformers) is imported when the generator runs, never at import.
 """
 
 from __future__ import annotations

@@ -182,7 +182,7 @@ def test_a_file_too_large_for_a_git_host_is_refused_before_anything_is_staged(re
     import physcene.artifacts as artifacts
 
     monkeypatch.setattr(artifacts, "MAX_FILE_BYTES", 1024)  # the fixture's weights: 10,243 bytes
-    with pytest.raises(ArtifactError, match=r"runs/sft/model.safetensors has 0.0 MiB, over the 0 MiB .* bf16"):
+    with pytest.raises(ArtifactError, match=r"runs/sft/model.safetensors has 0.0 MiB, over the 0 MiB .*bf16"):
         add_artifact("small-sft", "runs/sft", made_by="x", cwd=repo)
     assert git(repo, "diff", "--cached", "--name-only") == "" and not (repo / "artifacts.json").exists()
     add_artifact("small-sft", "runs/sft", made_by="x", exclude=["model.safetensors"], cwd=repo)
