@@ -33,14 +33,14 @@ from physcene.scene import RELATIONS, TABLE
 __all__ = [
     "BOX_EXTENTS", "BOX_LENGTH", "CATEGORY", "CHILD_RELATIONS", "DECIMALS", "DESCRIPTION",
     "DESCRIPTION_MAX_CHARS", "ENTRY_KEYS", "ENTRY_SEPARATOR", "INSTANCE_ID", "INTEGER_DIGITS",
-    "ITEM_SEPARATOR", "KEY_COLON", "KEY_SEPARATOR", "LAYER", "LAYER_DIGITS", "LAYOUT_CLOSE",
-    "LAYOUT_HEADER", "LAYOUT_OPEN", "MAX_ABS_CM", "MAX_CHARS", "MAX_DECIMALS", "MAX_OBJECTS",
-    "NUMBER_PATTERN", "OBJECTS", "OBJECTS_CLOSE", "OBJECTS_OPEN", "ON_CONTACT_GAP_CM", "PARENT_ID", "PLACE",
-    "PLAN_HEADER", "PLAN_OPEN", "RELATIONS", "RELATION_ALIASES", "RELATION_TYPE", "RELATIVE_BBOX",
+    "ITEM_SEPARATOR", "KEY_COLON", "KEY_SEPARATOR", "LAYER", "LAYER_DIGITS", "LAYOUT_CLOSE", "LAYOUT_HEADER",
+    "LAYOUT_OPEN", "MAX_ABS_CM", "MAX_CHARS", "MAX_DECIMALS", "MAX_OBJECTS", "NUMBER_PATTERN", "OBJECTS",
+    "OBJECTS_CLOSE", "OBJECTS_OPEN", "ON_CONTACT_GAP_CM", "PARENT_ID", "PLACE", "PLAN_HEADER", "PLAN_OPEN",
+    "PLAN_STEP_MAX_CHARS", "RELATIONS", "RELATION_ALIASES", "RELATION_TYPE", "RELATIVE_BBOX",
     "RELATIVE_ROTATION", "STEP_END", "STEP_NUMBER_END", "STEP_SEPARATOR", "TABLE", "TABLE_RELATION",
-    "TOP_KEYS", "TYPE", "VALUE_SPACE", "ZONE", "ZONE_BBOX", "ZONE_ENTRY_KEYS", "ZONE_LENGTH",
-    "ZONE_ROTATION", "ZONE_TYPE", "child_step", "child_step_pattern", "key_text", "next_key", "plan_step",
-    "quoted", "step_start", "step_start_pattern", "string_value_pattern",
+    "TOP_KEYS", "TYPE", "VALUE_SPACE", "ZONE", "ZONE_BBOX", "ZONE_ENTRY_KEYS", "ZONE_LENGTH", "ZONE_ROTATION",
+    "ZONE_TYPE", "child_step", "child_step_pattern", "key_text", "next_key", "plan_step", "quoted",
+    "step_start", "step_start_pattern", "string_value_pattern",
 ]
 
 # Numbers ---------------------------------------------------------------------------------------
@@ -70,6 +70,9 @@ MAX_OBJECTS = 1000
 LAYER_DIGITS = len(str(MAX_OBJECTS))
 # Longest description the constraint lets a model write (one JSON string on one line).
 DESCRIPTION_MAX_CHARS = 300
+# Longest rest of a plan step the constraint lets a model write after the step's id (the writer's
+# longest, "to the right of X, about 62 cm away, at the right back of the table", is under 100).
+PLAN_STEP_MAX_CHARS = 300
 
 # Keys ------------------------------------------------------------------------------------------
 OBJECTS = "objects"

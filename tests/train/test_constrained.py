@@ -145,6 +145,19 @@ def test_the_layout_follows_its_plan():
     assert planned_entries(PLAN.split("**Scene")[0], listed) is None  # no layout yet
 
 
+def test_a_plan_step_is_plain_words_up_to_its_full_stop():
+    """A sampled plan step once ran on into `... "parent_id": "root_zone", ...`: a JSON key inside the plan
+    started the layout's rules there and the layout's header was never written (no layout parsed).
+    After its id a step holds no quote, brace or line break, and at most PLAN_STEP_MAX_CHARS of them."""
+    listed = ["1_mirror_0", "2_tray_0"]
+    step = "**Sub-instruction:**\n1. Place 2_tray_0 to the left of the table"
+    assert allowed(step, listed, ", about 20 cm away.") and allowed(step, listed, " 1_mirror_0")
+    for bad in (' "parent_id":', " {", "}", "\n"):
+        assert not allowed(step, listed, bad), bad
+    assert allowed(step, listed, " " + "x" * 200) and not allowed(step, listed, " " + "x" * 300)
+    assert not allowed("**Sub-instruction:**\n1. Place", listed, " 3_comb_0 at")  # ids of the list only
+
+
 def test_synthesised_completions_follow_their_plans(records):
     for r in records:
         listed = listed_instance_ids(r["prompt"])

@@ -38,6 +38,7 @@ from physcene.ctrc.grammar import (
     OBJECTS_CLOSE,
     PARENT_ID,
     PLACE,
+    PLAN_STEP_MAX_CHARS,
     RELATION_TYPE,
     RELATIVE_BBOX,
     RELATIVE_ROTATION,
@@ -109,6 +110,10 @@ _ROOT_KEYS = key_text(TYPE) + VALUE_SPACE + quoted(ZONE_TYPE) + key_text(ZONE_BB
 # One JSON string on one line.
 _DESCRIPTION = (regex.escape(VALUE_SPACE) + r'"(?:[^"\\\x00-\x1f]|\\(?:["\\/bfnrt]|u[0-9a-fA-F]{4}))'
                 + f'{{0,{DESCRIPTION_MAX_CHARS}}}"')
+# The rest of a plan step after its id: plain words (no quote or brace, so no JSON key starts a layout
+# rule inside the plan; no line break; the first "." ends the step).
+_STEP_WORDS = (f'(?: [^"{{}}\\n{regex.escape(STEP_END)}]{{0,{PLAN_STEP_MAX_CHARS}}})?'
+               + regex.escape(STEP_END))
 # Characters searched for the last anchor: longer than any constrained segment (the longest: a
 # relation, the description and the next key).
 _TAIL = 2 * DESCRIPTION_MAX_CHARS
@@ -337,8 +342,8 @@ def _core(text: str, anchor, listed: Sequence[str] | None, zone: Sequence[float]
             return None
         placed = set(_PLACED_IN_PLAN.findall(text))
         left = [i for i in listed if i not in placed]
-        if anchor.group("step") is not None:
-            return _literal(*(f" {i}{end}" for i in left for end in (" ", STEP_END))) if left else None
+        if anchor.group("step") is not None:  # an id left, then words without quotes or braces to the "."
+            return _Core(" " + _alternatives(left) + _STEP_WORDS) if left else None
         if left:
             return _literal(STEP_SEPARATOR + step_start(int(anchor.group("line")) + 1))
         return _literal(_LAYOUT_START)
