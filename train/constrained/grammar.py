@@ -119,13 +119,17 @@ _STEP_WORDS = (f'(?: [^"{{}}\\n{regex.escape(STEP_END)}]{{0,{PLAN_STEP_MAX_CHARS
 _TAIL = 2 * DESCRIPTION_MAX_CHARS
 
 
+_ANY = r"[\s\S]*"  # what follows a rule that does not end the completion: the next anchor's rule
+
+
 class Rule(NamedTuple):
     """What the next tokens must continue: ``partial`` (the text since the anchor) + the new text must
     stay a prefix of ``pattern``, and numbers at ``ordered`` (min, max) positions of its JSON array
     must leave room for max > min. ``pattern`` None: the completion is finished; only EOS may follow.
-    ``choices``: the rule is one of these literal strings, then anything (the next anchor's rule), or
-    nothing after it when ``closed`` (the completion's last text): a prefix test stands in for
-    ``pattern``, so no regex is compiled per set of ids left."""
+    ``choices``: the rule is one of these literal strings, then ``pattern`` (anything, unless the rule
+    gave one: a plan step's words after its id), or nothing after it when ``closed`` (the completion's
+    last text): a prefix test stands in for a regex of the choices, so none is compiled per set of ids
+    left."""
 
     partial: str
     pattern: str | None
@@ -138,30 +142,44 @@ class Rule(NamedTuple):
             return False
         text = self.partial + added
         if self.choices:
-            return any(c.startswith(text) or (not self.closed and text.startswith(c)) for c in self.choices)
+            return any(c.startswith(text) or not self.closed and text.startswith(c) and self._follows(text, c)
+                       for c in self.choices)
         if _compiled(self.pattern).fullmatch(text, partial=True) is None:
             return False
         return not self.ordered or _extents_possible(text, self.ordered)
+
+    def after_choice(self) -> str | None:
+        """The regex the text after a complete choice must continue; None where anything may follow."""
+        return None if self.pattern == _ANY else self.pattern
+
+    def _follows(self, text: str, choice: str) -> bool:
+        after = self.after_choice()
+        return after is None or _compiled(after).fullmatch(text, partial=True, pos=len(choice)) is not None
 
 
 class _Core(NamedTuple):
     pattern: str
     ordered: tuple[tuple[int, int], ...] = ()
     then_eos: bool = False  # once the pattern is complete the completion ends
-    choices: tuple[str, ...] = ()  # literal alternatives instead of ``pattern`` (see Rule)
+    choices: tuple[str, ...] = ()  # literal alternatives before ``pattern`` (see Rule)
 
     def prefix_rule(self, partial: str) -> Rule:
         """The :class:`Rule` of this core after ``partial``: its pattern, then anything (the next
         anchor's rule takes over) unless the completion ends with it."""
-        pattern = self.pattern if self.then_eos else self.pattern + r"[\s\S]*"
+        pattern = self.pattern if self.then_eos else self.pattern + _ANY
         return Rule(partial, pattern, self.ordered, self.choices, closed=self.then_eos)
 
     def complete(self, partial: str) -> int | None:
         """Where the rule's text ends if ``partial`` starts with all of it, else None."""
-        if self.choices:
-            return next((len(c) for c in self.choices if partial.startswith(c)), None)
-        done = _compiled(self.pattern).match(partial)
-        return None if done is None else done.end()
+        if not self.choices:
+            done = _compiled(self.pattern).match(partial)
+            return None if done is None else done.end()
+        for c in self.choices:
+            if partial.startswith(c):
+                done = _compiled(self.pattern).match(partial, len(c)) if self.pattern else None
+                if not self.pattern or done is not None:
+                    return len(c) if done is None else done.end()
+        return None
 
 
 def _literal(*strings: str, then_eos: bool = False) -> _Core:
@@ -343,7 +361,7 @@ def _core(text: str, anchor, listed: Sequence[str] | None, zone: Sequence[float]
         placed = set(_PLACED_IN_PLAN.findall(text))
         left = [i for i in listed if i not in placed]
         if anchor.group("step") is not None:  # an id left, then words without quotes or braces to the "."
-            return _Core(" " + _alternatives(left) + _STEP_WORDS) if left else None
+            return _Core(_STEP_WORDS, choices=tuple(f" {i}" for i in left)) if left else None
         if left:
             return _literal(STEP_SEPARATOR + step_start(int(anchor.group("line")) + 1))
         return _literal(_LAYOUT_START)

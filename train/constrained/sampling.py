@@ -149,7 +149,10 @@ class TokenIndex:
         for choice in rule.choices:
             if not choice.startswith(rule.partial):
                 if not rule.closed and rule.partial.startswith(choice):
-                    return None  # past the choice already: the rule admits any text
+                    after = rule.after_choice()
+                    if after is None:
+                        return None  # past the choice already: the rule admits any text
+                    out.update(self.regex_candidates(rule.partial[len(choice):], after).tolist())
                 continue
             rest = choice[len(rule.partial):]
             if not rest:
