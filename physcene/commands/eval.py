@@ -53,8 +53,8 @@ def model_generators(cfg, *, max_new_tokens: int = 4096, device: str | None = No
     """A :data:`physcene.eval.harness.Generate` per ``model:PATH`` in ``cfg.generator``: the
     checkpoint's completions of the items' prompts (:func:`physcene.train.generate.generate`) with
     the config's KV ``cache``, ``constrained`` decoding, ``follow_plan`` and ``temperature`` (0:
-    greedy, else sampled with the config's ``seed``); ``device``: None = the
-    first GPU, else CPU. The harness itself never imports the training code (eval/ sits below train/)."""
+    greedy, else sampled with the config's ``seed``); ``device``: None = the first GPU, else CPU. The
+    harness itself never imports the training code (eval/ sits below train/)."""
     specs = [g.strip() for g in str(cfg.generator).split(",") if g.strip().startswith("model:")]
     cache, constrained = str(cfg.get("cache", "dynamic")), bool(cfg.get("constrained", False))
     follow_plan = bool(cfg.get("follow_plan", True))
