@@ -90,12 +90,13 @@ ANCHOR = re.compile(
     + f"(?!{_STEP_REST}{re.escape(STEP_END)})"
     + "|" + re.escape(STEP_SEPARATOR) + step_start_pattern(r"(?P<line>\d+)") + " " + _STEP_REST
     + re.escape(STEP_END))
-_PLACED_IN_PLAN = re.compile(_STEP_START + r" (\S+?)" + f"[ {re.escape(STEP_END)}]")
+_STEP_ID = r" (\S+?)" + f"[ {re.escape(STEP_END)}]"  # a step's id (group 1), after its verb
+_PLACED_IN_PLAN = re.compile(_STEP_START + _STEP_ID)
 _STEP_LINE = re.compile(_STEP_START)
 # A plan line's sentence (group 1), after its number.
 _PLAN_LINE = re.compile(re.escape(STEP_SEPARATOR) + r"\d+" + re.escape(STEP_NUMBER_END) + r"([^\n]*)")
 _CHILD_STEP = re.compile(child_step_pattern())
-_STEP_ID = re.compile(re.escape(PLACE) + r" (\S+?)" + f"[ {re.escape(STEP_END)}]")  # a sentence's id
+_SENTENCE_ID = re.compile(re.escape(PLACE) + _STEP_ID)
 _INSTANCE_IDS = re.compile(string_value_pattern(INSTANCE_ID))
 _PARENT_IDS = re.compile(string_value_pattern(PARENT_ID))
 # The completion's fixed text, as physcene.ctrc.completion_text writes it: the layout's start up to the
@@ -336,7 +337,7 @@ def _planned(plan: str, listed: tuple[str, ...]) -> tuple[PlannedEntry, ...] | N
     placed: set[str] = set()
     for sentence in _PLAN_LINE.findall(plan):
         step = _CHILD_STEP.match(sentence)
-        named = _STEP_ID.match(sentence)
+        named = _SENTENCE_ID.match(sentence)
         if named is None or named.group(1) in placed:
             return None
         iid = named.group(1)
