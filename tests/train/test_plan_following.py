@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 import sys
 
+import pytest
 import torch
 
 from physcene.ctrc import completion_text
@@ -73,3 +74,29 @@ def test_the_study_decodes_twice_and_scores_every_row(tmp_path, monkeypatch):
         assert row["parse_rate"] == 1.0
     assert rows["sft"]["order_kept"] == 0.0 and rows["sft+plan"]["order_kept"] == 1.0
     assert rows["sft+plan"]["scr"] == rows["reference"]["scr"]  # the same layouts, scored alike
+
+
+def test_the_study_decodes_only_the_rows_asked_for(tmp_path, monkeypatch):
+    """``--rows sft+plan`` decodes once, with the plan followed; an unknown row is refused by name."""
+    torch.set_num_threads(1)
+    records = list(synthesize("train", n=6, seed=2))
+    tokenizer = build_tokenizer([t for r in records for t in (r["prompt"], r["completion"])], vocab_size=320)
+    build_scratch_model(ARCH, tokenizer, seed=1).save_pretrained(tmp_path / "ckpt")
+    tokenizer.save_pretrained(tmp_path / "ckpt")
+    items = load_benchmark("test", n=2, progress=False)
+    references = {it.prompt: completion_text(it.reference) for it in items}
+    calls = []
+
+    def decode(model, tokenizer, prompts, **kw):
+        calls.append(kw["follow_plan"])
+        return [references[p] for p in prompts]
+
+    monkeypatch.setattr(study, "generate_with", decode)
+    out = tmp_path / "study.json"
+    monkeypatch.setattr(sys, "argv", ["plan_following", str(tmp_path / "ckpt"), "--n", "2", "--rows", "sft+plan",
+                                      "--out", str(out)])
+    study.main()
+    assert calls == [True]
+    assert [r["name"] for r in json.loads(out.read_text())["rows"]] == ["reference", "sft+plan"]
+    with pytest.raises(ValueError, match="plan_free"):
+        study.run(str(tmp_path / "ckpt"), n=2, out=tmp_path / "x.json", rows=("plan_free",))

@@ -31,7 +31,10 @@ from physcene.train.ablation import table_row
 from physcene.train.constrained.grammar import listed_instance_ids, planned_entries
 from physcene.train.generate import generate_with, load_for_generation
 
-__all__ = ["plan_agreement", "run"]
+__all__ = ["ROWS", "plan_agreement", "run"]
+
+ROWS = ("sft", "sft+plan")
+"""The model's rows: its layouts with the order and parents free, and taken from its own plan."""
 
 
 def plan_agreement(prompts: list[str], completions: list[str]) -> dict:
@@ -63,8 +66,12 @@ def plan_agreement(prompts: list[str], completions: list[str]) -> dict:
 
 def run(model_path: str, *, n: int, out: Path, split: str = "test", seed: int = 0, temperature: float = 0.0,
         max_new_tokens: int = 3072, batch_size: int = 32, cache: str = "dynamic", device: str = "cpu",
-        progress: bool = True) -> dict:
-    """The study's JSON (written to ``out``; each row's layouts to ``<out stem>/<row>.jsonl.gz``)."""
+        rows: tuple[str, ...] = ROWS, progress: bool = True) -> dict:
+    """The study's JSON (written to ``out``; each row's layouts to ``<out stem>/<row>.jsonl.gz``);
+    ``rows``: the model's rows decoded, of :data:`ROWS` (the reference's row is always there)."""
+    unknown = sorted(set(rows) - set(ROWS))
+    if unknown or not rows:
+        raise ValueError(f"rows {list(rows)}: expected one or more of {list(ROWS)}")
     from physcene.eval.harness import generate, load_benchmark, make_judge, score_scenes
     from physcene.physics import PhysicsEngine
 
@@ -74,20 +81,21 @@ def run(model_path: str, *, n: int, out: Path, split: str = "test", seed: int = 
     layouts = out.with_suffix("")
     model, tokenizer, info = load_for_generation(model_path, device=device)
     prompts = [it.prompt for it in items]
-    rows = []
+    table = []
 
     def add_row(name: str, outputs: list, completions: list[str]) -> None:
         results = score_scenes(items, outputs, judge, engine, progress=False)
         row = table_row(name, items, outputs, results, engine, seed=seed, rl_steps=0, layouts=layouts)
         row.update(plan_agreement(prompts, completions))
-        rows.append(row)
+        table.append(row)
         if progress:
             keys = ("scr", "parse_rate", "on_table", "order_kept", "parent_kept")
             print(f"{name}: " + ", ".join(f"{k} {row[k]}" for k in keys), file=sys.stderr)
 
     references = [it.reference for it in items]
     add_row("reference", references, [completion_text(s) for s in references])
-    for name, follow in (("sft", False), ("sft+plan", True)):
+    for name in (r for r in ROWS if r in rows):
+        follow = name == "sft+plan"
         completions = generate_with(model, tokenizer, prompts,
                                     chat_format=bool(info.get("chat_format", False)),
                                     max_new_tokens=max_new_tokens, batch_size=batch_size,
@@ -103,7 +111,7 @@ def run(model_path: str, *, n: int, out: Path, split: str = "test", seed: int = 
         "decoding": {"constrained": True, "temperature": temperature, "cache": cache,
                      "max_new_tokens": max_new_tokens},
         "commands": [" ".join(["python -m physcene.train.analysis.plan_following", *sys.argv[1:]])],
-        "rows": rows,
+        "rows": table,
     }
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(result, indent=1))
@@ -122,11 +130,14 @@ def main() -> None:
     parser.add_argument("--cache", default="dynamic", help="KV cache of generation (docs/training.md)")
     parser.add_argument("--device", default="cpu", help="cpu | cuda | cuda:N (generation and physics)")
     parser.add_argument("--out", type=Path, default=Path("plan_following.json"))
+    parser.add_argument("--rows", nargs="+", default=list(ROWS), choices=list(ROWS),
+                        help="the model's rows: sft (plan free), sft+plan (default: both)")
     args = parser.parse_args()
     if args.n < 1 or args.temperature < 0 or args.max_new_tokens < 1 or args.batch_size < 1:
         parser.error("--n, --max-new-tokens and --batch-size must be >= 1 and --temperature >= 0")
     run(args.model, n=args.n, out=args.out, split=args.split, seed=args.seed, temperature=args.temperature,
-        max_new_tokens=args.max_new_tokens, batch_size=args.batch_size, cache=args.cache, device=args.device)
+        max_new_tokens=args.max_new_tokens, batch_size=args.batch_size, cache=args.cache, device=args.device,
+        rows=tuple(args.rows))
 
 
 if __name__ == "__main__":
