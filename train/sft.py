@@ -37,9 +37,30 @@ from physcene.train.models import (
 )
 from physcene.train.records import load_records, training_dataset
 
-__all__ = ["SkipNonFiniteSteps", "accumulation_steps", "lora_config", "run_sft", "skipped_steps"]
+__all__ = ["SHARD_BYTES", "SkipNonFiniteSteps", "accumulation_steps", "lora_config", "run_sft", "shard_weights",
+           "skipped_steps"]
 
 logger = logging.getLogger(__name__)
+
+SHARD_BYTES = 48 * 2**20
+"""The largest weights file of a saved SFT model. A bigger checkpoint (``medium``: 118 MiB in bf16) is
+written in shards, so each shard travels to a GPU machine in a call of its own (64 MiB per call, the
+working tree included) and stays under a git host's file limit (``physcene.artifacts.MAX_FILE_BYTES``)."""
+
+
+def shard_weights(model, out: str | Path, max_bytes: int = SHARD_BYTES) -> list[str]:
+    """Rewrite ``out/model.safetensors`` as ``model-0000k-of-0000n.safetensors`` shards of at most
+    ``max_bytes`` (+ ``model.safetensors.index.json``, which ``from_pretrained`` reads) when it is
+    bigger; a smaller file stays as it is. Returns the weights files' names."""
+    out = Path(out)
+    single = out / "model.safetensors"
+    if not single.is_file():
+        raise FileNotFoundError(f"{single}: no weights to shard")
+    if single.stat().st_size <= max_bytes:
+        return [single.name]
+    single.unlink()  # save_pretrained keeps a single file beside new shards; the loader would prefer it
+    model.save_pretrained(str(out), max_shard_size=int(max_bytes))
+    return sorted(p.name for p in out.glob("model-*-of-*.safetensors"))
 
 
 class TimeBudget(TrainerCallback):
@@ -238,6 +259,8 @@ def run_sft(cfg: DictConfig, callbacks=()) -> Path:
     begin_final_save(trainer, out)
     trainer.save_model(str(out))
     if trainer.is_world_process_zero():
+        if cfg.model.source == "scratch" and (out / "model.safetensors").is_file():
+            shard_weights(trainer.model, out)  # medium: 118 MiB -> 3 shards (a pretrained model keeps HF's)
         tokenizer.save_pretrained(str(out))
         save_train_log(trainer, out)
         write_run_info(out, stage="sft", chat_format=chat, config=str(cfg.name), n_records=len(records),

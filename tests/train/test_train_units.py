@@ -20,7 +20,7 @@ from physcene.train.pada import (
     pada_arguments,
     tokenize_anchor,
 )
-from physcene.train.sft import TrainingSetupError, accumulation_steps
+from physcene.train.sft import SHARD_BYTES, TrainingSetupError, accumulation_steps, shard_weights
 from physcene.train.tokenizer import build_tokenizer
 
 ANCHOR = ('**Sub-instruction:**\n1. Place pen_0 in holder_1.\n\n**Scene Layout:**\n{"objects": [\n'
@@ -221,6 +221,36 @@ def test_small_config_is_20_to_60m_params_and_fits_64mb():
     n = count_parameters(model) + (int(cfg.model.tokenizer.vocab_size) - len(tok)) * arch["hidden_size"]
     assert 20e6 <= n <= 60e6 and n * 2 < 64e6
     assert n == 27_272_704
+
+
+def test_medium_config_is_60_to_120m_params_and_saves_in_shards_that_travel():
+    cfg = load_config("train_medium")
+    tok = build_tokenizer(["abc 123"] * 4, vocab_size=300)
+    arch = dict(cfg.model.arch)
+    model = build_scratch_model(arch, tok)
+    n = count_parameters(model) + (int(cfg.model.tokenizer.vocab_size) - len(tok)) * arch["hidden_size"]
+    assert 60e6 <= n <= 120e6 and n == 61_621_376
+    assert cfg.model.tokenizer.kind == "ctrc" and cfg.model.dtype == "bfloat16"
+    assert n * 2 > SHARD_BYTES  # so its final save is written in shards (shard_weights)
+
+
+def test_a_checkpoint_over_the_shard_size_is_written_in_shards_that_load_the_same(tmp_path):
+    from transformers import AutoModelForCausalLM
+
+    tok = build_tokenizer(["abc 123 table mug"] * 4, vocab_size=300)
+    model = build_scratch_model(dict(load_config("train_tiny").model.arch), tok, seed=3)
+    model.save_pretrained(tmp_path / "one")
+    size = (tmp_path / "one" / "model.safetensors").stat().st_size
+    assert shard_weights(model, tmp_path / "one", max_bytes=2 * size) == ["model.safetensors"]  # small: kept
+    names = shard_weights(model, tmp_path / "one", max_bytes=size // 3)
+    assert len(names) >= 3 and not (tmp_path / "one" / "model.safetensors").exists()
+    assert all((tmp_path / "one" / f).stat().st_size <= size // 3 for f in names)
+    assert (tmp_path / "one" / "model.safetensors.index.json").is_file()
+    loaded = AutoModelForCausalLM.from_pretrained(tmp_path / "one")
+    for (name, a), (_, b) in zip(model.state_dict().items(), loaded.state_dict().items()):
+        assert torch.equal(a, b), name
+    with pytest.raises(FileNotFoundError, match="no weights"):
+        shard_weights(model, tmp_path / "empty")
 
 
 def test_sft_resumes_from_last_checkpoint(tmp_path, step_counter):
