@@ -9,6 +9,8 @@
 #   NPROC=1 PARALLEL=1 PADA_MIN=14 STAGES="grpo pada_star pada" bash ...  # the 3 RL variants at once
 #   STAGES=plan bash train/scripts/ablation_small.sh        # the SFT model's layouts with the order and
 #                                                          # parents free and from its plan (first GPU)
+#   physcene artifacts restore small-sft && STAGES="anchors grpo pada_star pada eval" \
+#     EXTRA="sft.output_dir=artifacts/small-sft" bash ...  # RL from the kept SFT base, no SFT stage
 #
 # Stages resume: rerunning continues SFT from its last checkpoint, keeps a complete anchor file
 # and reuses finished models (`ablation.reuse`). Step times land in each stage's train_log.json.
@@ -42,11 +44,13 @@ CACHE=${CACHE:-static_compile}      # KV cache of anchor and eval generation (H2
 PADA_CACHE=${PADA_CACHE:-}          # KV cache of PADA's group generation (unset: the config's); a
                                     # variant that fails with a static cache is run again with dynamic
 EXTRA=${EXTRA:-}                    # more key=value overrides for every stage
+SYNTH_EXTRA=${SYNTH_EXTRA:-}        # configs/data.yaml overrides for synth, e.g. noise.enabled=false (the
+                                    # synthesiser's clean layouts: docs/results.md "The base model")
 SFT_EXTRA=${SFT_EXTRA:-}            # overrides for the SFT stage only (e.g. model.init_from=DIR to go on
                                     # from an earlier SFT checkpoint, sft.per_device_batch_size=32)
-N_TRAIN=${N_TRAIN:-}                # synthetic training scenes (unset: the train split's 9,429)
-DECIMALS=${DECIMALS:-}              # digits after the point in the synthesised completions and the anchors
-                                    # (unset: physcene.ctrc.DECIMALS = 5)
+N_TRAIN=${N_TRAIN-40000}            # synthetic training scenes (the train split: 9,429; the artifact small-sft: 40,000)
+DECIMALS=${DECIMALS-2}              # digits after the point in the synthesised completions and the anchors
+                                    # ("": physcene.ctrc.DECIMALS = 5; 1 pushes resting contacts into each other)
 STAGES=${STAGES:-"synth sft anchors grpo pada_star pada eval"}  # also: plan (not by default)
 
 stamp() { echo "[$(date +%T)] $*"; }
@@ -74,7 +78,7 @@ fi
 if want synth && [ ! -s "$DATA" ] && [[ "$DATA" != synth:* ]]; then
   stamp "synth -> $DATA"
   physcene data synth --split train --out "$(dirname "$DATA")" --workers "$WORKERS" ${N_TRAIN:+--n $N_TRAIN} \
-    ${DECIMALS:+record.decimals=$DECIMALS}
+    ${DECIMALS:+record.decimals=$DECIMALS} $SYNTH_EXTRA
 fi
 if want sft; then
   stamp "sft ($NPROC processes, $SFT_MIN min)"
