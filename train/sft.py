@@ -37,8 +37,8 @@ from physcene.train.models import (
 )
 from physcene.train.records import load_records, training_dataset
 
-__all__ = ["SHARD_BYTES", "SkipNonFiniteSteps", "accumulation_steps", "lora_config", "run_sft", "shard_weights",
-           "skipped_steps"]
+__all__ = ["SHARD_BYTES", "SkipNonFiniteSteps", "accumulation_steps", "lora_config", "run_sft",
+           "shard_weights", "skipped_steps"]
 
 logger = logging.getLogger(__name__)
 

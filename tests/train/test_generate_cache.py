@@ -17,7 +17,8 @@ from physcene.train.generate import (
     generate_token_ids,
     generate_with,
 )
-from physcene.train.models import TrainingSetupError, build_scratch_model
+from physcene.train.models import TrainingSetupError, build_scratch_model, count_parameters
+from physcene.train.tokenizer import build_tokenizer
 
 ARCH = dict(hidden_size=48, intermediate_size=96, num_hidden_layers=2, num_attention_heads=4,
             num_key_value_heads=2, head_dim=12, max_position_embeddings=2048)
@@ -195,3 +196,24 @@ def test_bench_generate_runs_at_tiny_sizes(capsys, tmp_path):
         assert v["ms_per_step"] > 0 and v["tokens_per_s"] == pytest.approx(16 / v["seconds"])
     assert main(["bench", "generate", "--config", "tiny", "--batch", "0"]) == 2
     assert "--batch 0" in capsys.readouterr().err
+
+
+def test_bench_generate_times_a_trained_checkpoint(capsys, tmp_path):
+    """``--model``: the checkpoint's own weights and tokenizer (not random ones of --config); the fast
+    decoder's greedy ids equal HF's on it; a missing folder is one error naming it."""
+    from physcene.cli import main
+    from physcene.data import synthesize
+
+    records = list(synthesize("train", n=8, seed=4))
+    tokenizer = build_tokenizer([t for r in records for t in (r["prompt"], r["completion"])], vocab_size=400)
+    build_scratch_model(ARCH, tokenizer, seed=5).save_pretrained(tmp_path / "ckpt")
+    tokenizer.save_pretrained(tmp_path / "ckpt")
+    assert main(["bench", "generate", "--model", str(tmp_path / "ckpt"), "--batch", "2", "--tokens", "6",
+                 "--repeat", "1", "--variants", "static", "fast", "--json"]) == 0
+    r = json.loads(capsys.readouterr().out)
+    assert r["model"] == str(tmp_path / "ckpt") and r["parameters"] == count_parameters(
+        build_scratch_model(ARCH, tokenizer, seed=5))
+    assert r["variants"]["fast"]["equal"] and r["variants"]["fast"]["path"] == "eager"
+    missing = str(tmp_path / "nowhere")
+    assert main(["bench", "generate", "--model", missing, "--batch", "2", "--tokens", "2"]) != 0
+    assert "nowhere" in capsys.readouterr().err

@@ -93,8 +93,8 @@ def test_the_study_decodes_only_the_rows_asked_for(tmp_path, monkeypatch):
 
     monkeypatch.setattr(study, "generate_with", decode)
     out = tmp_path / "study.json"
-    monkeypatch.setattr(sys, "argv", ["plan_following", str(tmp_path / "ckpt"), "--n", "2", "--rows", "sft+plan",
-                                      "--out", str(out)])
+    argv = ["plan_following", str(tmp_path / "ckpt"), "--n", "2", "--rows", "sft+plan", "--out", str(out)]
+    monkeypatch.setattr(sys, "argv", argv)
     study.main()
     assert calls == [True]
     assert [r["name"] for r in json.loads(out.read_text())["rows"]] == ["reference", "sft+plan"]

@@ -8,7 +8,8 @@ the fast decoder, against the KV-cache-read limit.
 
 A randomly initialised model of ``configs/train_<config>.yaml`` (speed does not depend on the
 weights) and a tokenizer trained the way the train code does (:mod:`physcene.train.tokenizer`, on 32
-synthetic records) generate ``--tokens`` new tokens for ``--batch`` CTRC prompts in one batch, with
+synthetic records), or with ``--model`` a trained checkpoint (a folder or an artifact's name) and its
+tokenizer, generate ``--tokens`` new tokens for ``--batch`` CTRC prompts in one batch, with
 ``min_new_tokens`` so every variant decodes exactly the same number of steps. Timed with
 :func:`physcene.commands.bench.timing.timed` (device synchronised, median of ``--repeat``, after one
 call that also compiles ``static+compile`` and captures ``fast``'s CUDA graphs):
@@ -18,7 +19,9 @@ processor; fast: the host check beside the GPU).
 
 Each variant's token ids are compared with the first variant's (``static`` by default): greedy
 decoding should give identical ids; in bf16 a different reduction order can flip a near-tie, so the
-figure is the share of equal rows and the first differing step.
+figure is the share of equal rows and the first differing step. Random weights put a near-tie at almost
+every step (any change of reduction order then flips most rows); a trained model's greedy choice is
+rarely that close, which is what ``--model`` measures.
 
 The limit: a decoding step must read every row's KV cache up to its current length at least once,
 ``kv_floor_seconds`` = those bytes summed over the steps / the GPU's memory bandwidth (from
@@ -52,6 +55,9 @@ BANDWIDTH_TB_S = {"H200": 4.8, "H100 PCIe": 2.0, "H100 NVL": 3.9, "H100": 3.35, 
 def add_arguments(parser) -> None:
     parser.add_argument("--config", default="small",
                         help="training config whose model.arch is built (tiny, small)")
+    parser.add_argument("--model", default=None,
+                        help="a trained checkpoint folder or an artifact's name (physcene artifacts list) "
+                             "instead of random weights of --config")
     parser.add_argument("--batch", type=int, default=128, help="prompts, generated in one batch")
     parser.add_argument("--tokens", type=int, default=512,
                         help="new tokens per prompt (forced: no early EOS)")
@@ -113,9 +119,10 @@ def kv_floor_bytes(model, batch: int, prompt_tokens: int, tokens: int) -> int:
 
 def run(args) -> dict:
     # transformers is heavy: imported when this target runs, not when the bench registry is built
+    from physcene.artifacts import resolve_model
     from physcene.config import load_config
     from physcene.data import synthesize
-    from physcene.train.generate import generate_token_ids
+    from physcene.train.generate import generate_token_ids, load_for_generation
     from physcene.train.models import build_scratch_model, count_parameters
     from physcene.train.tokenizer import build_tokenizer
 
@@ -125,17 +132,22 @@ def run(args) -> dict:
     if device.type == "cuda":
         torch.backends.cuda.enable_cudnn_sdp(bool(args.cudnn_attention))
     dtype = args.dtype or ("bfloat16" if device.type == "cuda" else "float32")
-    cfg = load_config(f"train_{args.config}", list(getattr(args, "overrides", [])))
     records = list(synthesize("train", n=max(32, args.batch), seed=args.seed))
-    tokenizer = build_tokenizer([r["prompt"] for r in records[:32]] + [r["completion"] for r in records[:32]],
-                                vocab_size=int(cfg.model.tokenizer.vocab_size))
-    model = build_scratch_model(cfg.model.arch, tokenizer, seed=args.seed, dtype=dtype).to(device).eval()
+    if args.model:
+        model, tokenizer, _ = load_for_generation(resolve_model(args.model), device=device, dtype=dtype)
+    else:
+        cfg = load_config(f"train_{args.config}", list(getattr(args, "overrides", [])))
+        # digit-level bpe whatever the config's kind: the prompt lengths of the figures in docs/training.md
+        texts = [r["prompt"] for r in records[:32]] + [r["completion"] for r in records[:32]]
+        tokenizer = build_tokenizer(texts, vocab_size=int(cfg.model.tokenizer.vocab_size))
+        model = build_scratch_model(cfg.model.arch, tokenizer, seed=args.seed, dtype=dtype).to(device).eval()
     prompts = [r["prompt"] for r in records[:args.batch]]
     prompt_tokens = [len(tokenizer(p, add_special_tokens=False)["input_ids"]) for p in prompts]
     bandwidth, source = memory_bandwidth(device)
     floor_bytes = kv_floor_bytes(model, args.batch, max(prompt_tokens), args.tokens)
     result = {
         "target": "generate", "device": device_name(device), "config": args.config, "dtype": dtype,
+        "model": args.model or "random weights",
         "parameters": count_parameters(model), "attention": model.config._attn_implementation,
         "batch": args.batch, "tokens": args.tokens, "prompt_tokens_max": max(prompt_tokens),
         "prompt_tokens_mean": sum(prompt_tokens) / len(prompt_tokens), "constrained": bool(args.constrained),
@@ -216,7 +228,8 @@ def _agreement(ids: list[list[int]], reference: list[list[int]]) -> dict:
 
 
 def summary(r: dict) -> str:
-    lines = [f"device {r['device']}: {r['config']} model ({r['parameters'] / 1e6:.2f} M parameters, "
+    which = r["config"] if r.get("model", "random weights") == "random weights" else r["model"]
+    lines = [f"device {r['device']}: {which} model ({r['parameters'] / 1e6:.2f} M parameters, "
              f"{r['dtype']}, {r['attention']} attention), {r['batch']} prompts "
              f"({r['prompt_tokens_mean']:.0f} tokens mean, {r['prompt_tokens_max']} max) x {r['tokens']} new "
              f"tokens{', CTRC-constrained' if r['constrained'] else ''}",
