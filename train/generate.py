@@ -145,7 +145,8 @@ def generate_token_ids(model: PreTrainedModel, tokenizer: PreTrainedTokenizerBas
     ``follow_plan``: its layout follows the completion's own plan (order, parents, relations).
     ``report``: a list that ``cache="fast"`` appends each batch's
     :class:`~physcene.train.decode.DecodeResult` to (graphs used, bytes read, repairs, timings);
-    ``fast_attention``: its attention (``sdpa`` or ``matmul``, :func:`physcene.train.decode.fast_generate`).
+    ``fast_attention``: its attention (``sdpa``, ``matmul`` or ``flex``,
+    :func:`physcene.train.decode.fast_generate`).
     """
     if batch_size < 1 or max_new_tokens < 1:
         raise ValueError(f"batch_size and max_new_tokens must be >= 1, got {batch_size}, {max_new_tokens}")

@@ -266,6 +266,46 @@ def test_matmul_attention_agrees_with_sdpa(records, tokenizer, model):
             == generate_token_ids(model, tokenizer, prompts, **kwargs))
 
 
+def test_flex_attention_agrees_with_sdpa(records, tokenizer, model):
+    """The FlexAttention decoding step: sdpa's outputs to float32 rounding under a bool mask of written
+    columns and under the same mask as an additive bias, a per-query mask handed to sdpa, and the
+    same greedy ids on the tiny model in float32 (with and without the CTRC constraint)."""
+    from physcene.train.decode import flex_decode_attention
+
+    torch.manual_seed(0)
+    module = torch.nn.Module()
+    module.num_key_value_groups, module.is_causal, module.training = 2, True, False
+    q, k, v = torch.randn(3, 4, 1, 8), torch.randn(3, 2, 12, 8), torch.randn(3, 2, 12, 8)
+    mask = torch.ones(3, 1, 1, 12, dtype=torch.bool)
+    mask[1, ..., :5] = False
+    mask[2, ..., 9:] = False
+    theirs, _ = folded_gqa_attention(module, q, k, v, mask, scaling=0.35)
+    ours, _ = flex_decode_attention(module, q, k, v, mask, scaling=0.35)
+    assert ours.shape == theirs.shape == (3, 1, 4, 8) and torch.allclose(ours, theirs, atol=1e-5)
+    bias = torch.zeros(mask.shape).masked_fill(~mask, torch.finfo(torch.float32).min)
+    assert torch.allclose(flex_decode_attention(module, q, k, v, bias, scaling=0.35)[0], theirs, atol=1e-5)
+    unmasked, _ = flex_decode_attention(module, q, k, v, None, scaling=0.35)
+    assert torch.allclose(unmasked, folded_gqa_attention(module, q, k, v, None, scaling=0.35)[0], atol=1e-5)
+    prompts = [records[0]["prompt"], records[1]["prompt"][:300]]
+    for constrained in (False, True):
+        kwargs = dict(max_new_tokens=24, batch_size=2, cache="fast", constrained=constrained)
+        assert (generate_token_ids(model, tokenizer, prompts, fast_attention="flex", **kwargs)
+                == generate_token_ids(model, tokenizer, prompts, **kwargs))
+
+
+@pytest.mark.cuda
+def test_flex_attention_runs_inside_cuda_graphs(records, tokenizer):
+    """On a GPU (float32): the compiled FlexAttention step is captured and replayed as CUDA graphs (no
+    fallback) and gives the sdpa steps' greedy ids on the tiny model."""
+    model = build_scratch_model(ARCH, tokenizer, seed=3).cuda().eval()
+    _, _, ids, mask = _plan_prefixed(records, tokenizer, 4)
+    ids, mask = ids.cuda(), mask.cuda()
+    common = dict(max_new_tokens=96, eos=[tokenizer.eos_token_id], pad=tokenizer.pad_token_id)
+    flex = fast_generate(model, ids, mask, attention="flex", **common)
+    assert flex.graphs and flex.fallback_reason is None
+    assert flex.tokens == fast_generate(model, ids, mask, **common).tokens
+
+
 @pytest.mark.slow
 def test_bench_pada_times_whole_steps(capsys):
     """``physcene bench pada`` at tiny sizes: one timed step per cache, split into its parts."""

@@ -26,6 +26,7 @@ import torch
 from physcene.train.decode.attention import (
     ATTENTIONS,
     FOLDED_ATTENTION,
+    flex_decode_attention,
     folded_gqa_attention,
     folded_matmul_attention,
     register_folded_attention,
@@ -35,7 +36,8 @@ from physcene.train.decode.loop import DecodeResult, FastDecoder, text_model
 from physcene.train.decode.overlap import OverlappedConstraint
 
 __all__ = ["ATTENTIONS", "FOLDED_ATTENTION", "DecodeResult", "FastDecoder", "OverlappedConstraint",
-           "StaticKV", "decoder_for", "fast_generate", "folded_gqa_attention", "folded_matmul_attention",
+           "StaticKV", "decoder_for", "fast_generate", "flex_decode_attention", "folded_gqa_attention",
+           "folded_matmul_attention",
            "register_folded_attention", "sampling_mode", "text_model"]
 
 logger = logging.getLogger(__name__)
@@ -101,8 +103,9 @@ def fast_generate(model: torch.nn.Module, input_ids: torch.Tensor, attention_mas
     :class:`~physcene.train.constrained.CTRCConstraint` built for these rows. ``length``: the cache's
     columns (default: this prompt length + ``max_new_tokens``); pass one value for calls of varying
     prompt length so one decoder and its graphs serve them all. ``attention``: ``sdpa`` (the folded
-    query heads through torch's sdpa: HF generate's numbers) or ``matmul`` (two batched matmuls; see
-    :func:`~physcene.train.decode.attention.folded_matmul_attention`).
+    query heads through torch's sdpa: HF generate's numbers), ``matmul`` (two batched matmuls; see
+    :func:`~physcene.train.decode.attention.folded_matmul_attention`) or ``flex`` (torch's FlexAttention,
+    a split-KV kernel on a GPU: :func:`~physcene.train.decode.attention.flex_decode_attention`).
     """
     batch, prompt = input_ids.shape
     length = max(int(length or 0), prompt + int(max_new_tokens))

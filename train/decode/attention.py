@@ -16,11 +16,12 @@ from __future__ import annotations
 
 import torch
 
-__all__ = ["ATTENTIONS", "FOLDED_ATTENTION", "MATMUL_ATTENTION", "fold_queries", "folded_gqa_attention",
-           "folded_matmul_attention", "register_folded_attention"]
+__all__ = ["ATTENTIONS", "FLEX_ATTENTION", "FOLDED_ATTENTION", "MATMUL_ATTENTION", "flex_decode_attention",
+           "fold_queries", "folded_gqa_attention", "folded_matmul_attention", "register_folded_attention"]
 
 FOLDED_ATTENTION = "sdpa_folded_gqa"
 MATMUL_ATTENTION = "matmul_folded_gqa"
+FLEX_ATTENTION = "flex_decode_gqa"
 
 
 def fold_queries(query: torch.Tensor, groups: int) -> torch.Tensor:
@@ -103,8 +104,65 @@ def _float_scores(q: torch.Tensor, k_t: torch.Tensor) -> torch.Tensor:
     return torch.bmm(q3, k3).float().reshape(*lead, q.shape[-2], k_t.shape[-1])
 
 
+def flex_decode_attention(module: torch.nn.Module, query: torch.Tensor, key: torch.Tensor,
+                          value: torch.Tensor, attention_mask: torch.Tensor | None, dropout: float = 0.0,
+                          scaling: float | None = None, is_causal: bool | None = None,
+                          **kwargs) -> tuple[torch.Tensor, None]:
+    """The decoding step through torch's FlexAttention: on a GPU its compiled form is flex-decoding, a
+    split-KV Triton kernel that packs the query heads of each KV head (GQA without a K/V copy, as the
+    fold does) and splits each row's cache over several blocks, so a few long rows still spread the
+    read over the whole GPU (sdpa's memory-efficient kernel gives each (row, KV head) one block). The
+    row's mask of written columns reaches it as a ``score_mod``. On a CPU it runs eagerly (the same
+    arithmetic, for tests). Not bitwise sdpa's (another reduction order); prompt passes and masks
+    that differ per head or query as :func:`folded_gqa_attention`."""
+    groups = getattr(module, "num_key_value_groups", 1)
+    per_row = attention_mask is None or attention_mask.shape[1] == 1 and attention_mask.shape[2] == 1
+    training = dropout and module.training
+    if query.shape[2] > 1 or not per_row or kwargs.get("position_bias") is not None or training:
+        return folded_gqa_attention(module, query, key, value, attention_mask, dropout=dropout,
+                                    scaling=scaling, is_causal=is_causal, **kwargs)
+    score_mod = None
+    if attention_mask is not None:
+        keep = attention_mask[:, 0, 0, :]
+        if keep.dtype != torch.bool:  # an additive mask: 0 where attended, a large negative value elsewhere
+            keep = keep > torch.finfo(keep.dtype).min / 2
+
+        def score_mod(score, b, h, q_idx, kv_idx):
+            return torch.where(keep[b, kv_idx], score, -float("inf"))
+
+    out = _flex(query.device)(query, key, value, score_mod=score_mod, scale=scaling, enable_gqa=groups > 1)
+    return out.transpose(1, 2).contiguous(), None  # [B, H, 1, D] -> [B, 1, H, D]
+
+
+_FLEX: dict[str, object] = {}
+
+
+def _eager_flex(*args, **kwargs):
+    """``flex_attention`` uncompiled, without its advice to compile (the CPU path is for tests)."""
+    import warnings
+
+    from torch.nn.attention.flex_attention import flex_attention
+
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message="flex_attention called without torch.compile")
+        return flex_attention(*args, **kwargs)
+
+
+def _flex(device: torch.device):
+    """``flex_attention``, compiled once per process on CUDA (uncompiled it falls back to a slow math
+    path there); eager on other devices."""
+    if device.type != "cuda":
+        return _eager_flex
+    from torch.nn.attention.flex_attention import flex_attention
+
+    if "cuda" not in _FLEX:
+        _FLEX["cuda"] = torch.compile(flex_attention)  # shapes made dynamic after the first new length
+    return _FLEX["cuda"]
+
+
 ATTENTIONS = {"sdpa": (FOLDED_ATTENTION, folded_gqa_attention),
-              "matmul": (MATMUL_ATTENTION, folded_matmul_attention)}
+              "matmul": (MATMUL_ATTENTION, folded_matmul_attention),
+              "flex": (FLEX_ATTENTION, flex_decode_attention)}
 """The fast decoder's attention choices: name -> (registered name, function)."""
 
 

@@ -43,9 +43,9 @@ from physcene.files import write_atomic
 __all__ = ["BANDWIDTH_TB_S", "TARGET", "VARIANT_ATTENTION", "VARIANT_CACHE", "memory_bandwidth"]
 
 VARIANT_CACHE = {"dynamic": "dynamic", "static": "static", "static+compile": "static_compile", "fast": "fast",
-                 "fast+matmul": "fast"}
+                 "fast+matmul": "fast", "fast+flex": "fast"}
 # the fast decoder's attention per variant (physcene.train.decode.ATTENTIONS)
-VARIANT_ATTENTION = {"fast+matmul": "matmul"}
+VARIANT_ATTENTION = {"fast+matmul": "matmul", "fast+flex": "flex"}
 
 # peak memory bandwidth, TB/s, by a substring of torch.cuda.get_device_name (the first match wins)
 BANDWIDTH_TB_S = {"H200": 4.8, "H100 PCIe": 2.0, "H100 NVL": 3.9, "H100": 3.35, "A100-SXM4-80GB": 2.039,
