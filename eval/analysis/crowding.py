@@ -10,8 +10,9 @@ its restricted zones); ``gap`` = each object's distance to its nearest table-lev
 max(x gap, y gap) of their yawed axis-aligned boxes (negative: the boxes overlap in both x and y, by
 at least that much). Rows: ``clean`` (the split's layouts as planned, before annotation noise),
 ``noisy`` (the reference the records carry) and each ``NAME=DIR`` of generated ``layout.json`` files
-named by record id (``physcene eval``'s layout folders). The boxes are a conservative stand-in for the
-meshes; the collision metrics (SCR/ACR) use the SDFs.
+named by record id (``physcene eval``'s layout folders) or a ``NAME=FILE.jsonl.gz`` of layout records
+(the ablation's and the studies' row files, ``{"id", "layout"}`` per line). The boxes are a
+conservative stand-in for the meshes; the collision metrics (SCR/ACR) use the SDFs.
 """
 
 from __future__ import annotations
@@ -25,7 +26,7 @@ import numpy as np
 
 from physcene.data.benchmark import DataConfig, build_scenes
 from physcene.data.splits import plan_split
-from physcene.layout import read_layout
+from physcene.layout import layout_record_lines, load_layout, read_layout
 from physcene.scene import TABLE, Scene
 
 
@@ -67,9 +68,22 @@ def level_rows(scenes: list[tuple[int, Scene]]) -> dict:
     return rows
 
 
+def generated_layouts(path: Path, level_of: dict[str, int]) -> list[tuple[int, Scene]]:
+    """(level, scene) of each layout in ``path`` whose record id is in ``level_of``: a folder of
+    ``<id>.json`` files, or a JSONL (``.gz``) of ``{"id", "layout"}`` records (a null layout, one that
+    did not parse, is left out)."""
+    if path.name.endswith((".jsonl", ".jsonl.gz")):
+        records = (json.loads(line) for _, line in layout_record_lines(path))
+        return [(level_of[str(r["id"])], load_layout(r["layout"], source=str(path))) for r in records
+                if str(r.get("id")) in level_of and r.get("layout") is not None]
+    return [(level_of[p.stem], read_layout(p)) for p in sorted(path.glob("*.json")) if p.stem in level_of]
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("layouts", nargs="*", help="NAME=DIR of generated layout.json files")
+    parser.add_argument("layouts", nargs="*",
+                        help="NAME=DIR of generated layout.json files, or NAME=FILE.jsonl[.gz] of "
+                             "layout records")
     parser.add_argument("--split", default="test")
     parser.add_argument("--n", type=int, default=200)
     parser.add_argument("--seed", type=int, default=0)
@@ -86,8 +100,7 @@ def main() -> None:
     result = {"split": args.split, "n": args.n, "rows": rows}
     for spec in args.layouts:
         name, _, folder = spec.partition("=")
-        scenes = [(level_of[p.stem], read_layout(p)) for p in sorted(Path(folder).glob("*.json"))
-                  if p.stem in level_of]
+        scenes = generated_layouts(Path(folder), level_of)
         if not scenes:
             raise SystemExit(f"{spec}: no layout file named after one of the first {args.n} "
                              f"records of {args.split!r}")

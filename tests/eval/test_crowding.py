@@ -56,3 +56,23 @@ def test_the_script_reads_layout_folders_by_record_id(scenes, tmp_path, monkeypa
         for key in ("crowd_median", "gap_median_cm", "overlapping_share"):
             assert row[key] == pytest.approx(direct[level][key], abs=0.02)
     assert "files" in capsys.readouterr().out
+
+
+def test_the_script_reads_a_file_of_layout_records(scenes, tmp_path, monkeypatch):
+    """NAME=FILE.jsonl.gz (the ablation's row files): the same figures as a folder of the same layouts;
+    a record whose layout is null (did not parse) is left out."""
+    import gzip
+
+    from physcene.layout import layout_to_dict
+
+    path = tmp_path / "rows.jsonl.gz"
+    with gzip.open(path, "wt") as f:
+        for item, (_, noisy, _, _) in scenes:
+            f.write(json.dumps({"id": f"test-{item.index:05d}", "layout": layout_to_dict(noisy)}) + "\n")
+        f.write(json.dumps({"id": "test-00000", "layout": None, "parse_error": "cut"}) + "\n")
+    out = tmp_path / "crowding.json"
+    monkeypatch.setattr("sys.argv", ["crowding.py", "--n", "40", f"records={path}", "--out", str(out)])
+    crowding.main()
+    rows = json.loads(out.read_text())["rows"]["records"]
+    direct = crowding.level_rows([(i.level, noisy) for i, (_, noisy, _, _) in scenes])
+    assert rows.keys() == direct.keys() and all(rows[k]["n"] == direct[k]["n"] for k in direct)
