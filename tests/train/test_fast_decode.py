@@ -246,17 +246,24 @@ def test_cuda_graph_steps_equal_eager_steps_and_hf_generate(records, tokenizer):
     assert runs[0] == runs[1]
 
 
-def test_matmul_attention_agrees_with_sdpa(records, tokenizer, model):
-    """The matmul decoding attention (float32 scores): the sdpa one's outputs to float32 rounding, and
-    the same greedy ids on the tiny model in float32."""
-    from physcene.train.decode import folded_matmul_attention
-
+def _decoding_step_inputs():
+    """One GQA decoding step (2 query heads per KV head): module, q, k, v and a bool mask of written
+    columns with row 1's first 5 columns unwritten."""
     torch.manual_seed(0)
     module = torch.nn.Module()
     module.num_key_value_groups, module.is_causal, module.training = 2, True, False
     q, k, v = torch.randn(3, 4, 1, 8), torch.randn(3, 2, 12, 8), torch.randn(3, 2, 12, 8)
     mask = torch.ones(3, 1, 1, 12, dtype=torch.bool)
     mask[1, ..., :5] = False
+    return module, q, k, v, mask
+
+
+def test_matmul_attention_agrees_with_sdpa(records, tokenizer, model):
+    """The matmul decoding attention (float32 scores): the sdpa one's outputs to float32 rounding, and
+    the same greedy ids on the tiny model in float32."""
+    from physcene.train.decode import folded_matmul_attention
+
+    module, q, k, v, mask = _decoding_step_inputs()
     ours, _ = folded_matmul_attention(module, q, k, v, mask, scaling=0.35)
     theirs, _ = folded_gqa_attention(module, q, k, v, mask, scaling=0.35)
     assert torch.allclose(ours, theirs, atol=1e-5)
@@ -272,12 +279,7 @@ def test_flex_attention_agrees_with_sdpa(records, tokenizer, model):
     same greedy ids on the tiny model in float32 (with and without the CTRC constraint)."""
     from physcene.train.decode import flex_decode_attention
 
-    torch.manual_seed(0)
-    module = torch.nn.Module()
-    module.num_key_value_groups, module.is_causal, module.training = 2, True, False
-    q, k, v = torch.randn(3, 4, 1, 8), torch.randn(3, 2, 12, 8), torch.randn(3, 2, 12, 8)
-    mask = torch.ones(3, 1, 1, 12, dtype=torch.bool)
-    mask[1, ..., :5] = False
+    module, q, k, v, mask = _decoding_step_inputs()
     mask[2, ..., 9:] = False
     theirs, _ = folded_gqa_attention(module, q, k, v, mask, scaling=0.35)
     ours, _ = flex_decode_attention(module, q, k, v, mask, scaling=0.35)

@@ -40,15 +40,20 @@ def _swap_first_two_table_entries(text: str) -> str:
     return "\n".join(lines)
 
 
+def _tiny_checkpoint(folder):
+    """A random tiny model with a tokenizer trained on 6 synthetic records, saved to ``folder``."""
+    torch.set_num_threads(1)
+    records = list(synthesize("train", n=6, seed=2))
+    tokenizer = build_tokenizer([t for r in records for t in (r["prompt"], r["completion"])], vocab_size=320)
+    build_scratch_model(ARCH, tokenizer, seed=1).save_pretrained(folder)
+    tokenizer.save_pretrained(folder)
+
+
 def test_the_study_decodes_twice_and_scores_every_row(tmp_path, monkeypatch):
     """The rows, their columns and files, with the decoding stubbed: free, the 'model' swaps two
     table-level entries of the reference; told to follow its plan, it writes the reference. (What the
     constraint does under follow_plan is tests/train/test_constrained.py's.)"""
-    torch.set_num_threads(1)
-    records = list(synthesize("train", n=6, seed=2))
-    tokenizer = build_tokenizer([t for r in records for t in (r["prompt"], r["completion"])], vocab_size=320)
-    build_scratch_model(ARCH, tokenizer, seed=1).save_pretrained(tmp_path / "ckpt")
-    tokenizer.save_pretrained(tmp_path / "ckpt")
+    _tiny_checkpoint(tmp_path / "ckpt")
     items = load_benchmark("test", n=3, progress=False)
     references = {it.prompt: completion_text(it.reference) for it in items}
     calls = []
@@ -78,11 +83,7 @@ def test_the_study_decodes_twice_and_scores_every_row(tmp_path, monkeypatch):
 
 def test_the_study_decodes_only_the_rows_asked_for(tmp_path, monkeypatch):
     """``--rows sft+plan`` decodes once, with the plan followed; an unknown row is refused by name."""
-    torch.set_num_threads(1)
-    records = list(synthesize("train", n=6, seed=2))
-    tokenizer = build_tokenizer([t for r in records for t in (r["prompt"], r["completion"])], vocab_size=320)
-    build_scratch_model(ARCH, tokenizer, seed=1).save_pretrained(tmp_path / "ckpt")
-    tokenizer.save_pretrained(tmp_path / "ckpt")
+    _tiny_checkpoint(tmp_path / "ckpt")
     items = load_benchmark("test", n=2, progress=False)
     references = {it.prompt: completion_text(it.reference) for it in items}
     calls = []

@@ -212,23 +212,25 @@ def test_accumulation_steps_make_the_global_batch():
         accumulation_steps(64, 3, 2)
 
 
-def test_small_config_is_20_to_60m_params_and_fits_64mb():
-    cfg = load_config("train_small")
+def configured_parameters(name: str) -> int:
+    """Parameters of config ``name``'s model at its configured vocabulary (the trained tokenizer fills
+    its vocab_size; a tiny one stands in and the embedding rows it lacks are counted)."""
+    cfg = load_config(name)
     tok = build_tokenizer(["abc 123"] * 4, vocab_size=300)
     arch = dict(cfg.model.arch)
     model = build_scratch_model(arch, tok)
-    # The trained tokenizer fills its vocab_size; count with the configured vocabulary.
-    n = count_parameters(model) + (int(cfg.model.tokenizer.vocab_size) - len(tok)) * arch["hidden_size"]
+    return count_parameters(model) + (int(cfg.model.tokenizer.vocab_size) - len(tok)) * arch["hidden_size"]
+
+
+def test_small_config_is_20_to_60m_params_and_fits_64mb():
+    n = configured_parameters("train_small")
     assert 20e6 <= n <= 60e6 and n * 2 < 64e6
     assert n == 27_272_704
 
 
 def test_medium_config_is_60_to_120m_params_and_saves_in_shards_that_travel():
     cfg = load_config("train_medium")
-    tok = build_tokenizer(["abc 123"] * 4, vocab_size=300)
-    arch = dict(cfg.model.arch)
-    model = build_scratch_model(arch, tok)
-    n = count_parameters(model) + (int(cfg.model.tokenizer.vocab_size) - len(tok)) * arch["hidden_size"]
+    n = configured_parameters("train_medium")
     assert 60e6 <= n <= 120e6 and n == 61_621_376
     assert cfg.model.tokenizer.kind == "ctrc" and cfg.model.dtype == "bfloat16"
     assert n * 2 > SHARD_BYTES  # so its final save is written in shards (shard_weights)
