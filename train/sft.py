@@ -64,15 +64,22 @@ def shard_weights(model, out: str | Path, max_bytes: int = SHARD_BYTES) -> list[
 
 
 class TimeBudget(TrainerCallback):
-    """Stop training ``seconds`` of wall clock after ``on_train_begin``, saving a checkpoint.
+    """Stop training ``seconds`` of wall clock after ``on_train_begin``, or at the Unix time
+    ``stop_at`` (whichever comes first), saving a checkpoint.
 
     The run then ends like a finished one (final model written); running the same command again
     resumes from that checkpoint and goes on toward ``max_steps``/the epochs. This is how a long
-    run fits into jobs with a wall-clock limit (``sft.max_minutes``, ``pada.max_minutes``).
+    run fits into jobs with a wall-clock limit (``sft.max_minutes``, ``pada.max_minutes``). ``stop_at``
+    (``sft.stop_at``, ``pada.stop_at``) also counts what comes before training (data synthesis,
+    tokenisation, a model's load), which ``seconds`` does not: a job killed at its limit would lose
+    the steps since the last checkpoint and the final save.
     """
 
-    def __init__(self, seconds: float):
-        self.seconds = float(seconds)
+    def __init__(self, seconds: float | None = None, *, stop_at: float | None = None):
+        if seconds is None and stop_at is None:
+            raise ValueError("TimeBudget needs seconds or stop_at")
+        self.seconds = None if seconds is None else float(seconds)
+        self.stop_at = None if stop_at is None else float(stop_at)
         self.start = None
         self.stopped_early = False
 
@@ -80,7 +87,10 @@ class TimeBudget(TrainerCallback):
         self.start = time.monotonic()
 
     def on_step_end(self, args, state, control, **kwargs):
-        if self.start is not None and self._agreed(time.monotonic() - self.start > self.seconds, args):
+        running = None if self.start is None else time.monotonic() - self.start
+        spent = self.seconds is not None and running is not None and running > self.seconds
+        late = self.stop_at is not None and time.time() > self.stop_at
+        if self._agreed(spent or late, args):
             self.stopped_early = True
             control.should_training_stop = True
             control.should_save = True
@@ -142,9 +152,13 @@ def skipped_steps(trainer) -> list[int]:
 
 
 def time_budget_callbacks(stage_cfg) -> list[TimeBudget]:
-    """``[TimeBudget]`` when the stage config sets ``max_minutes``, else ``[]``."""
-    minutes = stage_cfg.get("max_minutes")
-    return [TimeBudget(60.0 * float(minutes))] if minutes else []
+    """``[TimeBudget]`` when the stage config sets ``max_minutes`` or ``stop_at`` (a Unix time), else
+    ``[]``."""
+    minutes, stop_at = stage_cfg.get("max_minutes"), stage_cfg.get("stop_at")
+    if not minutes and stop_at is None:
+        return []
+    return [TimeBudget(60.0 * float(minutes) if minutes else None,
+                       stop_at=None if stop_at is None else float(stop_at))]
 
 
 def world_size() -> int:

@@ -276,6 +276,32 @@ def test_sft_resumes_from_last_checkpoint(tmp_path, step_counter):
     assert info["stage"] == "sft" and info["chat_format"] is False
 
 
+def test_sft_stops_at_a_unix_time_and_the_rerun_goes_on(tmp_path, step_counter):
+    """``sft.stop_at`` in the past: the run stops after its first step, saves a checkpoint and writes
+    the final model (stopped by the budget); the same command without it resumes toward max_steps."""
+    import time
+
+    from physcene.train.sft import TimeBudget, run_sft, time_budget_callbacks
+
+    records = [{"id": f"r{i}", "prompt": f"Instruction {i}: place a pen.\nLayout:", "completion": ANCHOR}
+               for i in range(4)]
+    data = tmp_path / "train.jsonl"
+    data.write_text("".join(json.dumps(r) + "\n" for r in records))
+    base = [f"data.train={data}", f"output_dir={tmp_path / 'run'}", "sft.global_batch_size=2",
+            "sft.per_device_batch_size=2", "sft.save_steps=100", "sft.max_length=256", "sft.max_steps=3"]
+    first, second = step_counter(), step_counter()
+    out = run_sft(load_config("train_tiny", [*base, f"sft.stop_at={time.time() - 1:.0f}"]), callbacks=[first])
+    assert first.steps == 1 and (out / "checkpoint-1").is_dir()
+    assert json.loads((out / "physcene_run.json").read_text())["stopped_by_budget"] is True
+    run_sft(load_config("train_tiny", base), callbacks=[second])
+    assert second.steps == 2
+    assert time_budget_callbacks(load_config("train_tiny").sft) == []
+    (budget,) = time_budget_callbacks(load_config("train_tiny", ["sft.max_minutes=2", "sft.stop_at=5"]).sft)
+    assert (budget.seconds, budget.stop_at) == (120.0, 5.0)
+    with pytest.raises(ValueError, match="seconds or stop_at"):
+        TimeBudget()
+
+
 def test_sft_continues_an_earlier_scratch_checkpoint(tmp_path):
     """model.init_from: a second SFT run on new data starts from the first run's weights (fp32) and
     vocabulary, and saves in model.dtype like a scratch run."""

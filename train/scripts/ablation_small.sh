@@ -51,6 +51,9 @@ SFT_EXTRA=${SFT_EXTRA:-}            # overrides for the SFT stage only (e.g. mod
 N_TRAIN=${N_TRAIN-40000}            # synthetic training scenes (the train split: 9,429; the artifact small-sft: 40,000)
 DECIMALS=${DECIMALS-2}              # digits after the point in the synthesised completions and the anchors
                                     # ("": physcene.ctrc.DECIMALS = 5; 1 pushes resting contacts into each other)
+STOP_IN=${STOP_IN:-}                # seconds: SFT and PADA stop (and save) this long after the script started, so
+                                    # a command limit (10 min on a lent machine) does not kill them mid-step;
+                                    # unlike SFT_MIN / PADA_MIN it counts synthesis, tokenising and loading
 STAGES=${STAGES:-"synth sft anchors grpo pada_star pada eval"}  # also: plan (not by default)
 
 stamp() { echo "[$(date +%T)] $*"; }
@@ -68,6 +71,10 @@ if [ -n "$DECIMALS" ]; then
   common="$common anchors.decimals=$DECIMALS pada.denoise_decimals=$DECIMALS"
 fi
 common="$common ablation.n_test=$N_TEST $EXTRA"
+if [ -n "$STOP_IN" ]; then
+  deadline=$(( $(date +%s) + STOP_IN ))
+  common="$common sft.stop_at=$deadline pada.stop_at=$deadline"
+fi
 want() { [[ " $STAGES " == *" $1 "* ]]; }
 
 if [ "$NPROC" -ge 1 ] && python3 -c "import torch, sys; sys.exit(not torch.cuda.is_available())"; then
