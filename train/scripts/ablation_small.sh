@@ -52,7 +52,7 @@ N_TRAIN=${N_TRAIN-40000}            # synthetic training scenes (the train split
 DECIMALS=${DECIMALS-2}              # digits after the point in the synthesised completions and the anchors
                                     # ("": physcene.ctrc.DECIMALS = 5; 1 pushes resting contacts into each other)
 STOP_IN=${STOP_IN:-}                # seconds: SFT and PADA stop (and save) this long after the script started, so
-                                    # a command limit (10 min on a lent machine) does not kill them mid-step;
+                                    # a job's time limit (a scheduler's, a remote command's) does not kill them mid-step;
                                     # unlike SFT_MIN / PADA_MIN it counts synthesis, tokenising and loading
 STAGES=${STAGES:-"synth sft anchors grpo pada_star pada eval"}  # also: plan (not by default)
 
