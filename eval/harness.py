@@ -36,7 +36,7 @@ from physcene.eval.metrics import (
     summarize,
 )
 from physcene.eval.render import render_views
-from physcene.eval.report import write_report
+from physcene.eval.report import method_slug, write_report
 from physcene.files import write_atomic
 from physcene.layout import layout_record_lines, load_layout, read_layout, write_layout
 from physcene.scene import Scene, SceneError
@@ -426,7 +426,7 @@ def run_evaluation(cfg, *, command: str = "", title: str = "physcene evaluation"
                                           seed=cfg.seed, progress=progress, model=cfg.generator_model,
                                           generators=generators, retries=retries)
         methods[name] = report
-        slug = name.lower().replace(" + ", "_").replace(" ", "_").replace("(", "").replace(")", "")
+        slug = method_slug(name)
         if cfg.get("save_layouts", False):  # re-score later with --generator file:<out>/layouts/<slug>
             save_layouts(items, outputs, out / "layouts" / slug)
         todo = list(zip(items, outputs))[:n_render]

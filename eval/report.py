@@ -9,6 +9,7 @@ robustness, diversity), plots (QPR vs difficulty level, per-type radar) and the 
 from __future__ import annotations
 
 import math
+import re
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 
@@ -195,8 +196,10 @@ def plot_type_radar(methods: Mapping[str, Mapping], path: Path) -> Path:
 
 
 def method_slug(name: str) -> str:
-    """The folder name of a method's layouts and renders (``Reference + TTO`` -> ``reference_tto``)."""
-    return name.lower().replace(" + ", "_").replace(" ", "_").replace("(", "").replace(")", "")
+    """The folder name of a method's layouts and renders (``Reference + TTO`` -> ``reference_tto``): one
+    path component, whatever the name holds (``Layouts (docs/x/sft.jsonl.gz)`` ->
+    ``layouts_docs_x_sft.jsonl.gz``)."""
+    return re.sub(r"[^a-z0-9._-]+", "_", name.lower().replace(" + ", "_")).strip("_.") or "method"
 
 
 def write_comparisons(out_dir, scene_ids: Sequence[str], method_names: Sequence[str], *, labels: bool = False,

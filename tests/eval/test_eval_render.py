@@ -116,6 +116,9 @@ def test_the_report_shows_a_comparison_sheet_per_rendered_scene(tmp_path):
     for name in ("Reference", "Reference + TTO"):
         write_layout(scene, tmp_path / "layouts" / method_slug(name) / "s1.json")
     assert method_slug("Reference + TTO") == "reference_tto"
+    assert method_slug("Heuristic placer") == "heuristic_placer"
+    assert method_slug("Layouts (docs/x/sft_plan.jsonl.gz)") == "layouts_docs_x_sft_plan.jsonl.gz"
+    assert method_slug("../..") == "method"  # never a path out of the layouts folder
     sheets = write_comparisons(tmp_path, ["s1", "s2"], ["Reference", "Reference + TTO"], size=(160, 120))
     assert list(sheets) == ["s1"]  # s2 has no saved layout
     png = tmp_path / sheets["s1"]
