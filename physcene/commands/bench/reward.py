@@ -18,9 +18,6 @@ import torch
 from physcene.assets import AssetLibrary
 from physcene.commands.bench.timing import BenchTarget, Timing, device_name, timed
 from physcene.ctrc import completion_text
-from physcene.physics import PhysicsConfig, PhysicsEngine
-from physcene.physics.reference import reference_penetration
-from physcene.reward import PhysicsReward, RewardConfig, TextPacker
 from physcene.scene import Scene, SceneObject, Zone
 
 __all__ = ["TARGET", "bench_reward", "bench_scenes"]
@@ -66,6 +63,12 @@ def _reward_arguments(parser) -> None:
 
 def bench_reward(args) -> dict:
     """Warp engine vs torch reference (forward, forward+gradient) and the whole reward."""
+    # the engine (Warp) loads when this target runs: `physcene bench generate` and the CLI's parser
+    # need no Warp
+    from physcene.physics import PhysicsConfig, PhysicsEngine
+    from physcene.physics.reference import reference_penetration
+    from physcene.reward import PhysicsReward, RewardConfig, TextPacker
+
     device = torch.device(args.device)
     library = AssetLibrary(resolution=args.resolution, n_points=args.points)
     library.add_primitives()
