@@ -38,6 +38,7 @@ from physcene.scene import Scene
 from physcene.train.ablation_plot import write_learning_curves
 from physcene.train.anchors import run_anchors
 from physcene.train.generate import generate as checkpoint_generate
+from physcene.train.generate import sampling
 from physcene.train.models import RUN_INFO, TrainingSetupError, read_run_info
 from physcene.train.pada import NoAnchorsError, run_pada
 from physcene.train.sft import TimeBudget, run_sft
@@ -254,7 +255,7 @@ def _evaluate(cfg: DictConfig, models: dict[str, Path], budget_s: float) -> list
                             device=str(state.device), cache=str(cfg.eval.get("cache", "dynamic")),
                             constrained=bool(cfg.eval.get("constrained", False)),
                             follow_plan=bool(cfg.eval.get("follow_plan", True)),
-                            do_sample=temperature > 0, temperature=temperature or 1.0, seed=int(cfg.seed))
+                            seed=int(cfg.seed), **sampling(temperature))
             part = generate([items[i] for i in shard], f"model:{path}", progress=False,
                             generators={f"model:{path}": model})
         outputs = gather_object(part)  # rank order = shard order = input order

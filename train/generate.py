@@ -36,9 +36,15 @@ from physcene.train.constrained import CTRCConstraint, sampling_warpers
 from physcene.train.models import TrainingSetupError, load_model, load_tokenizer, read_run_info, torch_dtype
 
 __all__ = ["CACHE_MODES", "cache_generate_kwargs", "check_cache", "generate", "generate_token_ids",
-           "generate_with", "load_for_generation", "longest_prompt_tokens", "set_trainer_cache"]
+           "generate_with", "load_for_generation", "longest_prompt_tokens", "sampling", "set_trainer_cache"]
 
 CACHE_MODES = ("dynamic", "static", "static_compile", "fast")
+
+
+def sampling(temperature: float) -> dict:
+    """The ``do_sample`` / ``temperature`` arguments of the generate functions for an evaluation's
+    ``temperature`` setting: 0 is greedy, a positive value samples at it."""
+    return {"do_sample": temperature > 0, "temperature": temperature or 1.0}
 
 
 def check_cache(cache: str) -> str:

@@ -63,13 +63,13 @@ def model_generators(cfg, *, max_new_tokens: int = 4096, device: str | None = No
     def model(path: str):
         def run_model(items) -> list[str]:
             try:  # here: transformers loads only when a checkpoint is evaluated
-                from physcene.train.generate import generate
+                from physcene.train.generate import generate, sampling
             except ImportError as exc:
                 raise EvalError(f"generator model:{path}: physcene.train.generate is unavailable "
                                 f"({exc})") from exc
             return generate(path, [it.prompt for it in items], max_new_tokens=max_new_tokens, device=device,
                             cache=cache, constrained=constrained, follow_plan=follow_plan,
-                            do_sample=temperature > 0, temperature=temperature or 1.0, seed=seed)
+                            seed=seed, **sampling(temperature))
         return run_model
 
     return {spec: model(spec[len("model:"):]) for spec in specs}

@@ -29,7 +29,7 @@ from physcene.ctrc import completion_text, parse
 from physcene.scene import TABLE, Scene
 from physcene.train.ablation import table_row
 from physcene.train.constrained.grammar import listed_instance_ids, planned_entries
-from physcene.train.generate import generate_with, load_for_generation
+from physcene.train.generate import generate_with, load_for_generation, sampling
 
 __all__ = ["ROWS", "plan_agreement", "run"]
 
@@ -99,7 +99,7 @@ def run(model_path: str, *, n: int, out: Path, split: str = "test", seed: int = 
         completions = generate_with(model, tokenizer, prompts,
                                     chat_format=bool(info.get("chat_format", False)),
                                     max_new_tokens=max_new_tokens, batch_size=batch_size,
-                                    do_sample=temperature > 0, temperature=temperature or 1.0, seed=seed,
+                                    seed=seed, **sampling(temperature),
                                     cache=cache, constrained=True, follow_plan=follow)
         outputs = generate(items, "model:study", progress=False,
                            generators={"model:study": lambda _items, c=completions: c})
