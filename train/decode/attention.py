@@ -14,6 +14,8 @@ takes it and HF ``generate`` runs with it as well.
 
 from __future__ import annotations
 
+import functools
+
 import torch
 
 __all__ = ["ATTENTIONS", "FLEX_ATTENTION", "FOLDED_ATTENTION", "MATMUL_ATTENTION", "flex_decode_attention",
@@ -73,7 +75,7 @@ def folded_matmul_attention(module: torch.nn.Module, query: torch.Tensor, key: t
     (row, KV head) one block. Not bitwise sdpa's (another reduction order); prompt passes as
     :func:`folded_gqa_attention`."""
     groups = getattr(module, "num_key_value_groups", 1)
-    if query.shape[2] > 1 or kwargs.get("position_bias") is not None or (dropout and module.training):
+    if not _decoding_step(module, query, dropout, kwargs):
         return folded_gqa_attention(module, query, key, value, attention_mask, dropout=dropout,
                                     scaling=scaling, is_causal=is_causal, **kwargs)
     batch, heads, _, dim = query.shape
@@ -84,6 +86,12 @@ def folded_matmul_attention(module: torch.nn.Module, query: torch.Tensor, key: t
         scores = scores.masked_fill(~mask, float("-inf")) if mask.dtype == torch.bool else scores + mask
     out = torch.matmul(scores.softmax(dim=-1).to(value.dtype), value)
     return out.reshape(batch, heads, 1, value.shape[-1]).transpose(1, 2).contiguous(), None
+
+
+def _decoding_step(module: torch.nn.Module, query: torch.Tensor, dropout: float, kwargs: dict) -> bool:
+    """A step the alternative decoding attentions compute: one query position, no position bias, no
+    dropout in training (anything else goes to :func:`folded_gqa_attention`)."""
+    return query.shape[2] == 1 and kwargs.get("position_bias") is None and not (dropout and module.training)
 
 
 _FLOAT_SCORES: dict[str, bool] = {}
@@ -117,8 +125,7 @@ def flex_decode_attention(module: torch.nn.Module, query: torch.Tensor, key: tor
     that differ per head or query as :func:`folded_gqa_attention`."""
     groups = getattr(module, "num_key_value_groups", 1)
     per_row = attention_mask is None or attention_mask.shape[1] == 1 and attention_mask.shape[2] == 1
-    training = dropout and module.training
-    if query.shape[2] > 1 or not per_row or kwargs.get("position_bias") is not None or training:
+    if not (per_row and _decoding_step(module, query, dropout, kwargs)):
         return folded_gqa_attention(module, query, key, value, attention_mask, dropout=dropout,
                                     scaling=scaling, is_causal=is_causal, **kwargs)
     score_mod = None
@@ -132,9 +139,6 @@ def flex_decode_attention(module: torch.nn.Module, query: torch.Tensor, key: tor
 
     out = _flex(query.device)(query, key, value, score_mod=score_mod, scale=scaling, enable_gqa=groups > 1)
     return out.transpose(1, 2).contiguous(), None  # [B, H, 1, D] -> [B, 1, H, D]
-
-
-_FLEX: dict[str, object] = {}
 
 
 def _eager_flex(*args, **kwargs):
@@ -151,13 +155,14 @@ def _eager_flex(*args, **kwargs):
 def _flex(device: torch.device):
     """``flex_attention``, compiled once per process on CUDA (uncompiled it falls back to a slow math
     path there); eager on other devices."""
-    if device.type != "cuda":
-        return _eager_flex
+    return _compiled_flex() if device.type == "cuda" else _eager_flex
+
+
+@functools.cache
+def _compiled_flex():
     from torch.nn.attention.flex_attention import flex_attention
 
-    if "cuda" not in _FLEX:
-        _FLEX["cuda"] = torch.compile(flex_attention)  # shapes made dynamic after the first new length
-    return _FLEX["cuda"]
+    return torch.compile(flex_attention)  # shapes made dynamic after the first new length
 
 
 ATTENTIONS = {"sdpa": (FOLDED_ATTENTION, folded_gqa_attention),
