@@ -17,6 +17,7 @@ from trl import GRPOConfig
 
 from physcene.ctrc import MAX_DECIMALS
 from physcene.reward import object_terms_checked, penetration_charge_checked
+from physcene.train.decode import FAST_CACHES
 from physcene.train.generate import check_cache
 from physcene.train.sft import _precision, accumulation_steps, world_size
 from physcene.train.targets import GEOMETRY_KEYS, object_credit_scope_checked
@@ -56,8 +57,11 @@ class PADAConfig(GRPOConfig):
         default=False, metadata={"help": "Compile the decoding forward of a static-cache generation "
                                          "(pada.cache=static_compile); TRL itself always disables it."})
     fast_decode: bool = field(
-        default=False, metadata={"help": "Generate the groups with the fast decoder (pada.cache=fast: "
+        default=False, metadata={"help": "Generate the groups with the fast decoder (pada.cache=fast...: "
                                          "physcene.train.decode; HF generate only, not vLLM)."})
+    fast_decode_cache: str = field(
+        default="fast", metadata={"help": "The fast decoder's setting (physcene.train.decode.FAST_CACHES: "
+                                          "fast, fast+fused, fast+flex, ...): pada.cache."})
     constrained_decoding: bool = field(
         default=False, metadata={"help": "Sample the groups under the CTRC constraint, passed to generate "
                                          "as a logits processor (physcene.train.constrained_rollouts; HF "
@@ -179,9 +183,10 @@ def pada_arguments(cfg, variant: str) -> PADAConfig:
         max_completion_length=int(p.max_completion_length),
         temperature=float(p.temperature),
         # TRL passes it to GenerationConfig (HF generate, use_vllm=False); None = HF's dynamic cache
-        cache_implementation=None if cache in ("dynamic", "fast") else "static",
+        cache_implementation=None if cache == "dynamic" or cache in FAST_CACHES else "static",
         generation_compile=cache == "static_compile",
-        fast_decode=cache == "fast",
+        fast_decode=cache in FAST_CACHES,
+        fast_decode_cache=cache if cache in FAST_CACHES else "fast",
         constrained_decoding=bool(p.get("constrained", False)),
         mask_overruled=bool(p.get("mask_overruled", True)),
         nonfinite_probe=int(p.get("nonfinite_probe", 0) or 0),

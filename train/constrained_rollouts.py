@@ -126,7 +126,7 @@ def fast_rollouts(trainer: GRPOTrainer, prompt_ids: list[list[int]],
     processor it takes) is checked beside the GPU. Settings it does not rebuild (another logits
     processor, a repetition penalty, suppressed tokens, a warper outside temperature/top-k/top-p/
     min-p) go to HF generate instead, once logged."""
-    from physcene.train.decode import fast_generate
+    from physcene.train.decode import FAST_CACHES, fast_generate
     from physcene.train.generate import longest_prompt_tokens
 
     config = trainer.generation_config
@@ -151,6 +151,7 @@ def fast_rollouts(trainer: GRPOTrainer, prompt_ids: list[list[int]],
         longest = max(longest_prompt_tokens(trainer._tokenizer, prompts), max(map(len, prompt_ids)))
         multiple = trainer.pad_to_multiple_of or 1
         length = trainer._fast_decode_length = -(-longest // multiple) * multiple + config.max_new_tokens
+    attention, fuse = FAST_CACHES[trainer.args.fast_decode_cache]
     inputs = _generation_inputs(trainer, prompt_ids)
     profiling, unwrapping, no_grad, full_params = _unwrapped(trainer)
     with profiling, unwrapping as unwrapped_model, no_grad, full_params:
@@ -158,7 +159,8 @@ def fast_rollouts(trainer: GRPOTrainer, prompt_ids: list[list[int]],
                                max_new_tokens=config.max_new_tokens,
                                min_new_tokens=config.min_new_tokens or 0, eos=list(trainer.eos_token_ids),
                                pad=trainer._tokenizer.pad_token_id, sampling=bool(config.do_sample),
-                               warpers=warpers, constraint=constraint, length=length)
+                               warpers=warpers, constraint=constraint, length=length, attention=attention,
+                               fuse=fuse)
     trainer.log_value("time/decode_graphs", float(result.graphs))
     trainer.log_value("time/decode_repairs", float(result.repairs))
     trainer.log_value("time/decode_host_check_s", result.seconds.get("host_check", 0.0))

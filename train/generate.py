@@ -33,12 +33,15 @@ import torch
 from transformers import CompileConfig, LogitsProcessorList, PreTrainedModel, PreTrainedTokenizerBase
 
 from physcene.train.constrained import CTRCConstraint, sampling_warpers
+from physcene.train.decode import FAST_CACHES
 from physcene.train.models import TrainingSetupError, load_model, load_tokenizer, read_run_info, torch_dtype
 
 __all__ = ["CACHE_MODES", "cache_generate_kwargs", "check_cache", "generate", "generate_token_ids",
            "generate_with", "load_for_generation", "longest_prompt_tokens", "sampling", "set_trainer_cache"]
 
-CACHE_MODES = ("dynamic", "static", "static_compile", "fast")
+CACHE_MODES = ("dynamic", "static", "static_compile", *FAST_CACHES)
+"""HF generate's KV caches (``dynamic``, ``static``, ``static_compile``) and the fast decoder's settings
+(:data:`physcene.train.decode.FAST_CACHES`: ``fast``, ``fast+fused``, ``fast+flex``, ...)."""
 
 
 def sampling(temperature: float) -> dict:
@@ -61,8 +64,8 @@ def cache_generate_kwargs(cache: str, device: str | torch.device = "cpu",
     ``max_cache_len`` (tokens: longest prompt + max_new_tokens) sizes a static cache for every call.
     """
     check_cache(cache)
-    if cache == "fast":
-        raise ValueError("cache 'fast' is not an HF generate mode: generate_token_ids runs it itself")
+    if cache in FAST_CACHES:
+        raise ValueError(f"cache {cache!r} is not an HF generate mode: generate_token_ids runs it itself")
     if cache == "dynamic":
         return {"cache_implementation": "dynamic"}
     kwargs: dict = {"cache_implementation": "static"}
@@ -140,8 +143,8 @@ def generate_token_ids(model: PreTrainedModel, tokenizer: PreTrainedTokenizerBas
                        chat_format: bool = False, max_new_tokens: int = 1024, batch_size: int = 16,
                        do_sample: bool = False, temperature: float = 1.0, seed: int = 0,
                        cache: str = "dynamic", min_new_tokens: int | None = None,
-                       constrained: bool = False, follow_plan: bool = True, report: list | None = None,
-                       fast_attention: str = "sdpa") -> list[list[int]]:
+                       constrained: bool = False, follow_plan: bool = True,
+                       report: list | None = None) -> list[list[int]]:
     """Completion token ids of ``prompts`` (prompt and left padding cut off; each row is
     ``max_new_tokens`` long or ends in EOS + pad), in input order.
 
@@ -149,10 +152,8 @@ def generate_token_ids(model: PreTrainedModel, tokenizer: PreTrainedTokenizerBas
     (benchmarks force equal lengths with it). ``constrained``: decode under
     :class:`physcene.train.constrained.CTRCConstraint` (CTRC grammar + the prompt's Object List);
     ``follow_plan``: its layout follows the completion's own plan (order, parents, relations).
-    ``report``: a list that ``cache="fast"`` appends each batch's
-    :class:`~physcene.train.decode.DecodeResult` to (graphs used, bytes read, repairs, timings);
-    ``fast_attention``: its attention (``sdpa``, ``matmul`` or ``flex``,
-    :func:`physcene.train.decode.fast_generate`).
+    ``report``: a list that the fast decoder (``cache="fast"``, ``"fast+fused"``, ...) appends each
+    batch's :class:`~physcene.train.decode.DecodeResult` to (graphs used, bytes read, repairs, timings).
     """
     if batch_size < 1 or max_new_tokens < 1:
         raise ValueError(f"batch_size and max_new_tokens must be >= 1, got {batch_size}, {max_new_tokens}")
@@ -167,12 +168,12 @@ def generate_token_ids(model: PreTrainedModel, tokenizer: PreTrainedTokenizerBas
                          padding=True, add_special_tokens=False)
                for start in range(0, len(order), batch_size)]
     longest = max((enc["input_ids"].shape[1] for enc in encoded), default=0)
-    if cache == "fast":
+    if cache in FAST_CACHES:
         return _fast_token_ids(model, tokenizer, prompts, order, encoded, batch_size=batch_size,
                                max_new_tokens=max_new_tokens, min_new_tokens=min_new_tokens or 0,
                                do_sample=do_sample, temperature=temperature, constrained=constrained,
                                follow_plan=follow_plan, length=longest + max_new_tokens, report=report,
-                               attention=fast_attention)
+                               cache=cache)
     kwargs = {"do_sample": do_sample, "max_new_tokens": max_new_tokens,
               "pad_token_id": tokenizer.pad_token_id, "eos_token_id": tokenizer.eos_token_id,
               **cache_generate_kwargs(cache, device, max_cache_len=longest + max_new_tokens)}
@@ -200,11 +201,12 @@ def generate_token_ids(model: PreTrainedModel, tokenizer: PreTrainedTokenizerBas
 
 def _fast_token_ids(model, tokenizer, prompts, order, encoded, *, batch_size: int, max_new_tokens: int,
                     min_new_tokens: int, do_sample: bool, temperature: float, constrained: bool,
-                    follow_plan: bool, length: int, report: list | None, attention: str) -> list[list[int]]:
+                    follow_plan: bool, length: int, report: list | None, cache: str) -> list[list[int]]:
     """:func:`generate_token_ids` with :func:`physcene.train.decode.fast_generate`: the same rows (EOS
     then padding up to the batch's longest completion, as HF ``generate`` returns them)."""
     from physcene.train.decode import fast_generate
 
+    attention, fuse = FAST_CACHES[cache]
     device = next(model.parameters()).device
     warpers = None
     if do_sample:
@@ -220,7 +222,8 @@ def _fast_token_ids(model, tokenizer, prompts, order, encoded, *, batch_size: in
         result = fast_generate(model, enc["input_ids"].to(device), enc["attention_mask"].to(device),
                                max_new_tokens=max_new_tokens, min_new_tokens=min_new_tokens,
                                eos=[tokenizer.eos_token_id], pad=tokenizer.pad_token_id, sampling=do_sample,
-                               warpers=warpers, constraint=constraint, length=length, attention=attention)
+                               warpers=warpers, constraint=constraint, length=length, attention=attention,
+                               fuse=fuse)
         if report is not None:
             report.append(result)
         width = max((len(row) for row in result.tokens), default=0)

@@ -187,7 +187,7 @@ def test_tiny_qwen3_vl_greedy_ids_equal_hf_generate():
 
 def test_pada_generates_with_the_fast_decoder(tmp_path, records, tokenizer):
     """``pada.cache: fast`` reaches the trainer and one PADA step samples its groups with the fast
-    decoder, under the constraint (its counters logged) and without it."""
+    decoder, under the constraint (its counters logged) and without it (there with fused layers)."""
     from datasets import Dataset
 
     from physcene.config import load_config
@@ -195,13 +195,17 @@ def test_pada_generates_with_the_fast_decoder(tmp_path, records, tokenizer):
 
     cfg = load_config("train_tiny", [f"output_dir={tmp_path}", "pada.cache=fast"])
     args = pada_arguments(cfg, "grpo")
-    assert args.fast_decode and args.cache_implementation is None
-    for constrained in (True, False):
+    assert args.fast_decode and args.cache_implementation is None and args.fast_decode_cache == "fast"
+    fused_cfg = load_config("train_tiny", [f"output_dir={tmp_path}", "pada.cache=fast+fused"])
+    fused = pada_arguments(fused_cfg, "grpo")
+    assert fused.fast_decode and fused.fast_decode_cache == "fast+fused"
+    for constrained, cache in ((True, "fast"), (False, "fast+fused")):
         model = build_scratch_model(ARCH, tokenizer, seed=3)
         args = PADAConfig(output_dir=str(tmp_path / str(constrained)), num_generations=2,
                           per_device_train_batch_size=2, max_completion_length=12, use_cpu=True,
                           report_to="none", beta=0.0, anchor_alpha=0.0, max_steps=1, fast_decode=True,
-                          constrained_decoding=constrained, logging_steps=1, save_strategy="no")
+                          fast_decode_cache=cache, constrained_decoding=constrained, logging_steps=1,
+                          save_strategy="no")
         prompts = [records[0]["prompt"][:200], records[1]["prompt"][:260]]
         trainer = PADATrainer(model, reward_funcs=[lambda prompts, completions, **kw: [0.0] * len(prompts)],
                               args=args, processing_class=tokenizer,
@@ -268,9 +272,9 @@ def test_matmul_attention_agrees_with_sdpa(records, tokenizer, model):
     theirs, _ = folded_gqa_attention(module, q, k, v, mask, scaling=0.35)
     assert torch.allclose(ours, theirs, atol=1e-5)
     prompts = [records[0]["prompt"], records[1]["prompt"][:300]]
-    kwargs = dict(max_new_tokens=24, batch_size=2, cache="fast")
-    assert (generate_token_ids(model, tokenizer, prompts, fast_attention="matmul", **kwargs)
-            == generate_token_ids(model, tokenizer, prompts, **kwargs))
+    kwargs = dict(max_new_tokens=24, batch_size=2)
+    assert (generate_token_ids(model, tokenizer, prompts, cache="fast+matmul", **kwargs)
+            == generate_token_ids(model, tokenizer, prompts, cache="fast", **kwargs))
 
 
 def test_flex_attention_agrees_with_sdpa(records, tokenizer, model):
@@ -290,22 +294,43 @@ def test_flex_attention_agrees_with_sdpa(records, tokenizer, model):
     assert torch.allclose(unmasked, folded_gqa_attention(module, q, k, v, None, scaling=0.35)[0], atol=1e-5)
     prompts = [records[0]["prompt"], records[1]["prompt"][:300]]
     for constrained in (False, True):
-        kwargs = dict(max_new_tokens=24, batch_size=2, cache="fast", constrained=constrained)
-        assert (generate_token_ids(model, tokenizer, prompts, fast_attention="flex", **kwargs)
-                == generate_token_ids(model, tokenizer, prompts, **kwargs))
+        kwargs = dict(max_new_tokens=24, batch_size=2, constrained=constrained)
+        assert (generate_token_ids(model, tokenizer, prompts, cache="fast+flex", **kwargs)
+                == generate_token_ids(model, tokenizer, prompts, cache="fast", **kwargs))
+
+
+def test_fused_layers_keep_hf_generate_ids_and_are_restored(records, tokenizer, model):
+    """``cache: fast+fused`` (the decoder layers compiled by inductor around the eager cache write and
+    attention): HF static generate's greedy ids in float32 on the tiny model, with and without the CTRC
+    constraint and with the flex attention; afterwards the layers run their own forward again."""
+    from physcene.train.decode.fuse import decoder_layers
+
+    prompts = [records[0]["prompt"], records[1]["prompt"][:300], records[2]["prompt"][:400]]
+    for constrained in (False, True):
+        kwargs = dict(max_new_tokens=32, batch_size=3, constrained=constrained)
+        reference = generate_token_ids(model, tokenizer, prompts, cache="static", **kwargs)
+        assert generate_token_ids(model, tokenizer, prompts, cache="fast+fused", **kwargs) == reference
+    assert generate_token_ids(model, tokenizer, prompts, cache="fast+fused+flex", max_new_tokens=32,
+                              batch_size=3) == generate_token_ids(model, tokenizer, prompts, cache="static",
+                                                                  max_new_tokens=32, batch_size=3)
+    assert all("forward" not in vars(layer) for layer in decoder_layers(text_model(model)))
 
 
 @pytest.mark.cuda
 def test_flex_attention_runs_inside_cuda_graphs(records, tokenizer):
-    """On a GPU (float32): the compiled FlexAttention step is captured and replayed as CUDA graphs (no
-    fallback) and gives the sdpa steps' greedy ids on the tiny model."""
+    """On a GPU (float32): the compiled FlexAttention step and the fused layers are captured and
+    replayed as CUDA graphs (no fallback) and give the eager sdpa steps' greedy ids on the tiny model."""
     model = build_scratch_model(ARCH, tokenizer, seed=3).cuda().eval()
     _, _, ids, mask = _plan_prefixed(records, tokenizer, 4)
     ids, mask = ids.cuda(), mask.cuda()
     common = dict(max_new_tokens=96, eos=[tokenizer.eos_token_id], pad=tokenizer.pad_token_id)
     flex = fast_generate(model, ids, mask, attention="flex", **common)
     assert flex.graphs and flex.fallback_reason is None
-    assert flex.tokens == fast_generate(model, ids, mask, **common).tokens
+    eager = fast_generate(model, ids, mask, graphs=False, **common)
+    assert flex.tokens == fast_generate(model, ids, mask, **common).tokens == eager.tokens
+    for attention in ("sdpa", "flex"):  # the fused layers (inductor kernels) captured in the graphs too
+        fused = fast_generate(model, ids, mask, attention=attention, fuse=True, **common)
+        assert fused.graphs and fused.fallback_reason is None and fused.tokens == eager.tokens
 
 
 @pytest.mark.slow

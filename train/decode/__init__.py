@@ -9,7 +9,12 @@ tested against. What the fast path changes, each part in its own module:
 - :mod:`~physcene.train.decode.loop`: one prompt pass, then fixed-shape decoding steps replayed as
   CUDA graphs, reading the cache only up to a bucketed length, rows stopping at EOS;
 - :mod:`~physcene.train.decode.overlap`: the CTRC constraint checked on the host while the GPU runs
-  the next step, a refused row repaired by standing still for one step.
+  the next step, a refused row repaired by standing still for one step;
+- :mod:`~physcene.train.decode.fuse`: each decoder layer's norms, projections, rotary embedding and
+  MLP compiled into a few fused kernels around the cache write and the attention.
+
+The generation ``cache`` settings that select it (:data:`FAST_CACHES`): ``fast`` plus ``+fused``
+and/or ``+matmul`` / ``+flex``, e.g. ``cache: fast+fused+flex``.
 
 :func:`fast_generate` is the entry point: it switches the model to eval mode (no dropout, LoRA's
 included) and to the folded attention for the call, and restores both afterwards.
@@ -32,17 +37,24 @@ from physcene.train.decode.attention import (
     register_folded_attention,
 )
 from physcene.train.decode.cache import StaticKV
+from physcene.train.decode.fuse import fused_layers
 from physcene.train.decode.loop import DecodeResult, FastDecoder, text_model
 from physcene.train.decode.overlap import OverlappedConstraint
 
-__all__ = ["ATTENTIONS", "FOLDED_ATTENTION", "DecodeResult", "FastDecoder", "OverlappedConstraint",
-           "StaticKV", "decoder_for", "fast_generate", "flex_decode_attention", "folded_gqa_attention",
-           "folded_matmul_attention",
-           "register_folded_attention", "sampling_mode", "text_model"]
+__all__ = ["ATTENTIONS", "FAST_CACHES", "FOLDED_ATTENTION", "DecodeResult", "FastDecoder",
+           "OverlappedConstraint", "StaticKV", "decoder_for", "fast_generate", "flex_decode_attention",
+           "folded_gqa_attention", "folded_matmul_attention", "fused_layers", "register_folded_attention",
+           "sampling_mode", "text_model"]
 
 logger = logging.getLogger(__name__)
 
-# model -> {(batch, length, graphs, attention): decoder}
+FAST_CACHES = {"fast" + ("+fused" if fuse else "") + ("" if attention == "sdpa" else f"+{attention}"):
+               (attention, fuse) for fuse in (False, True) for attention in ATTENTIONS}
+"""The generation ``cache`` settings of the fast decoder -> (attention, fused layers): ``fast`` (the folded
+sdpa attention, eager layers: HF generate's ids), ``+matmul`` / ``+flex`` another decoding attention,
+``+fused`` the compiled layers (:mod:`~physcene.train.decode.fuse`)."""
+
+# model -> {(batch, length, graphs, attention, fuse): decoder}
 _DECODERS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
 _KEPT_SHARE = 0.25  # a decoder whose cache takes more of the GPU is dropped after its call (an 8B model's)
 _KEPT_BYTES_CPU = 4 << 30
@@ -73,16 +85,17 @@ def sampling_mode(model: torch.nn.Module, attention: str = "sdpa"):
 
 
 def decoder_for(model: torch.nn.Module, batch: int, length: int, graphs: bool = True,
-                attention: str = "sdpa") -> FastDecoder:
+                attention: str = "sdpa", fuse: bool = False) -> FastDecoder:
     """The model's :class:`FastDecoder` for ``batch`` rows x ``length`` columns (made once, kept while
     the model lives unless its cache takes over a quarter of the GPU's memory (4 GiB on CPU): training
     needs it back; another shape replaces it)."""
     kept = _DECODERS.setdefault(model, {})
-    key = (int(batch), int(length), bool(graphs), attention)  # a graph bakes its attention in
+    key = (int(batch), int(length), bool(graphs), attention, bool(fuse))  # a graph bakes these in
     decoder = kept.get(key)
     if decoder is None:
         kept.clear()  # one shape at a time: PADA's rounds and eval's batches keep theirs
-        decoder = FastDecoder(model, batch=batch, length=length, graphs=graphs, attention=attention)
+        decoder = FastDecoder(model, batch=batch, length=length, graphs=graphs, attention=attention,
+                              fuse=fuse)
         device = decoder.device
         limit = (_KEPT_SHARE * torch.cuda.get_device_properties(device).total_memory
                  if device.type == "cuda" else _KEPT_BYTES_CPU)
@@ -95,7 +108,7 @@ def decoder_for(model: torch.nn.Module, batch: int, length: int, graphs: bool = 
 def fast_generate(model: torch.nn.Module, input_ids: torch.Tensor, attention_mask: torch.Tensor, *,
                   max_new_tokens: int, eos: list[int], pad: int, min_new_tokens: int = 0,
                   warpers=None, sampling: bool = False, constraint=None, length: int | None = None,
-                  graphs: bool = True, attention: str = "sdpa") -> DecodeResult:
+                  graphs: bool = True, attention: str = "sdpa", fuse: bool = False) -> DecodeResult:
     """Completions of left-padded prompts with the fast decoder.
 
     ``sampling`` with ``warpers`` (temperature/top-k/top-p as transformers' warpers,
@@ -106,12 +119,14 @@ def fast_generate(model: torch.nn.Module, input_ids: torch.Tensor, attention_mas
     query heads through torch's sdpa: HF generate's numbers), ``matmul`` (two batched matmuls; see
     :func:`~physcene.train.decode.attention.folded_matmul_attention`) or ``flex`` (torch's FlexAttention,
     a split-KV kernel on a GPU: :func:`~physcene.train.decode.attention.flex_decode_attention`).
+    ``fuse``: the decoder layers compiled (:func:`~physcene.train.decode.fuse.fused_layers`; not bitwise
+    eager).
     """
     batch, prompt = input_ids.shape
     length = max(int(length or 0), prompt + int(max_new_tokens))
     if attention not in ATTENTIONS:
         raise ValueError(f"fast decoding attention {attention!r}: expected one of {', '.join(ATTENTIONS)}")
-    decoder = decoder_for(model, batch, length, graphs, attention)
+    decoder = decoder_for(model, batch, length, graphs, attention, fuse)
     overlapped = None
     if constraint is not None:
         overlapped = OverlappedConstraint(constraint, max_new_tokens=max_new_tokens, eos=eos,

@@ -18,6 +18,8 @@ import functools
 
 import torch
 
+from physcene.train.decode.fuse import EAGER
+
 __all__ = ["ATTENTIONS", "FLEX_ATTENTION", "FOLDED_ATTENTION", "MATMUL_ATTENTION", "flex_decode_attention",
            "fold_queries", "folded_gqa_attention", "folded_matmul_attention", "register_folded_attention"]
 
@@ -180,6 +182,7 @@ def register_folded_attention(kind: str = "sdpa") -> str:
     if kind not in ATTENTIONS:
         raise ValueError(f"fast decoding attention {kind!r}: expected one of {', '.join(ATTENTIONS)}")
     name, function = ATTENTIONS[kind]
-    AttentionInterface.register(name, function)
+    # outside the compiled graphs of fused layers (train/decode/fuse.py): the cache's read length varies
+    AttentionInterface.register(name, EAGER(function))
     AttentionMaskInterface.register(name, sdpa_mask)
     return name

@@ -6,6 +6,8 @@ from __future__ import annotations
 
 import torch
 
+from physcene.train.decode.fuse import EAGER
+
 __all__ = ["StaticKV"]
 
 
@@ -36,8 +38,10 @@ class StaticKV:
         self.length = length
         self.read_length = length
         self.seen = 0  # columns filled by the prompt pass (host-side, for get_seq_length)
+        # outside fused layers' compiled graphs (train/decode/fuse.py): a step reads the host's read_length
+        self.update = EAGER(self._update)
 
-    def update(self, key: torch.Tensor, value: torch.Tensor, layer_idx: int, *args, **kwargs):
+    def _update(self, key: torch.Tensor, value: torch.Tensor, layer_idx: int, *args, **kwargs):
         k, v = self.keys[layer_idx], self.values[layer_idx]
         new = key.shape[2]
         if k is None or new > 1 and (k.dtype != key.dtype or v.dtype != value.dtype):

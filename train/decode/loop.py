@@ -16,6 +16,7 @@ rows it repairs (one extra step each).
 
 from __future__ import annotations
 
+import contextlib
 import inspect
 import logging
 import time
@@ -25,6 +26,7 @@ import torch
 
 from physcene.train.decode.attention import register_folded_attention
 from physcene.train.decode.cache import StaticKV
+from physcene.train.decode.fuse import fused_layers
 
 __all__ = ["DecodeResult", "FastDecoder", "text_model"]
 
@@ -76,7 +78,7 @@ class FastDecoder:
     """
 
     def __init__(self, model: torch.nn.Module, *, batch: int, length: int, graphs: bool = True,
-                 buckets: int = 16, attention: str = "sdpa"):
+                 buckets: int = 16, attention: str = "sdpa", fuse: bool = False):
         if batch < 1 or length < 2:
             raise ValueError(f"FastDecoder: batch {batch} and length {length} must be >= 1 and >= 2")
         self.model = model
@@ -119,6 +121,8 @@ class FastDecoder:
         self.capture_seconds = 0.0
         self.attention = attention
         register_folded_attention(attention)
+        self.fuse = bool(fuse)
+        self.text = text
 
     # --- one step -------------------------------------------------------------------------------------
     def _choose(self, logits: torch.Tensor) -> None:
@@ -304,10 +308,11 @@ class FastDecoder:
             self.graphs.clear()  # captured on cache buffers the prompt pass has replaced
         timing["prefill"] = time.perf_counter() - start
         start = time.perf_counter()
-        if constraint is None:
-            tokens, steps, repairs, read = self._decode_free(max_new_tokens)
-        else:
-            tokens, steps, repairs, read = self._decode_constrained(max_new_tokens, constraint, timing)
+        with fused_layers(self.text) if self.fuse else contextlib.nullcontext():
+            if constraint is None:
+                tokens, steps, repairs, read = self._decode_free(max_new_tokens)
+            else:
+                tokens, steps, repairs, read = self._decode_constrained(max_new_tokens, constraint, timing)
         timing["capture"] = self.capture_seconds - captured
         timing["decode"] = time.perf_counter() - start - timing["capture"]
         return DecodeResult(tokens=tokens, steps=steps, graphs=self.want_graphs and not self.fallback_reason,

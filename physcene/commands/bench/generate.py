@@ -4,7 +4,7 @@ the fast decoder, against the KV-cache-read limit.
     physcene bench generate --device cuda --config small --batch 512 --tokens 2048 --json
     physcene bench generate --device cuda --config small --batch 512 --tokens 2048 --constrained
     physcene bench generate --device cpu --config tiny --batch 2 --tokens 8
-    physcene bench generate --device cuda --variants dynamic static static+compile fast fast+matmul
+    physcene bench generate --device cuda --variants static static_compile fast fast+fused fast+fused+flex
 
 A randomly initialised model of ``configs/train_<config>.yaml`` (speed does not depend on the
 weights) and a tokenizer trained the way the train code does (:mod:`physcene.train.tokenizer`, on 32
@@ -40,12 +40,11 @@ import torch
 from physcene.commands.bench.timing import BenchTarget, device_name, timed
 from physcene.files import write_atomic
 
-__all__ = ["BANDWIDTH_TB_S", "TARGET", "VARIANT_ATTENTION", "VARIANT_CACHE", "memory_bandwidth"]
+__all__ = ["BANDWIDTH_TB_S", "TARGET", "VARIANT_ALIASES", "memory_bandwidth"]
 
-VARIANT_CACHE = {"dynamic": "dynamic", "static": "static", "static+compile": "static_compile", "fast": "fast",
-                 "fast+matmul": "fast", "fast+flex": "fast"}
-# the fast decoder's attention per variant (physcene.train.decode.ATTENTIONS)
-VARIANT_ATTENTION = {"fast+matmul": "matmul", "fast+flex": "flex"}
+# a variant is a generation cache setting (physcene.train.generate.CACHE_MODES: HF generate's caches and
+# the fast decoder's settings, physcene.train.decode.FAST_CACHES); older spellings kept
+VARIANT_ALIASES = {"static+compile": "static_compile"}
 
 # peak memory bandwidth, TB/s, by a substring of torch.cuda.get_device_name (the first match wins)
 BANDWIDTH_TB_S = {"H200": 4.8, "H100 PCIe": 2.0, "H100 NVL": 3.9, "H100": 3.35, "A100-SXM4-80GB": 2.039,
@@ -61,8 +60,10 @@ def add_arguments(parser) -> None:
     parser.add_argument("--batch", type=int, default=128, help="prompts, generated in one batch")
     parser.add_argument("--tokens", type=int, default=512,
                         help="new tokens per prompt (forced: no early EOS)")
-    parser.add_argument("--variants", nargs="+", default=["static", "fast"], choices=list(VARIANT_CACHE),
-                        help="variants to time in this process (the first is the reference)")
+    parser.add_argument("--variants", nargs="+", default=["static", "fast"],
+                        help="generation caches to time in this process, the first the reference: dynamic, "
+                             "static, static_compile (HF generate) or the fast decoder's fast, fast+fused, "
+                             "fast+flex, fast+matmul, fast+fused+flex, fast+fused+matmul")
     parser.add_argument("--constrained", action="store_true",
                         help="decode every variant under the CTRC constraint")
     parser.add_argument("--dtype", default=None,
@@ -122,12 +123,13 @@ def run(args) -> dict:
     from physcene.artifacts import resolve_model
     from physcene.config import load_config
     from physcene.data import synthesize
-    from physcene.train.generate import generate_token_ids, load_for_generation
+    from physcene.train.generate import check_cache, generate_token_ids, load_for_generation
     from physcene.train.models import build_scratch_model, count_parameters
     from physcene.train.tokenizer import build_tokenizer
 
     if args.batch < 1 or args.tokens < 1:
         raise ValueError(f"--batch {args.batch} --tokens {args.tokens}: both must be >= 1")
+    caches = {name: check_cache(VARIANT_ALIASES.get(name, name)) for name in args.variants}
     device = torch.device(args.device)
     if device.type == "cuda":
         torch.backends.cuda.enable_cudnn_sdp(bool(args.cudnn_attention))
@@ -159,15 +161,14 @@ def run(args) -> dict:
     }
     reference = None
     for name in args.variants:
-        cache = VARIANT_CACHE[name]
+        cache = caches[name]
         report: list = []
-        attention = VARIANT_ATTENTION.get(name, "sdpa")
 
-        def call(tokens: int, cache=cache, report=report, attention=attention):
+        def call(tokens: int, cache=cache, report=report):
             report.clear()
             return generate_token_ids(model, tokenizer, prompts, max_new_tokens=tokens, min_new_tokens=tokens,
                                       batch_size=args.batch, cache=cache, constrained=args.constrained,
-                                      report=report, fast_attention=attention)
+                                      report=report)
 
         try:
             start = time.perf_counter()

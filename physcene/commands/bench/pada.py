@@ -36,8 +36,8 @@ def add_arguments(parser) -> None:
                         help="rollout length (pada.max_completion_length)")
     parser.add_argument("--steps", type=int, default=3, help="timed optimiser steps (after one warm-up step)")
     parser.add_argument("--caches", nargs="+", default=["fast"],
-                        choices=["dynamic", "static", "static_compile", "fast"],
-                        help="pada.cache values timed one after the other")
+                        help="pada.cache values timed one after the other (dynamic, static, static_compile, "
+                             "fast, fast+fused, fast+fused+flex, ...: physcene.train.generate.CACHE_MODES)")
     parser.add_argument("--constrained", action="store_true", help="sample under the CTRC constraint")
     parser.add_argument("--variant", default="pada", choices=["pada", "pada_star", "grpo"])
     parser.add_argument("--seed", type=int, default=0)
@@ -47,9 +47,12 @@ def add_arguments(parser) -> None:
 
 def run(args) -> dict:
     from physcene.config import load_config
+    from physcene.train.generate import check_cache
 
     if args.tokens < 1 or args.steps < 1:
         raise ValueError(f"--tokens {args.tokens} --steps {args.steps}: both must be >= 1")
+    for cache in args.caches:  # a misspelt one fails here, not after the others' minutes
+        check_cache(cache)
     device = torch.device(args.device)
     if device.type == "cpu" and torch.cuda.is_available():
         raise ValueError("--device cpu: the trainer takes the GPU of this machine; run on a CPU-only one")
