@@ -310,17 +310,20 @@ def test_fused_layers_keep_hf_generate_ids_and_are_restored(records, tokenizer, 
         kwargs = dict(max_new_tokens=32, batch_size=3, constrained=constrained)
         reference = generate_token_ids(model, tokenizer, prompts, cache="static", **kwargs)
         assert generate_token_ids(model, tokenizer, prompts, cache="fast+fused", **kwargs) == reference
-    assert generate_token_ids(model, tokenizer, prompts, cache="fast+fused+flex", max_new_tokens=32,
-                              batch_size=3) == generate_token_ids(model, tokenizer, prompts, cache="static",
-                                                                  max_new_tokens=32, batch_size=3)
+    kwargs = dict(max_new_tokens=32, batch_size=3)
+    reference = generate_token_ids(model, tokenizer, prompts, cache="static", **kwargs)
+    for cache in ("fast+fused+flex", "fast+fused+cudnn"):  # on a CPU cudnn is the folded sdpa
+        assert generate_token_ids(model, tokenizer, prompts, cache=cache, **kwargs) == reference
     assert all("forward" not in vars(layer) for layer in decoder_layers(text_model(model)))
 
 
 @pytest.mark.cuda
 def test_flex_attention_runs_inside_cuda_graphs(records, tokenizer):
     """On a GPU (float32): the compiled FlexAttention step and the fused layers are captured and
-    replayed as CUDA graphs (no fallback) and give the eager sdpa steps' greedy ids on the tiny model."""
-    model = build_scratch_model(ARCH, tokenizer, seed=3).cuda().eval()
+    replayed as CUDA graphs (no fallback) and give the eager sdpa steps' greedy ids on the tiny model
+    (head_dim 16: the smallest compiled FlexAttention takes). The cuDNN decoding kernel (bf16 only)
+    is captured too."""
+    model = build_scratch_model({**ARCH, "head_dim": 16}, tokenizer, seed=3).cuda().eval()
     _, _, ids, mask = _plan_prefixed(records, tokenizer, 4)
     ids, mask = ids.cuda(), mask.cuda()
     common = dict(max_new_tokens=96, eos=[tokenizer.eos_token_id], pad=tokenizer.pad_token_id)
@@ -331,6 +334,10 @@ def test_flex_attention_runs_inside_cuda_graphs(records, tokenizer):
     for attention in ("sdpa", "flex"):  # the fused layers (inductor kernels) captured in the graphs too
         fused = fast_generate(model, ids, mask, attention=attention, fuse=True, **common)
         assert fused.graphs and fused.fallback_reason is None and fused.tokens == eager.tokens
+    half = build_scratch_model({**ARCH, "head_dim": 16}, tokenizer, seed=3, dtype="bfloat16").cuda().eval()
+    cudnn = fast_generate(half, ids, mask, attention="cudnn", fuse=True, **common)
+    assert cudnn.graphs and cudnn.fallback_reason is None
+    assert all(len(row) == 96 or row[-1] == tokenizer.eos_token_id for row in cudnn.tokens)
 
 
 @pytest.mark.slow

@@ -32,6 +32,7 @@ from physcene.train.decode.attention import (
     ATTENTIONS,
     FOLDED_ATTENTION,
     flex_decode_attention,
+    folded_cudnn_attention,
     folded_gqa_attention,
     folded_matmul_attention,
     register_folded_attention,
@@ -43,8 +44,8 @@ from physcene.train.decode.overlap import OverlappedConstraint
 
 __all__ = ["ATTENTIONS", "FAST_CACHES", "FOLDED_ATTENTION", "DecodeResult", "FastDecoder",
            "OverlappedConstraint", "StaticKV", "decoder_for", "fast_generate", "flex_decode_attention",
-           "folded_gqa_attention", "folded_matmul_attention", "fused_layers", "register_folded_attention",
-           "sampling_mode", "text_model"]
+           "folded_cudnn_attention", "folded_gqa_attention", "folded_matmul_attention", "fused_layers",
+           "register_folded_attention", "sampling_mode", "text_model"]
 
 logger = logging.getLogger(__name__)
 

@@ -20,10 +20,12 @@ import torch
 
 from physcene.train.decode.fuse import EAGER
 
-__all__ = ["ATTENTIONS", "FLEX_ATTENTION", "FOLDED_ATTENTION", "MATMUL_ATTENTION", "flex_decode_attention",
-           "fold_queries", "folded_gqa_attention", "folded_matmul_attention", "register_folded_attention"]
+__all__ = ["ATTENTIONS", "CUDNN_ATTENTION", "FLEX_ATTENTION", "FOLDED_ATTENTION", "MATMUL_ATTENTION",
+           "flex_decode_attention", "fold_queries", "folded_cudnn_attention", "folded_gqa_attention",
+           "folded_matmul_attention", "register_folded_attention"]
 
 FOLDED_ATTENTION = "sdpa_folded_gqa"
+CUDNN_ATTENTION = "cudnn_folded_gqa"
 MATMUL_ATTENTION = "matmul_folded_gqa"
 FLEX_ATTENTION = "flex_decode_gqa"
 
@@ -66,6 +68,29 @@ def folded_gqa_attention(module: torch.nn.Module, query: torch.Tensor, key: torc
         dropout_p=dropout, scale=scaling, is_causal=False)
     # [B, Hkv, G, Dv] -> [B, 1, H, Dv]: the layout sdpa_attention_forward returns
     return out.reshape(batch, heads, 1, value.shape[-1]).transpose(1, 2).contiguous(), None
+
+
+def folded_cudnn_attention(module: torch.nn.Module, query: torch.Tensor, key: torch.Tensor,
+                           value: torch.Tensor, attention_mask: torch.Tensor | None, dropout: float = 0.0,
+                           scaling: float | None = None, is_causal: bool | None = None,
+                           **kwargs) -> tuple[torch.Tensor, None]:
+    """:func:`folded_gqa_attention` with torch's cuDNN attention kernel allowed for the decoding steps.
+
+    Training forbids that kernel (:func:`physcene.train.models.set_attention_kernels`: its backward
+    writes NaN where a query row attends to nothing); a decoding step has no backward and every row
+    attends at least to its own column. On an H100 at 512 rows x 1,024 columns the cuDNN kernel reads
+    the cache in 2.06 ms a step where the memory-efficient one, which HF generate takes under that
+    setting, needs about 2.9 (``benchmarks/decode_step_profile.py``). Not bitwise the memory-efficient
+    kernel's (another reduction order); prompt passes as :func:`folded_gqa_attention`."""
+    if not (query.is_cuda and _decoding_step(module, query, dropout, kwargs)):
+        return folded_gqa_attention(module, query, key, value, attention_mask, dropout=dropout,
+                                    scaling=scaling, is_causal=is_causal, **kwargs)
+    from torch.nn.attention import SDPBackend, sdpa_kernel
+
+    with sdpa_kernel([SDPBackend.CUDNN_ATTENTION, SDPBackend.EFFICIENT_ATTENTION, SDPBackend.MATH],
+                     set_priority=True):
+        return folded_gqa_attention(module, query, key, value, attention_mask, dropout=dropout,
+                                    scaling=scaling, is_causal=is_causal, **kwargs)
 
 
 def folded_matmul_attention(module: torch.nn.Module, query: torch.Tensor, key: torch.Tensor,
@@ -168,6 +193,7 @@ def _compiled_flex():
 
 
 ATTENTIONS = {"sdpa": (FOLDED_ATTENTION, folded_gqa_attention),
+              "cudnn": (CUDNN_ATTENTION, folded_cudnn_attention),
               "matmul": (MATMUL_ATTENTION, folded_matmul_attention),
               "flex": (FLEX_ATTENTION, flex_decode_attention)}
 """The fast decoder's attention choices: name -> (registered name, function)."""
