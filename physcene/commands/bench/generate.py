@@ -64,6 +64,11 @@ def add_arguments(parser) -> None:
                         help="generation caches to time in this process, the first the reference: dynamic, "
                              "static, static_compile (HF generate) or the fast decoder's fast, fast+fused, "
                              "fast+flex, fast+matmul, fast+fused+flex, fast+fused+matmul")
+    parser.add_argument("--until-eos", action="store_true",
+                        help="let rows stop at their EOS (at most --tokens) instead of forcing --tokens: "
+                             "the rows a trained model writes, compared up to their EOS (forced past it, "
+                             "a model's greedy choice is a near-tie at many steps; the timing figures then "
+                             "count --tokens steps per row as a bound only)")
     parser.add_argument("--constrained", action="store_true",
                         help="decode every variant under the CTRC constraint")
     parser.add_argument("--dtype", default=None,
@@ -153,6 +158,7 @@ def run(args) -> dict:
         "parameters": count_parameters(model), "attention": model.config._attn_implementation,
         "batch": args.batch, "tokens": args.tokens, "prompt_tokens_max": max(prompt_tokens),
         "prompt_tokens_mean": sum(prompt_tokens) / len(prompt_tokens), "constrained": bool(args.constrained),
+        "until_eos": bool(args.until_eos),
         "cudnn_attention": bool(args.cudnn_attention) and device.type == "cuda",
         "bandwidth_bytes_per_s": bandwidth, "bandwidth_source": source,
         "kv_floor_bytes": floor_bytes, "kv_floor_seconds": floor_bytes / bandwidth,
@@ -166,7 +172,8 @@ def run(args) -> dict:
 
         def call(tokens: int, cache=cache, report=report):
             report.clear()
-            return generate_token_ids(model, tokenizer, prompts, max_new_tokens=tokens, min_new_tokens=tokens,
+            return generate_token_ids(model, tokenizer, prompts, max_new_tokens=tokens,
+                                      min_new_tokens=None if args.until_eos else tokens,
                                       batch_size=args.batch, cache=cache, constrained=args.constrained,
                                       report=report)
 
@@ -195,7 +202,7 @@ def run(args) -> dict:
             torch.cuda.reset_peak_memory_stats(device)
         if reference is None:
             reference, result["reference"] = ids, name
-        row.update(_agreement(ids, reference))
+        row.update(_agreement(ids, reference, tokenizer.eos_token_id if args.until_eos else None))
         if args.out:
             write_atomic(args.out, json.dumps(result, indent=1) + "\n")
     timed_rows = [r for r in result["variants"].values() if "seconds" in r]
@@ -219,13 +226,18 @@ def _fast_details(report: list) -> dict:
             "fast_prefill_seconds": r.seconds.get("prefill", 0.0)}
 
 
-def _agreement(ids: list[list[int]], reference: list[list[int]]) -> dict:
-    """Equal token ids with the reference: all rows, share of rows, first differing step (or None)."""
+def _agreement(ids: list[list[int]], reference: list[list[int]], eos: int | None = None) -> dict:
+    """Equal token ids with the reference (rows cut after their first ``eos`` when given): all rows,
+    share of rows, the first differing step of any row and its median over the differing rows."""
+    if eos is not None:
+        ids, reference = ([row[:row.index(eos) + 1] if eos in row else row for row in rows]
+                          for rows in (ids, reference))
     equal = [a == b for a, b in zip(ids, reference)]
     first = [next((t for t, (x, y) in enumerate(zip(a, b)) if x != y), min(len(a), len(b)))
              for a, b, e in zip(ids, reference, equal) if not e]
     return {"equal": all(equal), "equal_rows": sum(equal) / max(len(equal), 1),
-            "first_diff_step": min(first) if first else None}
+            "first_diff_step": min(first) if first else None,
+            "first_diff_step_median": sorted(first)[len(first) // 2] if first else None}
 
 
 def summary(r: dict) -> str:
