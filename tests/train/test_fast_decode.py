@@ -341,15 +341,16 @@ def test_flex_attention_runs_inside_cuda_graphs(records, tokenizer):
 
 
 @pytest.mark.slow
-def test_bench_pada_times_whole_steps(capsys):
-    """``physcene bench pada`` at tiny sizes: one timed step per cache, split into its parts."""
+def test_bench_pada_times_whole_steps(capsys, tmp_path):
+    """``physcene bench pada`` at tiny sizes: one timed step per cache, split into its parts, and the
+    profiled step's tables."""
     import json
 
     from physcene.cli import main
 
     assert main(["bench", "pada", "--config", "tiny", "--tokens", "8", "--steps", "1", "--caches", "fast",
-                 "dynamic", "--json", "--set", "pada.global_batch_size=4", "pada.per_device_batch_size=2",
-                 "pada.num_generations=2"]) == 0
+                 "dynamic", "--json", "--profile", str(tmp_path), "--set", "pada.global_batch_size=4",
+                 "pada.per_device_batch_size=2", "pada.num_generations=2"]) == 0
     r = json.loads(capsys.readouterr().out)
     assert r["target"] == "pada" and r["global_batch"] == 4 and r["num_generations"] == 2
     for cache, path in (("fast", "eager"), ("dynamic", "hf_generate")):
@@ -357,3 +358,6 @@ def test_bench_pada_times_whole_steps(capsys):
         assert v["path"] == path and v["steps_timed"] == 1 and v["seconds_per_step"] > 0
         assert v["generate_s"] > 0 and v["update_s"] == pytest.approx(
             v["seconds_per_step"] - v["generate_s"] - v["reward_s"])
+        parts = v["profile"]["parts"]
+        assert {"training_step", "backward", "_generate_and_score_completions"} <= set(parts)
+        assert "Operators by cpu self time" in (tmp_path / f"pada_{cache}.txt").read_text()

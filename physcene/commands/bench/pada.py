@@ -22,6 +22,7 @@ import statistics
 import sys
 import tempfile
 import time
+from pathlib import Path
 
 import torch
 
@@ -41,6 +42,11 @@ def add_arguments(parser) -> None:
     parser.add_argument("--constrained", action="store_true", help="sample under the CTRC constraint")
     parser.add_argument("--variant", default="pada", choices=["pada", "pada_star", "grpo"])
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--profile", default=None, metavar="DIR",
+                        help="profile the last timed step (torch.profiler, CPU and CUDA) and write its "
+                             "tables to DIR/pada_<cache>.txt: the trainer's parts (generation, the "
+                             "log-probabilities, the anchor CE, backward) and the operators with the most "
+                             "GPU and host time")
     parser.add_argument("--set", dest="config_set", nargs="+", default=[], metavar="KEY=VALUE",
                         help="overrides of the training config (pada.global_batch_size=4 ...)")
 
@@ -105,25 +111,39 @@ def _time_steps(cfg, args, device: torch.device) -> dict:
 
     timed_reward.__name__ = getattr(reward, "__name__", "physics_reward")
     step_seconds: list[float] = []
+    profiler = None
 
     class StepClock(TrainerCallback):
         def on_step_begin(self, *_, **__):
+            nonlocal profiler
             if device.type == "cuda":
                 torch.cuda.synchronize(device)
+            if args.profile and len(step_seconds) == steps - 1:  # the last step
+                activities = [torch.profiler.ProfilerActivity.CPU]
+                if device.type == "cuda":
+                    activities.append(torch.profiler.ProfilerActivity.CUDA)
+                profiler = torch.profiler.profile(activities=activities)
+                profiler.__enter__()
             self.start = time.perf_counter()
 
         def on_step_end(self, *_, **__):
             if device.type == "cuda":
                 torch.cuda.synchronize(device)
             step_seconds.append(time.perf_counter() - self.start)
+            if profiler is not None:
+                profiler.__exit__(None, None, None)
 
     trainer = PADATrainer(model=model, reward_funcs=[timed_reward], args=pada_args,
                           train_dataset=training_dataset(records, chat_format=False,
                                                          columns=("anchor", "anchor_raw")),
                           processing_class=tokenizer, peft_config=lora_config(cfg.pada.lora),
                           callbacks=[StepClock()])
+    if args.profile:
+        _label_parts(trainer)
     with contextlib.redirect_stdout(sys.stderr):  # the trainer's log lines: stdout is the figures' (--json)
         trainer.train()
+    if profiler is not None:
+        row_profile = _write_profile(profiler, Path(args.profile) / f"pada_{cfg.pada.cache}.txt", device)
     history = trainer.state.log_history
     generate = [h["time/generate_s"] for h in history if "time/generate_s" in h]
     graphs = [h["time/decode_graphs"] for h in history if "time/decode_graphs" in h]
@@ -139,10 +159,55 @@ def _time_steps(cfg, args, device: torch.device) -> dict:
            "path": ("cuda_graphs" if graphs and min(graphs) == 1.0 else "eager") if graphs else "hf_generate",
            "global_batch": pada_args.per_device_train_batch_size * pada_args.gradient_accumulation_steps,
            "num_generations": pada_args.num_generations, "parameters": count_parameters(model)}
+    if profiler is not None:
+        row["profile"] = row_profile
     if device.type == "cuda":
         row["max_memory_gib"] = torch.cuda.max_memory_allocated(device) / 2**30
         torch.cuda.reset_peak_memory_stats(device)
     return row
+
+
+# the trainer's methods a profiled step labels (record_function ranges named "pada/<method>")
+PROFILED_PARTS = ("_generate", "_generate_and_score_completions", "_get_per_token_logps_and_entropies",
+                  "_compute_loss", "anchor_cross_entropy", "training_step")
+
+
+def _label_parts(trainer) -> None:
+    """Wrap :data:`PROFILED_PARTS` of ``trainer`` (instance attributes: this trainer only) and its
+    accelerator's ``backward`` and optimiser step in ``record_function`` ranges."""
+    import functools
+
+    def labelled(name, method):
+        @functools.wraps(method)
+        def call(*a, **kw):
+            with torch.profiler.record_function(f"pada/{name}"):
+                return method(*a, **kw)
+        return call
+
+    for name in PROFILED_PARTS:
+        setattr(trainer, name, labelled(name, getattr(trainer, name)))
+    trainer.accelerator.backward = labelled("backward", trainer.accelerator.backward)
+
+
+def _write_profile(profiler, path: Path, device: torch.device) -> dict:
+    """The profiled step's tables to ``path``; returns the labelled parts' host and GPU seconds."""
+    events = profiler.key_averages()
+    gpu = "cuda" if device.type == "cuda" else "cpu"
+    parts = {e.key.removeprefix("pada/"): {"cpu_s": e.cpu_time_total / 1e6,
+                                           "gpu_s": getattr(e, "device_time_total", 0.0) / 1e6,
+                                           "calls": e.count}
+             for e in events if e.key.startswith("pada/")}
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with open(path, "w") as f:
+        f.write("The trainer's parts (host time includes what they wait for):\n")
+        for name, v in sorted(parts.items(), key=lambda kv: -kv[1]["cpu_s"]):
+            f.write(f"  {name:40s} {v['calls']:5d} calls  host {v['cpu_s']:8.3f} s  "
+                    f"gpu {v['gpu_s']:8.3f} s\n")
+        for title, key in ((f"Operators by {gpu} self time", f"self_{gpu}_time_total"),
+                           ("Operators by host self time", "self_cpu_time_total")):
+            f.write(f"\n{title}:\n")
+            f.write(events.table(sort_by=key, row_limit=40, max_name_column_width=70) + "\n")
+    return {"file": str(path), "parts": parts}
 
 
 def summary(r: dict) -> str:
