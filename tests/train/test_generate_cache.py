@@ -153,7 +153,8 @@ def test_eval_cache_reaches_the_model_generator(monkeypatch):
         cfg = load_config(f"train_{name}")
         assert cfg.eval.cache == cfg.anchors.cache == cfg.pada.cache == "dynamic"
     small = load_config("train_small")  # the fast decoder (physcene.train.decode) for all three
-    assert small.eval.cache == small.anchors.cache == small.pada.cache == "fast"
+    assert small.eval.cache == small.anchors.cache == "fast"  # greedy: HF's ids
+    assert small.pada.cache == "fast+fused+cudnn"  # sampled groups: the fastest setting
 
 
 def test_pada_cache_reaches_trl_generation_config(tmp_path, tokenizer):
