@@ -34,7 +34,13 @@ __all__ = ["TARGET"]
 def add_arguments(parser) -> None:
     parser.add_argument("--config", default="small", help="training config (tiny, small)")
     parser.add_argument("--tokens", type=int, default=2304,
-                        help="rollout length (pada.max_completion_length)")
+                        help="rollout length (pada.max_completion_length), forced unless --until-eos")
+    parser.add_argument("--model", default=None,
+                        help="the policy's base: a trained checkpoint folder or an artifact's name "
+                             "(physcene artifacts list) instead of random weights of --config")
+    parser.add_argument("--until-eos", action="store_true",
+                        help="rollouts stop at their EOS (at most --tokens): the lengths a trained policy "
+                             "writes (with random weights every rollout runs to --tokens anyway)")
     parser.add_argument("--steps", type=int, default=3, help="timed optimiser steps (after one warm-up step)")
     parser.add_argument("--caches", nargs="+", default=["fast"],
                         help="pada.cache values timed one after the other (dynamic, static, static_compile, "
@@ -63,7 +69,8 @@ def run(args) -> dict:
     if device.type == "cpu" and torch.cuda.is_available():
         raise ValueError("--device cpu: the trainer takes the GPU of this machine; run on a CPU-only one")
     result = {"target": "pada", "device": device_name(device), "config": args.config, "variant": args.variant,
-              "tokens": args.tokens, "constrained": bool(args.constrained), "caches": {}}
+              "model": args.model or "random weights", "tokens": args.tokens,
+              "until_eos": bool(args.until_eos), "constrained": bool(args.constrained), "caches": {}}
     for cache in args.caches:
         with tempfile.TemporaryDirectory() as tmp:
             cfg = load_config(f"train_{args.config}", [
@@ -78,10 +85,17 @@ def run(args) -> dict:
 def _time_steps(cfg, args, device: torch.device) -> dict:
     from transformers import TrainerCallback
 
+    from physcene.artifacts import resolve_model
     from physcene.data import synthesize
     from physcene.reward.trl import PhysicsRewardFunction
     from physcene.train.config import pada_arguments
-    from physcene.train.models import build_scratch_model, count_parameters, set_attention_kernels
+    from physcene.train.models import (
+        build_scratch_model,
+        count_parameters,
+        load_model,
+        load_tokenizer,
+        set_attention_kernels,
+    )
     from physcene.train.pada import PADATrainer
     from physcene.train.records import training_dataset
     from physcene.train.sft import lora_config
@@ -90,15 +104,20 @@ def _time_steps(cfg, args, device: torch.device) -> dict:
     steps = 1 + args.steps
     pada_args = pada_arguments(cfg, args.variant)
     pada_args.max_steps = steps
-    pada_args.generation_kwargs = {**(pada_args.generation_kwargs or {}), "min_new_tokens": args.tokens}
+    if not args.until_eos:
+        pada_args.generation_kwargs = {**(pada_args.generation_kwargs or {}), "min_new_tokens": args.tokens}
     records = list(synthesize("train", n=max(64, pada_args.per_device_train_batch_size * 4), seed=args.seed))
     for r in records:
         r["anchor"] = r["anchor_raw"] = r["completion"]
-    tokenizer = build_tokenizer([r["prompt"] for r in records[:32]] + [r["completion"] for r in records[:32]],
-                                vocab_size=int(cfg.model.tokenizer.vocab_size))
     dtype = str(cfg.model.dtype) if device.type == "cuda" else "float32"
     set_attention_kernels(cfg.model)
-    model = build_scratch_model(cfg.model.arch, tokenizer, seed=args.seed, dtype=dtype)
+    if args.model:
+        path = resolve_model(args.model)
+        model, tokenizer = load_model(path, dtype=dtype), load_tokenizer(path)
+    else:
+        texts = [r["prompt"] for r in records[:32]] + [r["completion"] for r in records[:32]]
+        tokenizer = build_tokenizer(texts, vocab_size=int(cfg.model.tokenizer.vocab_size))
+        model = build_scratch_model(cfg.model.arch, tokenizer, seed=args.seed, dtype=dtype)
     reward = PhysicsRewardFunction(device)
     reward_seconds: list[float] = []
 
@@ -146,6 +165,8 @@ def _time_steps(cfg, args, device: torch.device) -> dict:
         row_profile = _write_profile(profiler, Path(args.profile) / f"pada_{cfg.pada.cache}.txt", device)
     history = trainer.state.log_history
     generate = [h["time/generate_s"] for h in history if "time/generate_s" in h]
+    lengths = [(h["completions/mean_length"], h["completions/max_length"]) for h in history
+               if "completions/mean_length" in h]
     graphs = [h["time/decode_graphs"] for h in history if "time/decode_graphs" in h]
     rounds = max(len(reward_seconds) // max(len(step_seconds), 1), 1)  # reward calls per step
     per_step_reward = [sum(reward_seconds[i * rounds:(i + 1) * rounds]) for i in range(len(step_seconds))]
@@ -156,6 +177,8 @@ def _time_steps(cfg, args, device: torch.device) -> dict:
     row = {"seconds_per_step": total, "generate_s": gen, "reward_s": rew,
            "update_s": total - (gen or 0.0) - rew, "steps_timed": len(step_seconds) - 1,
            "first_step_s": step_seconds[0], "all_steps_s": step_seconds,
+           "completion_tokens_mean": statistics.mean(m for m, _ in lengths) if lengths else None,
+           "completion_tokens_max": max(x for _, x in lengths) if lengths else None,
            "path": ("cuda_graphs" if graphs and min(graphs) == 1.0 else "eager") if graphs else "hf_generate",
            "global_batch": pada_args.per_device_train_batch_size * pada_args.gradient_accumulation_steps,
            "num_generations": pada_args.num_generations, "parameters": count_parameters(model)}
@@ -213,13 +236,18 @@ def _write_profile(profiler, path: Path, device: torch.device) -> dict:
 def summary(r: dict) -> str:
     lines = [f"device {r['device']}: {r['config']} ({r['parameters'] / 1e6:.2f} M parameters), "
              f"{r['variant']}, "
-             f"global batch {r['global_batch']}, G = {r['num_generations']}, rollouts of {r['tokens']} tokens"
+             f"global batch {r['global_batch']}, G = {r['num_generations']}, rollouts of "
+             f"{'at most ' if r.get('until_eos') else ''}{r['tokens']} tokens"
+             f"{'' if r.get('model', 'random weights') == 'random weights' else ', policy ' + r['model']}"
              f"{', CTRC-constrained' if r['constrained'] else ''}"]
     for cache, v in r["caches"].items():
         gen = "-" if v["generate_s"] is None else f"{v['generate_s']:.2f}"
+        mean = v.get("completion_tokens_mean")
+        lengths = ("" if mean is None
+                   else f"; rollouts {mean:.0f} tokens mean, {v['completion_tokens_max']:.0f} max")
         lines.append(f"{cache:15s} {v['seconds_per_step']:7.2f} s/step (generation {gen} s, reward "
                      f"{v['reward_s']:.2f} s, update {v['update_s']:.2f} s; median of {v['steps_timed']}; "
-                     f"first step {v['first_step_s']:.1f} s) [{v['path']}]")
+                     f"first step {v['first_step_s']:.1f} s{lengths}) [{v['path']}]")
     return "\n".join(lines)
 
 
