@@ -28,7 +28,7 @@ want trained && $gen --model "$MODEL" --until-eos --variants static fast fast+fu
 want exact && $gen --model "$MODEL" --until-eos --cudnn-attention --variants static fast+cudnn \
   --out "$OUT/exact_cudnn.json"
 want constrained && $gen --model "$MODEL" --constrained --variants fast fast+fused+cudnn --out "$OUT/constrained.json"
-want pada_forced && $pada --caches fast fast+fused+cudnn > "$OUT/pada_forced.json"
+want pada_forced && $pada --caches fast fast+fused+cudnn --profile "$OUT/forced" > "$OUT/pada_forced.json"
 want pada_natural && $pada --model "$MODEL" --until-eos --caches fast+fused+cudnn --profile "$OUT" \
   > "$OUT/pada_natural.json"
 echo "figures in $OUT"

@@ -32,6 +32,8 @@ from accelerate import PartialState
 from accelerate.utils import gather_object
 from omegaconf import DictConfig, OmegaConf
 
+from physcene.artifacts import checkpoint_digest
+from physcene.files import write_atomic
 from physcene.layout import layout_to_dict, write_layout_records
 from physcene.reward import RewardConfig, band_low_ratio
 from physcene.scene import Scene
@@ -234,6 +236,7 @@ def _evaluate(cfg: DictConfig, models: dict[str, Path], budget_s: float) -> list
 
     a = cfg.ablation
     state = PartialState()
+    reuse = bool(a.get("reuse", True))
     items = load_benchmark(str(a.test_split), n=int(a.n_test), seed=int(cfg.seed), progress=False)
     judge = make_judge("rule", [it.reference for it in items])
     engine = PhysicsEngine(device=str(state.device))
@@ -249,21 +252,29 @@ def _evaluate(cfg: DictConfig, models: dict[str, Path], budget_s: float) -> list
         references = [it.reference for it in items]
         add_row("reference", references, score_scenes(items, references, judge, engine, progress=False))
 
+    decoding = {"n_test": int(a.n_test), "seed": int(cfg.seed),
+                **OmegaConf.to_container(cfg.eval, resolve=True)}
     for name, path in models.items():
-        with state.split_between_processes(list(range(len(items)))) as shard:
-            model = partial(_completions, path, max_new_tokens=int(cfg.eval.max_new_tokens),
-                            device=str(state.device), cache=str(cfg.eval.get("cache", "dynamic")),
-                            constrained=bool(cfg.eval.get("constrained", False)),
-                            follow_plan=bool(cfg.eval.get("follow_plan", True)),
-                            seed=int(cfg.seed), **sampling(temperature))
-            part = generate([items[i] for i in shard], f"model:{path}", progress=False,
-                            generators={f"model:{path}": model})
-        outputs = gather_object(part)  # rank order = shard order = input order
+        source = {"model": checkpoint_digest(path), "decoding": decoding}
+        earlier = _earlier_layouts(items, layouts, name, source) if reuse else None
+        if earlier is not None:  # the same checkpoint decoded with the same settings: re-scored only
+            outputs = earlier
+        else:
+            with state.split_between_processes(list(range(len(items)))) as shard:
+                model = partial(_completions, path, max_new_tokens=int(cfg.eval.max_new_tokens),
+                                device=str(state.device), cache=str(cfg.eval.get("cache", "dynamic")),
+                                constrained=bool(cfg.eval.get("constrained", False)),
+                                follow_plan=bool(cfg.eval.get("follow_plan", True)),
+                                seed=int(cfg.seed), **sampling(temperature))
+                part = generate([items[i] for i in shard], f"model:{path}", progress=False,
+                                generators={f"model:{path}": model})
+            outputs = gather_object(part)  # rank order = shard order = input order
         if not state.is_main_process:
             continue
         results = score_scenes(items, outputs, judge, engine, progress=False)
         add_row(name, outputs, results, _rl_steps(name, path))
-        if name == "sft":
+        _record_source(layouts, name, source)
+        if name == "sft":  # repaired again even from reused outputs: the row reports TTO's own figures
             repaired, extras = repair_outputs(outputs, tto_overrides=list(cfg.anchors.tto), engine=engine,
                                               progress=False)
             add_row("sft+tto", repaired,
@@ -272,6 +283,30 @@ def _evaluate(cfg: DictConfig, models: dict[str, Path], budget_s: float) -> list
             print(f"ablation: eval budget spent after {name}", file=sys.stderr)
     state.wait_for_everyone()
     return rows
+
+
+def _source_file(layouts, name: str) -> Path:
+    return Path(str(layouts)) / row_file(name).replace(".jsonl.gz", ".source.json")
+
+
+def _record_source(layouts, name: str, source: dict) -> None:
+    """Beside a row's layouts, what wrote them (the checkpoint's digest, the decoding settings)."""
+    if layouts:
+        write_atomic(_source_file(layouts, name), json.dumps(source, sort_keys=True) + "\n")
+
+
+def _earlier_layouts(items, layouts, name: str, source: dict) -> list | None:
+    """A row's outputs from its layouts file when an earlier evaluation wrote it from the same
+    checkpoint with the same settings (``source``), else None: a rerun decodes only what changed."""
+    if not layouts or not (Path(str(layouts)) / row_file(name)).is_file():
+        return None
+    recorded = _source_file(layouts, name)
+    if not recorded.is_file() or json.loads(recorded.read_text()) != json.loads(json.dumps(source)):
+        return None
+    from physcene.eval.harness import generate
+
+    print(f"ablation: {name} re-scored from {Path(str(layouts)) / row_file(name)}", file=sys.stderr)
+    return generate(items, f"file:{Path(str(layouts)) / row_file(name)}", progress=False)
 
 
 def markdown_table(rows: list[dict]) -> str:

@@ -192,10 +192,12 @@ def test_chat_format_pretrained_checkpoint(tmp_path, one_thread):
     assert len(texts) == 2 and all(records[0]["prompt"][:30] not in t and "user\n" not in t for t in texts)
 
 
-def test_ablation_rows_per_level_and_per_checkpoint(tmp_path, one_thread):
+def test_ablation_rows_per_level_and_per_checkpoint(tmp_path, one_thread, capsys):
     """`physcene train ablation` with one RL variant and ``ablation.checkpoints``: the table has the
     SFT, SFT + TTO and GRPO rows, each with its per-level figures, and a row for the intermediate
-    checkpoint (the final step is the GRPO row itself)."""
+    checkpoint (the final step is the GRPO row itself). Run again, it re-scores every model row from
+    the layouts the first run wrote (the same checkpoints, the same settings) to the same figures, and
+    decodes again a row whose settings changed."""
     from physcene.train.ablation import run_ablation
 
     write_records(_records(8, seed=0), tmp_path / "train.jsonl")
@@ -224,6 +226,15 @@ def test_ablation_rows_per_level_and_per_checkpoint(tmp_path, one_thread):
     assert [(r["rl_steps"], Path(r["layouts"]).name) for r in every] == \
         [(0, "sft.jsonl.gz"), (0, "sft_tto.jsonl.gz"), (2, "grpo.jsonl.gz"), (1, "grpo-1.jsonl.gz")]
     assert (out / "ablation" / "grpo-1.jsonl.gz").is_file() and (out / "ablation.svg").is_file()
+    capsys.readouterr()
+    again = run_ablation(cfg, budget_min=30)
+    log = capsys.readouterr().err
+    assert all(f"{name} re-scored from" in log for name in ("sft", "grpo", "grpo@1"))
+    figures = ("scr", "acr", "parse_rate", "judge_avg", "by_level")
+    assert [[r[k] for k in figures] for r in again["rows"] + again["checkpoint_rows"]] == \
+        [[r[k] for k in figures] for r in result["rows"] + result["checkpoint_rows"]]
+    run_ablation(OmegaConf.merge(cfg, {"eval": {"max_new_tokens": 12}}), budget_min=30)
+    assert "re-scored" not in capsys.readouterr().err
 
 
 def test_pada_resumes_from_its_last_checkpoint_with_its_beta(tmp_path, one_thread, step_counter):

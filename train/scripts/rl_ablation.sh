@@ -1,0 +1,90 @@
+#!/bin/bash
+# The RL rows of the ablation (grpo, pada*, pada) from a kept SFT base, at the settings of docs/results.md
+# "RL at the paper's volume": every RL run on one GPU of the host, the runs spread over the GPUs, each run
+# resuming from its last checkpoint when the script is run again.
+#
+#   physcene artifacts restore small-sft
+#   BASE=artifacts/small-sft bash train/scripts/rl_ablation.sh                 # anchors, RL, evaluation
+#   STOP_IN=540 STAGES="anchors rl" bash train/scripts/rl_ablation.sh          # under a 10-minute limit;
+#   STOP_IN=540 STAGES=rl bash train/scripts/rl_ablation.sh                    # again until STEPS, then
+#   STAGES=eval bash train/scripts/rl_ablation.sh                              # every kept checkpoint
+#
+# Stages: anchors (the base's greedy layouts of POOL training prompts, TTO-repaired: all GPUs), rl (the
+# VARIANTS x SEEDS runs, GPU k taking runs k, k + GPUS, ...), eval (per seed: sft, sft+tto and each
+# variant with every kept checkpoint on N_TEST test scenes, rule judge: $RUN/s<seed>/ablation.json).
+# The reward is the paper's with the validity terms (floating, shrunk, out of zone: VALID='[]' for the
+# bare reward), advantages scaled over the batch (SCALE=group: the paper's per-group scaling), G rollouts
+# per prompt, global batch BATCH. Logs: $RUN/s<seed>/<variant>.log.
+set -euo pipefail
+BASE=${BASE:-artifacts/small-sft}
+CONFIG=${CONFIG:-small}
+RUN=${RUN:-runs/rl}
+VARIANTS=${VARIANTS:-"pada grpo pada_star"}
+SEEDS=${SEEDS:-"0 1"}
+POOL=${POOL:-4096}                  # training prompts with an anchor (those whose reference fits TOKENS)
+G=${G:-16}
+BATCH=${BATCH:-128}                 # completions per optimiser step (BATCH / G prompts)
+MICRO=${MICRO:-16}                  # of BATCH, per forward/backward
+SCALE=${SCALE:-batch}
+VALID=${VALID:-"[floating,shrunk,out_of_zone]"}
+STEPS=${STEPS:-300}                 # optimiser steps per run: 300 x 128 = 38,400 rollouts (the paper: ~37 k)
+SAVE=${SAVE:-50}                    # a checkpoint (kept, with optimiser state) every SAVE steps: the curves' points
+TOKENS=${TOKENS:-2304}              # rollout and anchor length bound (the paper's)
+N_TEST=${N_TEST:-866}
+RL_CACHE=${RL_CACHE:-fast+fused+cudnn}  # sampled groups; anchors and evaluation (greedy) decode with `fast`
+STOP_IN=${STOP_IN:-}                # seconds: every run stops (and saves) this long after the script started
+EXTRA=${EXTRA:-}
+STAGES=${STAGES:-"anchors rl eval"}
+GPUS=${GPUS:-$(python3 -c "import torch; print(max(1, torch.cuda.device_count()))")}
+want() { [[ " $STAGES " == *" $1 "* ]]; }
+stamp() { echo "[$(date +%T)] $*"; }
+mkdir -p "$RUN"
+stop=${STOP_IN:+STOP_IN=$STOP_IN}
+common="sft.output_dir=$BASE anchors.output=$RUN/anchors.jsonl anchors.pool_size=$POOL $EXTRA"
+rl="pada.num_generations=$G pada.scale_rewards=$SCALE pada.reward=[\"valid_terms=$VALID\"]"
+rl="$rl pada.max_steps=$STEPS pada.save_steps=$SAVE pada.save_total_limit=null"
+
+if want anchors; then
+  stamp "anchors: $POOL prompts on $GPUS GPU(s)"
+  env $stop NPROC=$GPUS RUN="$RUN" STAGES=anchors ANCHORS=$POOL MAX_TOKENS=$TOKENS CACHE=fast \
+    EXTRA="$common" bash train/scripts/ablation_small.sh
+fi
+if want rl; then
+  runs=()
+  for seed in $SEEDS; do for variant in $VARIANTS; do runs+=("$seed:$variant"); done; done
+  for gpu in $(seq 0 $((GPUS - 1))); do
+    (
+      for k in $(seq "$gpu" "$GPUS" $((${#runs[@]} - 1))); do
+        seed=${runs[$k]%%:*} variant=${runs[$k]##*:}
+        mkdir -p "$RUN/s$seed"
+        stamp "$variant seed $seed on GPU $gpu"
+        CUDA_VISIBLE_DEVICES=$gpu env $stop NPROC=1 CONFIG=$CONFIG RUN="$RUN/s$seed" STAGES="$variant" \
+          ANCHORS=$POOL MAX_TOKENS=$TOKENS PADA_TOKENS=$TOKENS PADA_BATCH=$BATCH PADA_MICRO=$MICRO \
+          PADA_MIN=100000 PADA_CACHE=$RL_CACHE CACHE=fast EXTRA="$common $rl seed=$seed" \
+          bash train/scripts/ablation_small.sh > "$RUN/s$seed/$variant.log" 2>&1 \
+          || stamp "$variant seed $seed failed: $RUN/s$seed/$variant.log"
+      done
+    ) &
+  done
+  wait
+fi
+if want eval; then
+  seeds=($SEEDS)
+  for k in "${!seeds[@]}"; do
+    seed=${seeds[$k]}
+    (
+      gpu=$((k % GPUS))
+      stamp "eval seed $seed on GPU $gpu"
+      listed=$(echo $VARIANTS | tr ' ' ,)
+      CUDA_VISIBLE_DEVICES=$gpu NPROC=1 CONFIG=$CONFIG RUN="$RUN/s$seed" STAGES=eval ANCHORS=$POOL \
+        MAX_TOKENS=$TOKENS N_TEST=$N_TEST PADA_MIN=100000 CACHE=fast \
+        EXTRA="$common $rl seed=$seed ablation.checkpoints=true ablation.variants=[$listed] \
+ablation.output=$RUN/s$seed/ablation.json ablation.layouts=$RUN/s$seed/layouts" \
+        bash train/scripts/ablation_small.sh > "$RUN/s$seed/eval.log" 2>&1 \
+        || stamp "eval seed $seed failed: $RUN/s$seed/eval.log"
+    ) &
+    [ $(((k + 1) % GPUS)) -eq 0 ] && wait
+  done
+  wait
+fi
+stamp done
