@@ -32,7 +32,7 @@ from accelerate import PartialState
 from accelerate.utils import gather_object
 from omegaconf import DictConfig, OmegaConf
 
-from physcene.artifacts import checkpoint_digest
+from physcene.artifacts import ArtifactError, checkpoint_digest, repo_root
 from physcene.files import write_atomic
 from physcene.layout import layout_to_dict, write_layout_records
 from physcene.reward import RewardConfig, band_low_ratio
@@ -46,8 +46,8 @@ from physcene.train.pada import NoAnchorsError, run_pada
 from physcene.train.sft import TimeBudget, run_sft
 
 __all__ = ["ROW_KEYS", "ROW_NAMES", "TimeBudget", "ablation_row", "check_ablation", "checkpoint_models",
-           "layout_records", "level_table", "markdown_table", "row_file", "run_ablation", "shrunk_share",
-           "table_figures", "table_row"]
+           "layout_records", "level_table", "markdown_table", "merge_ablations", "row_file", "run_ablation",
+           "shrunk_share", "table_figures", "table_row", "write_ablation"]
 
 ROW_NAMES = ("reference", "sft", "sft+tto", "grpo", "pada*", "pada")
 # Every row of ablation.json has these (shares and rates as fractions, null where nothing parsed).
@@ -413,10 +413,69 @@ def run_ablation(cfg: DictConfig, budget_min: float | None = None) -> dict:
                      "cache": str(cfg.eval.get("cache", "dynamic"))},
     }
     if PartialState().is_main_process:
-        out = Path(str(a.output))
-        out.parent.mkdir(parents=True, exist_ok=True)
-        out.write_text(json.dumps(result, indent=1))
-        every = rows + checkpoint_rows
-        out.with_suffix(".md").write_text(markdown_table(every) + "\n" + level_table(every))
-        write_learning_curves(result, out.with_suffix(".svg"))
+        write_ablation(result, Path(str(a.output)))
     return result
+
+
+def write_ablation(result: dict, out: Path) -> Path:
+    """``result`` to ``out`` (JSON), its table beside it (``.md``: every row, then per level) and its
+    learning curves (``.svg``)."""
+    out.parent.mkdir(parents=True, exist_ok=True)
+    write_atomic(out, json.dumps(result, indent=1) + "\n")
+    every = result["rows"] + result.get("checkpoint_rows", [])
+    out.with_suffix(".md").write_text(markdown_table(every) + "\n" + level_table(every))
+    write_learning_curves(result, out.with_suffix(".svg"))
+    return out
+
+
+def merge_ablations(sources: list[str | Path], out: str | Path, layouts: str | Path | None = None) -> dict:
+    """One table from the ``ablation.json`` of several runs (the seeds of ``rl_ablation.sh``): their rows
+    and checkpoint rows, each keeping its ``seed``, the sources' GPUs and commands; written to ``out``
+    with its ``.md`` and ``.svg``. With ``layouts`` (a folder) every row's layouts file is copied to
+    ``<layouts>/s<seed>/`` and the row names the copy, so the table and its layouts travel together
+    (``physcene eval --generator file:...`` recomputes a row). Two rows with the same name, seed and
+    steps are an error naming both sources."""
+    import shutil
+
+    merged: dict = {"rows": [], "checkpoint_rows": [], "gpu": [], "commands": [], "sources": []}
+    seen: dict[tuple, str] = {}
+    for source in map(Path, sources):
+        data = check_ablation(json.loads(source.read_text()), str(source))
+        merged["sources"].append(str(source))
+        for key in ("gpu", "commands"):
+            for value in data[key] if isinstance(data[key], list) else [data[key]]:
+                if value not in merged[key]:
+                    merged[key].append(value)
+        for part in ("rows", "checkpoint_rows"):
+            for row in data.get(part, []):
+                row = dict(row)
+                ident = (row["name"], row.get("seed"), row.get("rl_steps"))
+                if ident in seen:
+                    raise ValueError(f"{source}: row {row['name']} (seed {row.get('seed')}, "
+                                     f"{row.get('rl_steps')} RL steps) is also in {seen[ident]}")
+                seen[ident] = str(source)
+                if layouts is not None and row.get("layouts"):
+                    found = _row_layouts(row["layouts"], source)
+                    copy = Path(layouts) / f"s{row.get('seed', 0)}" / found.name
+                    copy.parent.mkdir(parents=True, exist_ok=True)
+                    shutil.copyfile(found, copy)
+                    row["layouts"] = _repository_path(copy)
+                merged[part].append(row)
+    merged["gpu"] = merged["gpu"][0] if len(merged["gpu"]) == 1 else merged["gpu"]
+    write_ablation(check_ablation(merged, str(out)), Path(out))
+    return merged
+
+
+def _row_layouts(layouts: str, source: Path) -> Path:
+    """A row's layouts file: as written (a repository path, from the current folder or the checkout's
+    root) or beside its ``ablation.json``."""
+    candidates = [Path(layouts), source.parent / Path(layouts).name]
+    try:
+        candidates.insert(1, repo_root() / layouts)
+    except ArtifactError:  # outside a checkout: the other candidates
+        pass
+    found = next((c for c in candidates if c.is_file()), None)
+    if found is None:
+        raise ValueError(f"{source}: layouts {layouts!r} not found (looked at "
+                         f"{', '.join(map(str, candidates))})")
+    return found

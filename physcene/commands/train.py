@@ -1,4 +1,4 @@
-"""``physcene train sft|anchors|pada|ablation|ablation-plot --config NAME [key=value ...]``
+"""``physcene train sft|anchors|pada|ablation|ablation-plot|ablation-merge --config NAME [key=value ...]``
 (docs/training.md).
 
 ``--config tiny`` reads ``configs/train/tiny.yaml`` over ``configs/train/base.yaml`` (``small``,
@@ -16,10 +16,10 @@ from physcene.config import load_config
 
 NAME = "train"
 HELP = ("train the layout model: sft, anchors (SFT output + TTO), pada (grpo|pada_star|pada), ablation, "
-        "ablation-plot")
+        "ablation-plot, ablation-merge")
 SETTINGS = "configs/train/<--config>.yaml over configs/train/base.yaml (docs/training.md)"
 
-STAGES = ("sft", "anchors", "pada", "ablation", "ablation-plot")
+STAGES = ("sft", "anchors", "pada", "ablation", "ablation-plot", "ablation-merge")
 
 
 def add_arguments(parser) -> None:
@@ -31,6 +31,11 @@ def add_arguments(parser) -> None:
                         help="pada stage: which objective (default: the config's pada.variant)")
     parser.add_argument("--budget-min", type=float, default=None,
                         help="ablation: wall-clock budget in minutes for the whole pipeline")
+    parser.add_argument("--sources", nargs="+", default=None, metavar="ABLATION_JSON",
+                        help="ablation-merge: the runs' tables (e.g. runs/rl/s0/ablation.json "
+                             "runs/rl/s1/ablation.json), merged into ablation.output")
+    parser.add_argument("--layouts", default=None, metavar="DIR",
+                        help="ablation-merge: copy every row's layouts to DIR/s<seed>/ and name the copies")
 
 
 def training_config(name: str, overrides=()):
@@ -86,6 +91,14 @@ def _run_stage(args) -> int:
         out = run_pada(cfg)
         if _main_process():
             print(f"{cfg.pada.variant} adapter: {out}")
+    elif args.stage == "ablation-merge":
+        from physcene.train.ablation import merge_ablations
+
+        if not args.sources:
+            raise ValueError("train ablation-merge: name the tables to merge: --sources A.json B.json ...")
+        merged = merge_ablations(args.sources, str(cfg.ablation.output), layouts=args.layouts)
+        print(f"{len(merged['rows'])} rows and {len(merged['checkpoint_rows'])} checkpoint rows: "
+              f"{cfg.ablation.output}")
     elif args.stage == "ablation-plot":  # the learning curves of ablation.output, beside it (.svg)
         from physcene.train.ablation_plot import write_learning_curves
 

@@ -103,3 +103,28 @@ def test_learning_curves_start_at_the_sft_row(table, tmp_path):
     assert write_learning_curves(source).read_text() == svg
     with pytest.raises(FileNotFoundError, match="does not exist"):
         write_learning_curves(tmp_path / "none.json")
+
+
+def test_seeds_merge_into_one_table_with_their_layouts(table, tmp_path):
+    """`physcene train ablation-merge`: two seeds' tables become one (rows keep their seed, the curves
+    get a line per seed), every row's layouts copied to <layouts>/s<seed>/ and named there; a row in
+    both sources (same name, seed and steps) is refused."""
+    folder, data = table
+    seed1 = {**data, "gpu": "cpu", "rows": [{**r, "seed": 1} for r in data["rows"]]}
+    for name, d in (("s0.json", data), ("s1.json", seed1)):
+        (tmp_path / name).write_text(json.dumps(d))
+    out, layouts = tmp_path / "merged" / "ablation.json", tmp_path / "merged" / "layouts"
+    assert main(["train", "ablation-merge", "--config", "tiny", f"ablation.output={out}",
+                 "--sources", str(tmp_path / "s0.json"), str(tmp_path / "s1.json"),
+                 "--layouts", str(layouts)]) == 0
+    merged = check_ablation(json.loads(out.read_text()))
+    assert [(r["name"], r["seed"]) for r in merged["rows"]] == [("reference", 0), ("pada", 0),
+                                                                ("reference", 1), ("pada", 1)]
+    assert merged["gpu"] == "cpu" and merged["commands"] == ["pytest"]
+    for row in merged["rows"]:
+        copy = layouts / f"s{row['seed']}" / row_file(row["name"])
+        assert copy.is_file() and row["layouts"].endswith(f"s{row['seed']}/{row_file(row['name'])}")
+    assert {("pada", 0), ("pada", 1)} <= set(learning_curves(merged))
+    assert out.with_suffix(".md").is_file() and out.with_suffix(".svg").is_file()
+    assert main(["train", "ablation-merge", "--config", "tiny", f"ablation.output={out}",
+                 "--sources", str(tmp_path / "s0.json"), str(tmp_path / "s0.json")]) != 0
