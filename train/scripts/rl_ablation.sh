@@ -8,6 +8,8 @@
 #   STOP_IN=540 STAGES="anchors rl" bash train/scripts/rl_ablation.sh          # under a 10-minute limit;
 #   STOP_IN=540 STAGES=rl bash train/scripts/rl_ablation.sh                    # again until STEPS, then
 #   STAGES=eval bash train/scripts/rl_ablation.sh                              # every kept checkpoint
+#   physcene train ablation-merge --config small ablation.output=docs/results/ablation.json \
+#     --sources runs/rl/s0/ablation.json runs/rl/s1/ablation.json --layouts docs/results/ablation
 #
 # Stages: anchors (the base's greedy layouts of POOL training prompts, TTO-repaired: all GPUs), rl (the
 # VARIANTS x SEEDS runs, GPU k taking runs k, k + GPUS, ...), eval (per seed: sft, sft+tto and each
