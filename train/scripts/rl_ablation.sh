@@ -1,6 +1,6 @@
 #!/bin/bash
-# The RL rows of the ablation (grpo, pada*, pada) from a kept SFT base, at the settings of docs/results.md
-# "RL at the paper's volume": every RL run on one GPU of the host, the runs spread over the GPUs, each run
+# The RL rows of the ablation (grpo, pada*, pada) from a kept SFT base, at the study's settings (docs/training.md
+# "GPU runs"): every RL run on one GPU of the host, the runs spread over the GPUs, each run
 # resuming from its last checkpoint when the script is run again.
 #
 #   physcene artifacts restore small-sft
