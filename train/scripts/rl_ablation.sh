@@ -85,7 +85,7 @@ ablation.output=$RUN/s$seed/ablation.json ablation.layouts=$RUN/s$seed/layouts" 
         bash train/scripts/ablation_small.sh > "$RUN/s$seed/eval.log" 2>&1 \
         || stamp "eval seed $seed failed: $RUN/s$seed/eval.log"
     ) &
-    [ $(((k + 1) % GPUS)) -eq 0 ] && wait
+    if (((k + 1) % GPUS == 0)); then wait; fi
   done
   wait
 fi
