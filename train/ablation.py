@@ -310,18 +310,22 @@ def _earlier_layouts(items, layouts, name: str, source: dict) -> list | None:
 
 
 def markdown_table(rows: list[dict]) -> str:
-    """The ablation rows as a Markdown table (rates in %)."""
+    """The ablation rows as a Markdown table (rates and shares in %): every figure of the schema, so a
+    reward that is gamed shows beside the SCR (floating, shrunk and out-of-zone objects)."""
     pct = (lambda x: "—" if x is None else f"{100 * x:.1f}%")  # noqa: E731
     num = (lambda x: "—" if x is None else f"{x:.2f}")  # noqa: E731
-    lines = ["| method | SCR | ACR | QPR(7) | judge avg | parse rate | n | floating objects |",
-             "|---|---|---|---|---|---|---|---|"]
+    lines = ["| method | seed | RL steps | SCR | ACR | QPR 7 / 8 / 9 | judge avg | parse rate | floating | "
+             "shrunk | out of zone | n |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         if "skipped" in r:
-            lines.append(f"| {r['name']} | skipped: {r['skipped']} | | | | | | |")
+            lines.append(f"| {r['name']} | | | skipped: {r['skipped']} | | | | | | | | |")
             continue
-        lines.append(f"| {r['name']} | {pct(r['scr'])} | {pct(r['acr'])} | {pct(r['qpr7'])} | "
-                     f"{num(r['judge_avg'])} | {pct(r['parse_rate'])} | {r['n']} | "
-                     f"{pct(r.get('floating'))} |")
+        qpr = " / ".join(pct(r.get(k)) for k in ("qpr7", "qpr8", "qpr9"))
+        lines.append(f"| {r['name']} | {r.get('seed', 0)} | {r.get('rl_steps', 0)} | {pct(r['scr'])} | "
+                     f"{pct(r['acr'])} | {qpr} | {num(r['judge_avg'])} | {pct(r['parse_rate'])} | "
+                     f"{pct(r.get('floating'))} | {pct(r.get('shrunk'))} | {pct(r.get('out_of_zone'))} | "
+                     f"{r['n']} |")
     return "\n".join(lines) + "\n"
 
 

@@ -396,12 +396,13 @@ def test_ablation_row_and_table_from_an_eval_report():
                                              "judge": {"avg": nan}}})
     assert empty["scr"] is None and empty["parse_rate"] == 0.0
     table = markdown_table([row, empty, {"name": "pada*", "skipped": "no anchors"}])
-    assert "| pada | 50.0% | 12.5% | 25.0% | 7.50 | 75.0% | 4 | — |" in table and "| sft | — |" in table
+    assert "| pada | 0 | 0 | 50.0% | 12.5% | 25.0% / — / — | 7.50 | 75.0% | — | — | — | 4 |" in table
+    assert "| sft | 0 | 0 | — |" in table
     assert "skipped: no anchors" in table
     # the eval harness's floating share of objects, where the report has it (NaN: nothing parsed)
     report["summary"]["floating"] = {"objects": 0.07, "scenes": 0.52}
     assert ablation_row("pada", report)["floating"] == 0.07
-    assert "| 4 | 7.0% |" in markdown_table([ablation_row("pada", report)])
+    assert "| 75.0% | 7.0% | — | — | 4 |" in markdown_table([ablation_row("pada", report)])
     empty_report = {"summary": {"n": 1, "parse_errors": 1, "QPR": {7.0: 0.0}, "judge": {"avg": nan},
                                 "collision": {0.0: {"SCR": nan, "ACR": nan}},
                                 "floating": {"objects": nan, "scenes": nan}}}

@@ -58,13 +58,14 @@ if want rl; then
     (
       for k in $(seq "$gpu" "$GPUS" $((${#runs[@]} - 1))); do
         seed=${runs[$k]%%:*} variant=${runs[$k]##*:}
-        mkdir -p "$RUN/s$seed"
+        dir=$RUN/s$seed  # (not RUN=...: a later word of the same command would read the new value)
+        mkdir -p "$dir"
         stamp "$variant seed $seed on GPU $gpu"
-        CUDA_VISIBLE_DEVICES=$gpu env $stop NPROC=1 CONFIG=$CONFIG RUN="$RUN/s$seed" STAGES="$variant" \
+        CUDA_VISIBLE_DEVICES=$gpu env $stop NPROC=1 CONFIG=$CONFIG RUN="$dir" STAGES="$variant" \
           ANCHORS=$POOL MAX_TOKENS=$TOKENS PADA_TOKENS=$TOKENS PADA_BATCH=$BATCH PADA_MICRO=$MICRO \
           PADA_MIN=100000 PADA_CACHE=$RL_CACHE CACHE=fast EXTRA="$common $rl seed=$seed" \
-          bash train/scripts/ablation_small.sh > "$RUN/s$seed/$variant.log" 2>&1 \
-          || stamp "$variant seed $seed failed: $RUN/s$seed/$variant.log"
+          bash train/scripts/ablation_small.sh > "$dir/$variant.log" 2>&1 \
+          || stamp "$variant seed $seed failed: $dir/$variant.log"
       done
     ) &
   done
@@ -75,15 +76,14 @@ if want eval; then
   for k in "${!seeds[@]}"; do
     seed=${seeds[$k]}
     (
-      gpu=$((k % GPUS))
+      gpu=$((k % GPUS)) dir=$RUN/s$seed
       stamp "eval seed $seed on GPU $gpu"
       listed=$(echo $VARIANTS | tr ' ' ,)
-      CUDA_VISIBLE_DEVICES=$gpu NPROC=1 CONFIG=$CONFIG RUN="$RUN/s$seed" STAGES=eval ANCHORS=$POOL \
+      CUDA_VISIBLE_DEVICES=$gpu NPROC=1 CONFIG=$CONFIG RUN="$dir" STAGES=eval ANCHORS=$POOL \
         MAX_TOKENS=$TOKENS N_TEST=$N_TEST PADA_MIN=100000 CACHE=fast \
         EXTRA="$common $rl seed=$seed ablation.checkpoints=true ablation.variants=[$listed] \
-ablation.output=$RUN/s$seed/ablation.json ablation.layouts=$RUN/s$seed/layouts" \
-        bash train/scripts/ablation_small.sh > "$RUN/s$seed/eval.log" 2>&1 \
-        || stamp "eval seed $seed failed: $RUN/s$seed/eval.log"
+ablation.output=$dir/ablation.json ablation.layouts=$dir/layouts" \
+        bash train/scripts/ablation_small.sh > "$dir/eval.log" 2>&1 || stamp "eval seed $seed failed: $dir/eval.log"
     ) &
     if (((k + 1) % GPUS == 0)); then wait; fi
   done
