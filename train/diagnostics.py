@@ -18,6 +18,7 @@ from trl import GRPOTrainer
 
 from physcene.train.extension import PADAExtension
 from physcene.train.sft import nonfinite_gradients
+from physcene.train.targets import ANCHOR_ROW_KEYS
 
 __all__ = ["NonfiniteProbe"]
 
@@ -86,12 +87,10 @@ class NonfiniteProbe(PADAExtension):
                 finally:
                     base.set_attn_implementation(attention)
             rows = []
-            row_keys = ("prompt_ids", "prompt_mask", "anchor_ids", "anchor_attention_mask",
-                        "anchor_loss_mask")
             for b in range(inputs["anchor_ids"].size(0)):
                 if inputs["anchor_loss_mask"][b].sum() == 0:
                     continue
-                one = {k: inputs[k][b:b + 1] for k in row_keys}
+                one = {k: inputs[k][b:b + 1] for k in ANCHOR_ROW_KEYS}
                 value, finite = finite_backward(lambda one=one: anchor_ce(one))
                 rows.append({"row": b, "ce": value, "finite": finite,
                              "prompt_tokens": int(one["prompt_mask"].sum()),

@@ -60,10 +60,17 @@ from physcene.train.models import (
 from physcene.train.object_credit import ObjectCredit, credit_reward
 from physcene.train.records import load_records, training_dataset
 from physcene.train.sft import SkipNonFiniteSteps, lora_config, skipped_steps, time_budget_callbacks
-from physcene.train.targets import numeric_spans, padded_targets, tokenize_anchor, tokenize_target
+from physcene.train.targets import (
+    ANCHOR_ROW_KEYS,
+    numeric_spans,
+    padded_targets,
+    tokenize_anchor,
+    tokenize_target,
+)
 
 __all__ = [
     "VARIANTS",
+    "anchor_owners",
     "NoAnchorsError",
     "AdaptiveKLCallback",
     "PADAConfig",
@@ -78,6 +85,17 @@ __all__ = [
 ]
 
 logger = logging.getLogger(__name__)
+
+
+def anchor_owners(inputs: list[dict], column: str) -> list[bool]:
+    """For each row of a generation round, whether it is the first with its (prompt, anchor): the row
+    whose anchor the CE supervises (TRL repeats each prompt, with its anchor, for its G completions)."""
+    seen, owners = set(), []
+    for x in inputs:
+        key = (str(x.get("prompt")), x.get(column) or "")
+        owners.append(bool(key[1]) and key not in seen)
+        seen.add(key)
+    return owners
 
 
 class NoAnchorsError(ValueError):
@@ -173,15 +191,29 @@ class PADATrainer(GRPOTrainer):
             extension.after_scoring(self, inputs, output)
         if self.anchor_alpha == 0.0:
             return output
-        rows = [tokenize_anchor(self._tokenizer, x.get(self.args.anchor_column) or "",
+        column = self.args.anchor_column
+        rows = [tokenize_anchor(self._tokenizer, x.get(column) or "",
                                 max_length=self.max_completion_length,
                                 numeric_mask=self.args.anchor_numeric_mask,
                                 keys=tuple(self.args.anchor_geometry_keys)) for x in inputs]
-        output.update(padded_targets("anchor", rows, self._tokenizer.pad_token_id, self.accelerator.device))
+        device = self.accelerator.device
+        output.update(padded_targets("anchor", rows, self._tokenizer.pad_token_id, device))
+        # The G completions of a prompt carry the same anchor: one row per distinct (prompt, anchor) is
+        # supervised (the others' loss mask is zero and they skip the CE's forward), and the round's
+        # supervised tokens are kept so the micro-batches' terms add up to the mean over them.
+        owner = torch.tensor(anchor_owners(inputs, column), dtype=torch.bool, device=device)
+        output["anchor_loss_mask"] = output["anchor_loss_mask"] * owner[:, None]
+        output["anchor_owner"] = owner
+        output["anchor_tokens"] = output["anchor_loss_mask"].sum().float()  # 0-d: not split with the rows
         return output
 
     def anchor_cross_entropy(self, model, inputs) -> torch.Tensor:
-        """Mean token NLL of the anchors given their prompts, over the supervised anchor tokens (scalar)."""
+        """Mean token NLL of the anchors given their prompts, over the supervised anchor tokens (scalar):
+        of the rows that own an anchor (``anchor_owner``) only, the others repeating one of them."""
+        owner = inputs.get("anchor_owner")
+        if owner is not None and not bool(owner.all()):
+            keep = owner.nonzero().squeeze(1)
+            inputs = {k: inputs[k].index_select(0, keep) for k in ANCHOR_ROW_KEYS}
         nll, count = self.target_nll(model, inputs, "anchor")
         return nll / count.clamp(min=1.0)
 
@@ -211,10 +243,18 @@ class PADATrainer(GRPOTrainer):
         if self.anchor_alpha == 0.0 or "anchor_ids" not in inputs:
             return loss
         mode = "train" if self.model.training else "eval"
-        has_anchor = inputs["anchor_loss_mask"].sum() > 0
+        count = inputs["anchor_loss_mask"].sum()
+        has_anchor = count > 0
         ce = self.anchor_cross_entropy(model, inputs) if has_anchor else loss.new_zeros(())
-        # TRL divides its own loss by the accumulation steps (HF auto-scaling is off): do the same.
-        normalizer = self.current_gradient_accumulation_steps if mode == "train" else 1.0
+        total = inputs.get("anchor_tokens")
+        if mode == "train" and total is not None:
+            # this micro-batch's share of the round's anchor tokens, per optimizer step of the round: the
+            # steps' terms are the mean NLL over the round's distinct anchors, duplicates counted once
+            steps_per_round = self.args.steps_per_generation / self.current_gradient_accumulation_steps
+            weight = count / total.clamp(min=1.0) * steps_per_round
+        else:
+            # TRL divides its own loss by the accumulation steps (HF auto-scaling is off): do the same.
+            weight = 1.0 / (self.current_gradient_accumulation_steps if mode == "train" else 1.0)
         stats = torch.stack([ce.detach() * has_anchor, has_anchor.float(), loss.detach()])
         stats = self.accelerator.reduce(stats, reduction="sum")
         if not bool(torch.isfinite(stats).all()):  # say which term broke (SkipNonFiniteSteps drops the step)
@@ -223,7 +263,7 @@ class PADATrainer(GRPOTrainer):
                            stats[2].item())
         if stats[1] > 0:
             self._metrics[mode]["anchor_ce"].append((stats[0] / stats[1]).item())
-        return loss + self.anchor_alpha * ce / normalizer
+        return loss + self.anchor_alpha * ce * weight
 
 
 def run_pada(cfg, variant: str | None = None, reward=None, callbacks=()) -> Path:

@@ -20,6 +20,7 @@ from physcene.ctrc.spans import (
 )
 
 __all__ = [
+    "ANCHOR_ROW_KEYS",
     "GEOMETRY_KEYS",
     "OBJECT_CREDIT_SCOPES",
     "numeric_spans",
@@ -73,6 +74,10 @@ def tokenize_target(tokenizer: PreTrainedTokenizerBase, text: str, spans: list[t
     for t in _tokens_over(enc["offset_mapping"], spans):
         mask[t] = 1
     return ids[:max_length], mask[:max_length]
+
+
+ANCHOR_ROW_KEYS = ("prompt_ids", "prompt_mask", "anchor_ids", "anchor_attention_mask", "anchor_loss_mask")
+"""The per-row tensors of a PADA batch that the anchor CE reads."""
 
 
 def padded_targets(name: str, rows: list[tuple[list[int], list[int]]], pad: int, device) -> dict:

@@ -296,6 +296,41 @@ def test_one_generation_round_feeds_several_optimizer_steps(tmp_path, one_thread
     assert [e["step"] for e in steps] == [1, 2, 3, 4]
 
 
+def test_anchor_ce_reads_each_prompts_anchor_once(tmp_path, one_thread, monkeypatch):
+    """The G completions of a prompt carry one anchor: the CE's forward sees one row per distinct
+    (prompt, anchor) and the micro-batches' weights add up to one per optimizer step, so the term is
+    the mean NLL over the round's distinct anchor tokens (the duplicates counted once, not G times)."""
+    from physcene.train.pada import PADATrainer, anchor_owners
+
+    assert anchor_owners([{"prompt": "p", "anchor": "a"}, {"prompt": "p", "anchor": "a"},
+                          {"prompt": "q", "anchor": "b"}, {"prompt": "r", "anchor": ""},
+                          {"prompt": "q", "anchor": "b"}], "anchor") == [True, False, True, False, False]
+    cfg = _sft_for_pada(tmp_path, 8, 4, "pada.max_steps=2", "pada.num_generations=4",
+                        "pada.global_batch_size=8", "pada.per_device_batch_size=2")
+    rows, weights = [], []
+    nll = PADATrainer.target_nll
+
+    def counted(self, model, inputs, name):
+        if name == "anchor":
+            rows.append(inputs["anchor_ids"].size(0))
+            assert bool((inputs["anchor_loss_mask"].sum(1) > 0).all())  # owners only
+        return nll(self, model, inputs, name)
+
+    compute = PADATrainer._compute_loss
+
+    def weighed(self, model, inputs):
+        if "anchor_tokens" in inputs:
+            weights.append(float(inputs["anchor_loss_mask"].sum() / inputs["anchor_tokens"]))
+        return compute(self, model, inputs)
+
+    monkeypatch.setattr(PADATrainer, "target_nll", counted)
+    monkeypatch.setattr(PADATrainer, "_compute_loss", weighed)
+    run_pada(cfg, variant="pada", reward=PhysicsReward(RewardConfig(device="cpu")))
+    # 2 steps x 4 micro-batches of 2 completions; 2 prompts x G = 4 per step: 2 anchors per step
+    assert len(weights) == 8 and sum(rows) == 4 and max(rows) <= 2
+    assert sum(weights[:4]) == pytest.approx(1.0) and sum(weights[4:]) == pytest.approx(1.0)
+
+
 def test_nonfinite_probe_names_the_loss_term_and_rows_that_broke(tmp_path, one_thread, monkeypatch):
     """``pada.nonfinite_probe``: an anchor CE whose value is finite but whose backward is NaN (the GPU
     runs' symptom: a finite loss, every LoRA gradient NaN) is found by the probe: the GRPO term's
