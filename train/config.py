@@ -67,6 +67,12 @@ class PADAConfig(GRPOConfig):
                                          "as a logits processor (physcene.train.constrained_rollouts; HF "
                                          "generate only, not vLLM)."})
 
+    length_grouping: bool = field(
+        default=True, metadata={"help": "Within each optimizer step, micro-batches of rows of similar "
+                                        "completion length, each cut to the columns its rows use "
+                                        "(physcene.train.micro_batches): the step's gradient is the same "
+                                        "sum (loss_type dapo), the padding's compute is not spent."})
+
     # --- extensions: not in the paper, each off by default ---
     mask_overruled: bool = field(
         default=True, metadata={"help": "Leave the tokens the CTRC constraint chose instead of the "
@@ -186,6 +192,7 @@ def pada_arguments(cfg, variant: str) -> PADAConfig:
         cache_implementation=None if cache == "dynamic" or cache in FAST_CACHES else "static",
         generation_compile=cache == "static_compile",
         fast_decode=cache in FAST_CACHES,
+        length_grouping=bool(p.get("length_grouping", True)),
         fast_decode_cache=cache if cache in FAST_CACHES else "fast",
         constrained_decoding=bool(p.get("constrained", False)),
         mask_overruled=bool(p.get("mask_overruled", True)),

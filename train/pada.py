@@ -47,6 +47,7 @@ from physcene.train.diagnostics import NonfiniteProbe
 from physcene.train.extension import PADAExtension
 from physcene.train.generate import set_trainer_cache
 from physcene.train.kl import AdaptiveKLCallback
+from physcene.train.micro_batches import grouped_by_length, trimmed
 from physcene.train.models import (
     base_checked,
     begin_final_save,
@@ -96,6 +97,11 @@ def anchor_owners(inputs: list[dict], column: str) -> list[bool]:
         owners.append(bool(key[1]) and key not in seen)
         seen.add(key)
     return owners
+
+
+GROUPING_LOSSES = ("dapo", "dr_grpo", "grpo", "cispo")
+"""TRL loss types whose gradient over an optimizer step does not depend on which micro-batch a row is
+in (global token normaliser, a constant, or per-row means over micro-batches of equal row counts)."""
 
 
 class NoAnchorsError(ValueError):
@@ -184,6 +190,20 @@ class PADATrainer(GRPOTrainer):
             if ps:
                 extension.after_generation(self)
         return output
+
+    def _prepare_inputs(self, generation_batch):
+        """TRL's micro-batch of this step; with ``length_grouping`` the round's micro-batches regrouped
+        by completion length within each optimizer step and each cut to the columns it uses
+        (:mod:`physcene.train.micro_batches`; the loss must not depend on the grouping: ``dapo``)."""
+        every = self.args.steps_per_generation * self.num_iterations
+        fresh = self.model.training and (self._step % every == 0 or self._buffered_inputs is None)
+        inputs = super()._prepare_inputs(generation_batch)
+        if not (self.model.training and self.args.length_grouping and self.loss_type in GROUPING_LOSSES):
+            return inputs
+        if fresh:
+            self._buffered_inputs = grouped_by_length(self._buffered_inputs,
+                                                      self.current_gradient_accumulation_steps)
+        return trimmed(self._buffered_inputs[self._step % self.args.steps_per_generation])
 
     def _generate_and_score_completions(self, inputs):
         output = super()._generate_and_score_completions(inputs)

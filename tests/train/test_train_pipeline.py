@@ -331,6 +331,51 @@ def test_anchor_ce_reads_each_prompts_anchor_once(tmp_path, one_thread, monkeypa
     assert sum(weights[:4]) == pytest.approx(1.0) and sum(weights[4:]) == pytest.approx(1.0)
 
 
+def test_length_grouped_micro_batches_give_the_same_gradient(tmp_path, one_thread, monkeypatch):
+    """``pada.length_grouping``: rollouts of different lengths regrouped by length within each
+    optimizer step and each micro-batch cut to its longest row give the gradient of TRL's random
+    micro-batches at full width (the same sum in another order: LoRA dropout off, so that each row
+    meets the same weights), and the cut happens."""
+    from transformers import TrainerCallback
+
+    from physcene.train import micro_batches
+    from physcene.train.pada import PADATrainer
+
+    def fixed_rollouts(self, prompt_ids, *args, **kwargs):  # lengths 2..13 tokens, then EOS
+        eos = self.eos_token_ids[0]
+        return [[5 + (i + k) % 40 for k in range(2 + (7 * i) % 12)] + [eos]
+                for i in range(len(prompt_ids))], None
+
+    widths = []
+
+    def cut(batch):
+        out = micro_batches.trimmed(batch)
+        widths.append(out["completion_ids"].shape[1])
+        return out
+
+    class FirstGradient(TrainerCallback):
+        def on_pre_optimizer_step(self, args, state, control, model=None, **kwargs):
+            if state.global_step == 0:
+                grads[grouping] = torch.cat([p.grad.flatten() for p in model.parameters()
+                                             if p.requires_grad and p.grad is not None])
+
+    monkeypatch.setattr(PADATrainer, "_generate_single_turn", fixed_rollouts)
+    monkeypatch.setattr("physcene.train.pada.trimmed", cut)
+    # a reward that tells the rollouts apart (their length), so the policy-gradient term is not zero
+    monkeypatch.setattr("physcene.train.pada.PhysicsRewardFunction.__call__",
+                        lambda self, prompts, completions, **kw: [float(len(c)) for c in completions])
+    grads = {}
+    for grouping in (False, True):
+        cfg = _sft_for_pada(tmp_path / str(grouping), 8, 5, "pada.max_steps=1", "pada.num_generations=2",
+                            "pada.global_batch_size=8", "pada.per_device_batch_size=2",
+                            "pada.lora.dropout=0.0", f"pada.length_grouping={str(grouping).lower()}")
+        run_pada(cfg, variant="pada", reward=PhysicsReward(RewardConfig(device="cpu")),
+                 callbacks=[FirstGradient()])
+    assert grads[True].norm() > 0
+    assert torch.allclose(grads[True], grads[False], atol=1e-7, rtol=1e-4)
+    assert len(widths) == 4 and min(widths) < max(widths) <= 14  # each micro-batch cut to its longest
+
+
 def test_nonfinite_probe_names_the_loss_term_and_rows_that_broke(tmp_path, one_thread, monkeypatch):
     """``pada.nonfinite_probe``: an anchor CE whose value is finite but whose backward is NaN (the GPU
     runs' symptom: a finite loss, every LoRA gradient NaN) is found by the probe: the GRPO term's

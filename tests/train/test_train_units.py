@@ -653,3 +653,29 @@ def test_an_extensions_logits_processor_reaches_generate_unpatched(tokenizer, tm
     assert Identity.calls > 0 and trainer.extensions[0].generated == 1
     assert trainer.extensions[0].prompts == trainer._round_prompts
     assert processed == plain and all(1 <= len(c) <= 16 for c in processed)
+
+
+def test_micro_batches_cut_and_regroup_only_what_they_know():
+    """``physcene.train.micro_batches``: a micro-batch is cut to the completion columns its rows use
+    and the prompt columns some row uses; a per-row tensor of the completion's width it does not know
+    leaves it uncut; regrouping keeps each step's rows, sorted by length, in equal micro-batches."""
+    from physcene.train.micro_batches import grouped_by_length, trimmed
+
+    mask = torch.tensor([[1, 1, 0, 0, 0], [1, 0, 0, 0, 0]])
+    batch = {"prompt_ids": torch.tensor([[0, 0, 7], [0, 6, 7]]),
+             "prompt_mask": torch.tensor([[0, 0, 1], [0, 1, 1]]),
+             "completion_ids": torch.arange(10).view(2, 5), "completion_mask": mask,
+             "ref_per_token_logps": torch.zeros(2, 5), "advantages": torch.tensor([1.0, -1.0]),
+             "num_items_in_batch": torch.tensor(3), "anchor_ids": torch.zeros(2, 5, dtype=torch.long)}
+    cut = trimmed(batch)
+    assert cut["completion_ids"].tolist() == [[0, 1], [5, 6]] and cut["ref_per_token_logps"].shape == (2, 2)
+    assert cut["prompt_ids"].tolist() == [[0, 7], [6, 7]] and cut["advantages"].shape == (2,)
+    assert cut["anchor_ids"].shape == (2, 5)  # the anchors' own width
+    assert trimmed({**batch, "unknown_per_token": torch.zeros(2, 5)})["completion_ids"].shape == (2, 5)
+    long = {**batch, "completion_mask": torch.tensor([[1, 1, 1, 1, 1], [1, 1, 1, 0, 0]]),
+            "advantages": torch.tensor([3.0, 2.0])}
+    regrouped = grouped_by_length([batch, long], per_step=2)
+    assert [b["completion_mask"].sum(1).tolist() for b in regrouped] == [[5, 3], [2, 1]]
+    assert [b["advantages"].tolist() for b in regrouped] == [[3.0, 2.0], [1.0, -1.0]]
+    assert int(regrouped[1]["num_items_in_batch"]) == 3
+    assert grouped_by_length([batch, long, batch], per_step=2)[2] is batch  # not whole steps: unchanged
