@@ -33,7 +33,8 @@ STEPS=${STEPS:-300}                 # optimiser steps per run: 300 x 128 = 38,40
 SAVE=${SAVE:-50}                    # a checkpoint (kept, with optimiser state) every SAVE steps: the curves' points
 TOKENS=${TOKENS:-2304}              # rollout and anchor length bound (the paper's)
 N_TEST=${N_TEST:-866}
-RL_CACHE=${RL_CACHE:-fast+fused+cudnn}  # sampled groups; anchors and evaluation (greedy) decode with `fast`
+RL_CACHE=${RL_CACHE:-fast+fused+cudnn}  # sampled groups
+EVAL_CACHE=${EVAL_CACHE:-fast}      # anchors and evaluation (greedy): HF's ids; fast+fused+cudnn: ~1.4x faster
 STOP_IN=${STOP_IN:-}                # seconds: every run stops (and saves) this long after the script started
 EXTRA=${EXTRA:-}
 STAGES=${STAGES:-"anchors rl eval"}
@@ -48,7 +49,7 @@ rl="$rl pada.max_steps=$STEPS pada.save_steps=$SAVE pada.save_total_limit=null"
 
 if want anchors; then
   stamp "anchors: $POOL prompts on $GPUS GPU(s)"
-  env $stop NPROC=$GPUS RUN="$RUN" STAGES=anchors ANCHORS=$POOL MAX_TOKENS=$TOKENS CACHE=fast \
+  env $stop NPROC=$GPUS RUN="$RUN" STAGES=anchors ANCHORS=$POOL MAX_TOKENS=$TOKENS CACHE=$EVAL_CACHE \
     EXTRA="$common" bash train/scripts/ablation_small.sh
 fi
 if want rl; then
@@ -63,7 +64,7 @@ if want rl; then
         stamp "$variant seed $seed on GPU $gpu"
         CUDA_VISIBLE_DEVICES=$gpu env $stop NPROC=1 CONFIG=$CONFIG RUN="$dir" STAGES="$variant" \
           ANCHORS=$POOL MAX_TOKENS=$TOKENS PADA_TOKENS=$TOKENS PADA_BATCH=$BATCH PADA_MICRO=$MICRO \
-          PADA_MIN=100000 PADA_CACHE=$RL_CACHE CACHE=fast EXTRA="$common $rl seed=$seed" \
+          PADA_MIN=100000 PADA_CACHE=$RL_CACHE CACHE=$EVAL_CACHE EXTRA="$common $rl seed=$seed" \
           bash train/scripts/ablation_small.sh > "$dir/$variant.log" 2>&1 \
           || stamp "$variant seed $seed failed: $dir/$variant.log"
       done
@@ -80,7 +81,7 @@ if want eval; then
       stamp "eval seed $seed on GPU $gpu"
       listed=$(echo $VARIANTS | tr ' ' ,)
       CUDA_VISIBLE_DEVICES=$gpu NPROC=1 CONFIG=$CONFIG RUN="$dir" STAGES=eval ANCHORS=$POOL \
-        MAX_TOKENS=$TOKENS N_TEST=$N_TEST PADA_MIN=100000 CACHE=fast \
+        MAX_TOKENS=$TOKENS N_TEST=$N_TEST PADA_MIN=100000 CACHE=$EVAL_CACHE \
         EXTRA="$common $rl seed=$seed ablation.checkpoints=true ablation.variants=[$listed] \
 ablation.output=$dir/ablation.json ablation.layouts=$dir/layouts" \
         bash train/scripts/ablation_small.sh > "$dir/eval.log" 2>&1 || stamp "eval seed $seed failed: $dir/eval.log"
