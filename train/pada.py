@@ -205,6 +205,42 @@ class PADATrainer(GRPOTrainer):
                                                       self.current_gradient_accumulation_steps)
         return trimmed(self._buffered_inputs[self._step % self.args.steps_per_generation])
 
+    def _get_per_token_logps_and_entropies(self, model, input_ids, attention_mask, logits_to_keep,
+                                           batch_size=None, compute_entropy=False, **kwargs):
+        """TRL's, with ``length_grouping`` over chunks of rows of similar length (a round's rows sorted
+        by their last used column first: the reference model's pass), each chunk cut to the columns its
+        rows use; the results padded back and returned in the rows' order. Image inputs go to TRL's."""
+        rows = input_ids.size(0)
+        size = batch_size or rows
+        if not self.args.length_grouping or any(v is not None for k, v in kwargs.items()
+                                                 if k != "compute_aux_loss"):
+            return super()._get_per_token_logps_and_entropies(
+                model, input_ids, attention_mask, logits_to_keep, batch_size, compute_entropy, **kwargs)
+        columns = torch.arange(1, input_ids.size(1) + 1, device=input_ids.device)
+        used = (attention_mask.bool() * columns).amax(dim=1)  # each row's last used column, 1-based
+        order = torch.argsort(used, descending=True, stable=True) if rows > size else None
+        logps, entropies, aux = [], [], []
+        for start in range(0, rows, size):
+            index = order[start:start + size] if order is not None else slice(start, start + size)
+            width = int(used[index].max())
+            cut = min(input_ids.size(1) - width, logits_to_keep - 1)  # keep one completion column
+            keep = input_ids.size(1) - cut
+            lp, ent, ax = super()._get_per_token_logps_and_entropies(
+                model, input_ids[index, :keep], attention_mask[index, :keep], logits_to_keep - cut,
+                batch_size=size, compute_entropy=compute_entropy, **kwargs)
+            logps.append(torch.nn.functional.pad(lp, (0, cut)))
+            if ent is not None:
+                entropies.append(torch.nn.functional.pad(ent, (0, cut)))
+            if ax is not None:
+                aux.append(ax)
+        logps = torch.cat(logps)
+        entropies = torch.cat(entropies) if entropies else None
+        if order is not None:
+            back = torch.argsort(order)
+            logps = logps[back]
+            entropies = entropies[back] if entropies is not None else None
+        return logps, entropies, (torch.stack(aux).mean() if aux else None)
+
     def _generate_and_score_completions(self, inputs):
         output = super()._generate_and_score_completions(inputs)
         for extension in self.extensions:
