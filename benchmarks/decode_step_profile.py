@@ -17,6 +17,7 @@ kernels do (equal) or by the gaps between them (the replayed step longer).
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import statistics
 import time
@@ -53,7 +54,7 @@ def profile(cache: str, model, tokenizer, enc, read: int) -> dict:
         decoder.prefill(enc["input_ids"].cuda(), enc["attention_mask"].cuda())
         decoder.positions.fill_(read - 1)
         decoder._furthest = read - 2  # every step reads the bucket holding column `read`
-        with fused_layers(text_model(model)) if fuse else _nothing():
+        with fused_layers(text_model(model)) if fuse else contextlib.nullcontext():
             replayed = []
             for _ in range(53):
                 decoder.positions.fill_(read - 1)
@@ -88,14 +89,6 @@ def profile(cache: str, model, tokenizer, enc, read: int) -> dict:
         "top": [{"kernel": name[:90], "calls_per_step": len(t) / steps, "ms_per_step": sum(t) / steps / 1e3}
                 for name, t in top],
     }
-
-
-class _nothing:
-    def __enter__(self):
-        return None
-
-    def __exit__(self, *exc):
-        return False
 
 
 def main() -> None:

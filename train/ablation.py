@@ -255,7 +255,8 @@ def _evaluate(cfg: DictConfig, models: dict[str, Path], budget_s: float) -> list
     decoding = {"n_test": int(a.n_test), "seed": int(cfg.seed),
                 **OmegaConf.to_container(cfg.eval, resolve=True)}
     for name, path in models.items():
-        source = {"model": checkpoint_digest(path), "decoding": decoding}
+        # hashed only where the layouts are kept: what the reuse check and the record compare
+        source = {"model": checkpoint_digest(path), "decoding": decoding} if layouts else None
         earlier = _earlier_layouts(items, layouts, name, source) if reuse else None
         if earlier is not None:  # the same checkpoint decoded with the same settings: re-scored only
             outputs = earlier

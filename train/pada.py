@@ -195,12 +195,11 @@ class PADATrainer(GRPOTrainer):
         """TRL's micro-batch of this step; with ``length_grouping`` the round's micro-batches regrouped
         by completion length within each optimizer step and each cut to the columns it uses
         (:mod:`physcene.train.micro_batches`; the loss must not depend on the grouping: ``dapo``)."""
-        every = self.args.steps_per_generation * self.num_iterations
-        fresh = self.model.training and (self._step % every == 0 or self._buffered_inputs is None)
+        buffered = self._buffered_inputs
         inputs = super()._prepare_inputs(generation_batch)
         if not (self.model.training and self.args.length_grouping and self.loss_type in GROUPING_LOSSES):
             return inputs
-        if fresh:
+        if self._buffered_inputs is not buffered:  # TRL generated a new round
             self._buffered_inputs = grouped_by_length(self._buffered_inputs,
                                                       self.current_gradient_accumulation_steps)
         return trimmed(self._buffered_inputs[self._step % self.args.steps_per_generation])
@@ -259,16 +258,16 @@ class PADATrainer(GRPOTrainer):
         # supervised tokens are kept so the micro-batches' terms add up to the mean over them.
         owner = torch.tensor(anchor_owners(inputs, column), dtype=torch.bool, device=device)
         output["anchor_loss_mask"] = output["anchor_loss_mask"] * owner[:, None]
-        output["anchor_owner"] = owner
         output["anchor_tokens"] = output["anchor_loss_mask"].sum().float()  # 0-d: not split with the rows
         return output
 
     def anchor_cross_entropy(self, model, inputs) -> torch.Tensor:
         """Mean token NLL of the anchors given their prompts, over the supervised anchor tokens (scalar):
-        of the rows that own an anchor (``anchor_owner``) only, the others repeating one of them."""
-        owner = inputs.get("anchor_owner")
-        if owner is not None and not bool(owner.all()):
-            keep = owner.nonzero().squeeze(1)
+        the forward runs on the rows with a supervised token only (a prompt's other completions repeat
+        its anchor with a zero loss mask, :func:`anchor_owners`)."""
+        supervised = inputs["anchor_loss_mask"].any(dim=1)
+        if not bool(supervised.all()):
+            keep = supervised.nonzero().squeeze(1)
             inputs = {k: inputs[k].index_select(0, keep) for k in ANCHOR_ROW_KEYS}
         nll, count = self.target_nll(model, inputs, "anchor")
         return nll / count.clamp(min=1.0)

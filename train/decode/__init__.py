@@ -14,7 +14,7 @@ tested against. What the fast path changes, each part in its own module:
   MLP compiled into a few fused kernels around the cache write and the attention.
 
 The generation ``cache`` settings that select it (:data:`FAST_CACHES`): ``fast`` plus ``+fused``
-and/or ``+matmul`` / ``+flex``, e.g. ``cache: fast+fused+flex``.
+and/or ``+cudnn`` / ``+matmul`` / ``+flex``, e.g. ``cache: fast+fused+cudnn``.
 
 :func:`fast_generate` is the entry point: it switches the model to eval mode (no dropout, LoRA's
 included) and to the folded attention for the call, and restores both afterwards.
@@ -52,7 +52,8 @@ logger = logging.getLogger(__name__)
 FAST_CACHES = {"fast" + ("+fused" if fuse else "") + ("" if attention == "sdpa" else f"+{attention}"):
                (attention, fuse) for fuse in (False, True) for attention in ATTENTIONS}
 """The generation ``cache`` settings of the fast decoder -> (attention, fused layers): ``fast`` (the folded
-sdpa attention, eager layers: HF generate's ids), ``+matmul`` / ``+flex`` another decoding attention,
+sdpa attention, eager layers: HF generate's ids), ``+cudnn`` / ``+matmul`` / ``+flex`` another decoding
+attention,
 ``+fused`` the compiled layers (:mod:`~physcene.train.decode.fuse`)."""
 
 # model -> {(batch, length, graphs, attention, fuse): decoder}
