@@ -21,6 +21,7 @@ commands under a job time limit.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import sys
 import time
@@ -475,10 +476,8 @@ def _row_layouts(layouts: str, source: Path) -> Path:
     """A row's layouts file: as written (a repository path, from the current folder or the checkout's
     root) or beside its ``ablation.json``."""
     candidates = [Path(layouts), source.parent / Path(layouts).name]
-    try:
+    with contextlib.suppress(ArtifactError):  # outside a checkout: the other candidates
         candidates.insert(1, repo_root() / layouts)
-    except ArtifactError:  # outside a checkout: the other candidates
-        pass
     found = next((c for c in candidates if c.is_file()), None)
     if found is None:
         raise ValueError(f"{source}: layouts {layouts!r} not found (looked at "

@@ -62,8 +62,8 @@ def add_arguments(parser) -> None:
                         help="new tokens per prompt (forced: no early EOS)")
     parser.add_argument("--variants", nargs="+", default=["static", "fast"],
                         help="generation caches to time in this process, the first the reference: dynamic, "
-                             "static, static_compile (HF generate) or the fast decoder's fast, fast+fused, "
-                             "fast+flex, fast+matmul, fast+fused+flex, fast+fused+matmul")
+                             "static, static_compile (HF generate) or a fast decoder setting: fast with "
+                             "+fused and/or +cudnn, +matmul, +flex (physcene.train.generate.CACHE_MODES)")
     parser.add_argument("--until-eos", action="store_true",
                         help="let rows stop at their EOS (at most --tokens) instead of forcing --tokens: "
                              "the rows a trained model writes, compared up to their EOS (forced past it, "
