@@ -110,7 +110,7 @@ train_variant() {  # $1: the variant, $2: a rendezvous port of its own (variants
   fi
   stamp "$1 failed (the ablation retries it within its budget or reports it skipped)"
 }
-port=29510
+port=${PORT:-29510}                 # rendezvous ports PORT+1.. (runs sharing a host: ports of their own)
 for variant in grpo pada_star pada; do
   want "$variant" || continue
   port=$((port + 1))

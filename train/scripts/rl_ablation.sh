@@ -12,7 +12,7 @@
 #     --sources runs/rl/s0/ablation.json runs/rl/s1/ablation.json --layouts docs/results/ablation
 #
 # Stages: anchors (the base's greedy layouts of POOL training prompts, TTO-repaired: all GPUs), rl (the
-# VARIANTS x SEEDS runs, GPU k taking runs k, k + GPUS, ...), eval (per seed: sft, sft+tto and each
+# VARIANTS x SEEDS runs, PER_GPU at a time on each GPU: slot k taking runs k, k + GPUS * PER_GPU, ...), eval (per seed: sft, sft+tto and each
 # variant with every kept checkpoint on N_TEST test scenes, rule judge: $RUN/s<seed>/ablation.json).
 # The reward is the paper's with the validity terms (floating, shrunk, out of zone: VALID='[]' for the
 # bare reward), advantages scaled over the batch (SCALE=group: the paper's per-group scaling), G rollouts
@@ -39,30 +39,35 @@ STOP_IN=${STOP_IN:-}                # seconds: every run stops (and saves) this 
 EXTRA=${EXTRA:-}
 STAGES=${STAGES:-"anchors rl eval"}
 GPUS=${GPUS:-$(python3 -c "import torch; print(max(1, torch.cuda.device_count()))")}
+PER_GPU=${PER_GPU:-1}               # RL runs sharing one GPU at a time (a 27 M model leaves an H100 idle between
+                                    # its kernels: 2 fill the gaps of one)
 want() { [[ " $STAGES " == *" $1 "* ]]; }
 stamp() { echo "[$(date +%T)] $*"; }
 mkdir -p "$RUN"
-stop=${STOP_IN:+STOP_IN=$STOP_IN}
+deadline=${STOP_IN:+$(($(date +%s) + STOP_IN))}
+left() { [ -n "$deadline" ] && echo "STOP_IN=$((deadline - $(date +%s)))"; }  # what is left of STOP_IN now
 common="sft.output_dir=$BASE anchors.output=$RUN/anchors.jsonl anchors.pool_size=$POOL $EXTRA"
 rl="pada.num_generations=$G pada.scale_rewards=$SCALE pada.reward=[\"valid_terms=$VALID\"]"
 rl="$rl pada.max_steps=$STEPS pada.save_steps=$SAVE pada.save_total_limit=null"
 
 if want anchors; then
   stamp "anchors: $POOL prompts on $GPUS GPU(s)"
-  env $stop NPROC=$GPUS RUN="$RUN" STAGES=anchors ANCHORS=$POOL MAX_TOKENS=$TOKENS CACHE=$EVAL_CACHE \
+  env $(left) NPROC=$GPUS RUN="$RUN" STAGES=anchors ANCHORS=$POOL MAX_TOKENS=$TOKENS CACHE=$EVAL_CACHE \
     EXTRA="$common" bash train/scripts/ablation_small.sh
 fi
 if want rl; then
   runs=()
   for seed in $SEEDS; do for variant in $VARIANTS; do runs+=("$seed:$variant"); done; done
-  for gpu in $(seq 0 $((GPUS - 1))); do
+  slots=$((GPUS * PER_GPU))
+  for slot in $(seq 0 $((slots - 1))); do
     (
-      for k in $(seq "$gpu" "$GPUS" $((${#runs[@]} - 1))); do
+      gpu=$((slot % GPUS))
+      for k in $(seq "$slot" "$slots" $((${#runs[@]} - 1))); do
         seed=${runs[$k]%%:*} variant=${runs[$k]##*:}
         dir=$RUN/s$seed  # (not RUN=...: a later word of the same command would read the new value)
         mkdir -p "$dir"
         stamp "$variant seed $seed on GPU $gpu"
-        CUDA_VISIBLE_DEVICES=$gpu env $stop NPROC=1 CONFIG=$CONFIG RUN="$dir" STAGES="$variant" \
+        CUDA_VISIBLE_DEVICES=$gpu env $(left) NPROC=1 CONFIG=$CONFIG RUN="$dir" STAGES="$variant" PORT=$((29600 + 10 * k)) \
           ANCHORS=$POOL MAX_TOKENS=$TOKENS PADA_TOKENS=$TOKENS PADA_BATCH=$BATCH PADA_MICRO=$MICRO \
           PADA_MIN=100000 PADA_CACHE=$RL_CACHE CACHE=$EVAL_CACHE EXTRA="$common $rl seed=$seed" \
           bash train/scripts/ablation_small.sh > "$dir/$variant.log" 2>&1 \

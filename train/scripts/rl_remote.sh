@@ -1,0 +1,104 @@
+#!/bin/bash
+# rl_remote.sh start|poll|pack: the RL study (rl_ablation.sh) on a GPU host that runs commands under a time
+# limit and loses its files when it is given back. The study runs detached in /tmp/run (a copy of the
+# working tree, so a new copy of the tree cannot change a script while bash reads it); each poll packs
+# what a later host needs into $OUT, and the next host's `start` unpacks it and goes on.
+#
+#   bash train/scripts/rl_remote.sh start        # copy the tree, unpack the carried state, start rl_ablation.sh
+#   bash train/scripts/rl_remote.sh poll 540     # wait up to 540 s or until the study ends, print the runs'
+#                                                # steps, pack the state into $OUT
+#   mkdir -p /tmp/state && cp .wp/state/* /tmp/state/   # the next host: the parts carried in calls of their own
+#
+# `start` passes the environment on to rl_ablation.sh (BASE, STAGES, VARIANTS, SEEDS, STEPS, PER_GPU, STOP_IN,
+# ...; RUN is runs/rl); it unpacks the parts STATE names (default /tmp/state/rl_state.tar.xz.*) into /tmp/run, and
+# BASE from the tree
+# (carry artifacts/small-sft). The state: the anchors, every run's newest complete checkpoint whole (the
+# Trainer resumes from it), its earlier checkpoints without optimizer, scheduler and RNG state (the
+# evaluation's curve points), the final adapters, logs, and the evaluation's tables and layouts, as
+# rl_state.tar.xz.* parts under 16 MiB. `pack` alone writes them to $OUT (or $2).
+set -uo pipefail
+here=$(cd "$(dirname "$0")" && pwd)
+src=$(cd "$here/../.." && pwd)
+work=${WORK:-/tmp/run}
+RUN=runs/rl
+log=$work/rl.log
+stamp() { echo "[$(date +%T)] $*"; }
+
+pack() {  # $1: where the parts go
+  local dest=$1 list
+  [ -d "$work/$RUN" ] || { echo "pack: nothing under $work/$RUN yet"; return 0; }
+  mkdir -p "$dest"
+  list=$(mktemp)
+  (
+    cd "$work" || exit
+    find "$RUN" -type f ! -path '*/checkpoint-*' ! -name '*.lock'
+    for run in "$RUN"/s*/*/; do
+      newest=$(python3 -c "from physcene.train.checkpoints import last_complete_checkpoint as l; print(l('$run') or '')" \
+        2>/dev/null)
+      for ckpt in "$run"checkpoint-*; do
+        [ -d "$ckpt" ] || continue
+        if [ "$ckpt" = "${newest%/}" ]; then
+          find "$ckpt" -type f
+        else
+          find "$ckpt" -type f ! -name 'optimizer.pt' ! -name 'scheduler.pt' ! -name 'rng_state*.pth'
+        fi
+      done
+    done
+  ) | sort -u > "$list"
+  rm -f "$dest"/rl_state.tar.xz.*
+  tar -C "$work" -cf - -T "$list" | xz -1 -T0 | split -b 15M - "$dest/rl_state.tar.xz."
+  echo "pack: $(wc -l < "$list") files -> $(ls "$dest" | grep -c '^rl_state.tar.xz') part(s)," \
+    "$(du -ch "$dest"/rl_state.tar.xz.* | tail -1 | cut -f1)"
+  rm -f "$list"
+}
+
+progress() {  # every run's optimizer steps (its newest trainer_state or its log's last step line)
+  for run in "$work/$RUN"/s*/*/; do
+    [ -f "$run/physcene_run.json" ] || ls -d "$run"checkpoint-* > /dev/null 2>&1 || continue
+    python3 - "$run" <<'EOF'
+import json, sys
+from pathlib import Path
+run = Path(sys.argv[1])
+states = sorted(run.glob("checkpoint-*/trainer_state.json"), key=lambda p: int(p.parent.name.split("-")[1]))
+info = run / "physcene_run.json"
+last = json.loads(states[-1].read_text()) if states else {}
+steps = json.loads(info.read_text()).get("steps") if info.is_file() else last.get("global_step")
+logs = [h for h in last.get("log_history", []) if "reward" in h]
+tail = logs[-1] if logs else {}
+print(f"{run.parent.name}/{run.name}: step {steps}, checkpoints {[p.parent.name.split('-')[1] for p in states]}, "
+      f"reward {tail.get('reward')}, step_time {tail.get('step_time')}")
+EOF
+  done
+}
+
+case "${1:-}" in
+  start)
+    rm -rf "$work" && mkdir -p "$work"
+    tar -C "$src" --exclude=./.wp --exclude=./runs -cf - . | tar -C "$work" -xf -
+    parts=$(ls ${STATE:-/tmp/state/rl_state.tar.xz.*} 2>/dev/null)
+    if [ -n "$parts" ]; then
+      cat $parts | xz -dc | tar -C "$work" -xf - && stamp "unpacked $(echo $parts | wc -w) part(s) of the state"
+    fi
+    cd "$work" || exit
+    python3 -m pip install -q --no-deps --no-build-isolation -e . > /dev/null 2>&1 || echo "editable install failed"
+    nvidia-smi --query-gpu=name --format=csv,noheader
+    rm -f "$work/DONE"
+    RUN=$RUN setsid nohup bash -c 'bash train/scripts/rl_ablation.sh; echo $? > DONE' > "$log" 2>&1 < /dev/null &
+    stamp "started: $log"
+    ;;
+  poll)
+    end=$((SECONDS + ${2:-540}))
+    while [ $SECONDS -lt $end ] && [ ! -f "$work/DONE" ]; do sleep 10; done
+    [ -f "$work/DONE" ] && stamp "rl_ablation.sh ended with status $(cat "$work/DONE")"
+    tail -n "${TAILN:-15}" "$log"
+    progress
+    nvidia-smi --query-gpu=utilization.gpu,memory.used --format=csv,noheader 2>/dev/null
+    [ -n "${OUT:-}" ] && pack "$OUT"
+    ;;
+  pack)
+    pack "${2:-${OUT:?pack needs a folder: \$2 or \$OUT}}"
+    ;;
+  *)
+    sed -n '2,17p' "$0"; exit 2
+    ;;
+esac
