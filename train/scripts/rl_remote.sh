@@ -1,5 +1,5 @@
 #!/bin/bash
-# rl_remote.sh start|poll|pack: the RL study (rl_ablation.sh) on a GPU host that runs commands under a time
+# rl_remote.sh start|again|poll|pack: the RL study (rl_ablation.sh) on a GPU host that runs commands under a time
 # limit and loses its files when it is given back. The study runs detached in /tmp/run (a copy of the
 # working tree, so a new copy of the tree cannot change a script while bash reads it); each poll packs
 # what a later host needs into $OUT, and the next host's `start` unpacks it and goes on.
@@ -7,6 +7,7 @@
 #   bash train/scripts/rl_remote.sh start        # copy the tree, unpack the carried state, start rl_ablation.sh
 #   bash train/scripts/rl_remote.sh poll 540     # wait up to 540 s or until the study ends, print the runs'
 #                                                # steps, pack the state into $OUT
+#   STAGES=eval bash train/scripts/rl_remote.sh again  # rl_ablation.sh once more on what is there
 #   mkdir -p /tmp/state && cp .wp/state/* /tmp/state/   # the next host: the parts carried in calls of their own
 #
 # `start` passes the environment on to rl_ablation.sh (BASE, STAGES, VARIANTS, SEEDS, STEPS, PER_GPU, STOP_IN,
@@ -71,6 +72,12 @@ EOF
   done
 }
 
+launch() {  # rl_ablation.sh detached in $work, with this environment; DONE holds its exit status
+  rm -f "$work/DONE"
+  RUN=$RUN setsid nohup bash -c 'bash train/scripts/rl_ablation.sh; echo $? > DONE' >> "$log" 2>&1 < /dev/null &
+  stamp "started: $log"
+}
+
 case "${1:-}" in
   start)
     rm -rf "$work" && mkdir -p "$work"
@@ -82,9 +89,11 @@ case "${1:-}" in
     cd "$work" || exit
     python3 -m pip install -q --no-deps --no-build-isolation -e . > /dev/null 2>&1 || echo "editable install failed"
     nvidia-smi --query-gpu=name --format=csv,noheader
-    rm -f "$work/DONE"
-    RUN=$RUN setsid nohup bash -c 'bash train/scripts/rl_ablation.sh; echo $? > DONE' > "$log" 2>&1 < /dev/null &
-    stamp "started: $log"
+    launch
+    ;;
+  again)  # rl_ablation.sh once more in the same /tmp/run (e.g. STAGES=eval after the runs stopped)
+    cd "$work" || exit
+    launch
     ;;
   poll)
     end=$((SECONDS + ${2:-540}))
