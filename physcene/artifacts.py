@@ -338,6 +338,8 @@ def restore_artifact(name: str, to: str | Path | None = None, *, cwd: str | Path
         os.replace(tmp, final)
     write_atomic(folder / _MARKER, json.dumps({"name": name, "commit": artifact.commit,
                                                 "digest": artifact.digest}).encode())
+    if artifact.base is not None and any(f["path"].endswith("adapter_config.json") for f in artifact.files):
+        _point_adapters_at(folder, restore_artifact(artifact.base, cwd=cwd))
     return folder
 
 
@@ -355,27 +357,28 @@ def resolve_model(target: str, *, cwd: str | Path | None = None) -> str:
         return target
     try:
         folder = restore_artifact(target, cwd=cwd)
-        base = artifacts[target].base
-        if base is not None and (folder / "adapter_config.json").is_file():
-            _point_adapter_at(folder, restore_artifact(base, cwd=cwd))
     except ArtifactError as exc:
         raise ArtifactError(f"model:{target}: {exc} (restore it with `physcene artifacts restore "
                             f"{target}`)") from None
     return str(folder)
 
 
-def _point_adapter_at(folder: Path, base_folder: Path) -> None:
+def _point_adapters_at(folder: Path, base_folder: Path) -> None:
     """A LoRA adapter names its base by the absolute path it was trained from, which need not exist
-    where the artifact is restored: point it at the restored base (noted in the marker)."""
-    config_path = folder / "adapter_config.json"
-    config = json.loads(config_path.read_text())
-    if Path(str(config.get("base_model_name_or_path", ""))).is_dir():
-        return
-    config["base_model_name_or_path"] = str(base_folder)
-    write_atomic(config_path, json.dumps(config, indent=2).encode())
-    marker = json.loads((folder / _MARKER).read_text())
-    marker["rewritten"] = sorted({*marker.get("rewritten", ()), "adapter_config.json"})
-    write_atomic(folder / _MARKER, json.dumps(marker).encode())
+    where the artifact is restored: point every adapter of the folder (the final one and each
+    ``checkpoint-N``'s) at the restored base, noted in the marker."""
+    rewritten = []
+    for config_path in sorted(folder.rglob("adapter_config.json")):
+        config = json.loads(config_path.read_text())
+        if Path(str(config.get("base_model_name_or_path", ""))).is_dir():
+            continue
+        config["base_model_name_or_path"] = str(base_folder)
+        write_atomic(config_path, json.dumps(config, indent=2).encode())
+        rewritten.append(config_path.relative_to(folder).as_posix())
+    if rewritten:
+        marker = json.loads((folder / _MARKER).read_text())
+        marker["rewritten"] = sorted({*marker.get("rewritten", ()), *rewritten})
+        write_atomic(folder / _MARKER, json.dumps(marker).encode())
 
 
 def resolve_generators(generators: str, *, cwd: str | Path | None = None) -> str:

@@ -39,11 +39,12 @@ from physcene.layout import layout_to_dict, write_layout_records
 from physcene.reward import RewardConfig, band_low_ratio
 from physcene.scene import Scene
 from physcene.train.ablation_plot import write_learning_curves
-from physcene.train.anchors import run_anchors
+from physcene.train.anchors import anchor_nll, run_anchors
 from physcene.train.generate import generate as checkpoint_generate
 from physcene.train.generate import sampling
 from physcene.train.models import RUN_INFO, TrainingSetupError, read_run_info
 from physcene.train.pada import NoAnchorsError, run_pada
+from physcene.train.records import load_records
 from physcene.train.sft import TimeBudget, run_sft
 
 __all__ = ["ROW_KEYS", "ROW_NAMES", "TimeBudget", "ablation_row", "check_ablation", "checkpoint_models",
@@ -243,6 +244,7 @@ def _evaluate(cfg: DictConfig, models: dict[str, Path], budget_s: float) -> list
     engine = PhysicsEngine(device=str(state.device))
     layouts = a.get("layouts")
     temperature = float(cfg.eval.get("temperature", 0.0))
+    heldout = load_records(str(a.heldout_anchors)) if a.get("heldout_anchors") else None
     rows, start = [], time.monotonic()
 
     def add_row(name, outputs, results, rl_steps=0):
@@ -275,6 +277,9 @@ def _evaluate(cfg: DictConfig, models: dict[str, Path], budget_s: float) -> list
             continue
         results = score_scenes(items, outputs, judge, engine, progress=False)
         add_row(name, outputs, results, _rl_steps(name, path))
+        if heldout:  # PADA's mechanism: how likely the model finds repaired layouts it did not train on
+            rows[-1]["anchor_nll"] = anchor_nll(path, heldout, device=str(state.device),
+                                                max_length=int(cfg.pada.max_completion_length))["nll"]
         _record_source(layouts, name, source)
         if name == "sft":  # repaired again even from reused outputs: the row reports TTO's own figures
             repaired, extras = repair_outputs(outputs, tto_overrides=list(cfg.anchors.tto), engine=engine,
@@ -316,18 +321,22 @@ def markdown_table(rows: list[dict]) -> str:
     reward that is gamed shows beside the SCR (floating, shrunk and out-of-zone objects)."""
     pct = (lambda x: "—" if x is None else f"{100 * x:.1f}%")  # noqa: E731
     num = (lambda x: "—" if x is None else f"{x:.2f}")  # noqa: E731
+    nll = any("anchor_nll" in r for r in rows)  # a column where the held-out anchors were scored
     lines = ["| method | seed | RL steps | SCR | ACR | QPR 7 / 8 / 9 | judge avg | parse rate | floating | "
-             "shrunk | out of zone | n |",
-             "|---|---|---|---|---|---|---|---|---|---|---|---|"]
+             "shrunk | out of zone |" + (" held-out anchor NLL |" if nll else "") + " n |",
+             "|---|---|---|---|---|---|---|---|---|---|---|" + ("---|" if nll else "") + "---|"]
     for r in rows:
         if "skipped" in r:
-            lines.append(f"| {r['name']} | | | skipped: {r['skipped']} | | | | | | | | |")
+            empty = " |" * (9 if nll else 8)
+            lines.append(f"| {r['name']} | | | skipped: {r['skipped']} |{empty}")
             continue
         qpr = " / ".join(pct(r.get(k)) for k in ("qpr7", "qpr8", "qpr9"))
+        value = r.get("anchor_nll")
+        anchor = (" —" if value is None else f" {value:.4f}") + " |" if nll else ""
         lines.append(f"| {r['name']} | {r.get('seed', 0)} | {r.get('rl_steps', 0)} | {pct(r['scr'])} | "
                      f"{pct(r['acr'])} | {qpr} | {num(r['judge_avg'])} | {pct(r['parse_rate'])} | "
-                     f"{pct(r.get('floating'))} | {pct(r.get('shrunk'))} | {pct(r.get('out_of_zone'))} | "
-                     f"{r['n']} |")
+                     f"{pct(r.get('floating'))} | {pct(r.get('shrunk'))} | {pct(r.get('out_of_zone'))} |"
+                     f"{anchor} {r['n']} |")
     return "\n".join(lines) + "\n"
 
 

@@ -23,6 +23,7 @@ import json
 import sys
 from pathlib import Path
 
+import torch
 from accelerate import PartialState
 from accelerate.utils import gather_object
 from omegaconf import DictConfig
@@ -31,12 +32,14 @@ from physcene.ctrc import ParseError, completion_text, parse
 from physcene.files import write_atomic
 from physcene.layout import load_layout
 from physcene.scene import SceneError
-from physcene.train.generate import generate_token_ids, load_for_generation
+from physcene.train.generate import generate_token_ids, load_for_generation, render_prompt
 from physcene.train.models import load_tokenizer
 from physcene.train.records import load_records, prompt_pool, write_records
+from physcene.train.targets import tokenize_anchor
 from physcene.tto import TTOConfig, repair
 
-__all__ = ["anchor_prompts", "anchor_records", "anchor_summary", "completion_length", "run_anchors"]
+__all__ = ["anchor_nll", "anchor_prompts", "anchor_records", "anchor_summary", "completion_length",
+           "run_anchors"]
 
 
 def _record_zone(record: dict):
@@ -129,10 +132,15 @@ def anchor_prompts(cfg) -> list[dict]:
     """The training records that get an anchor: levels <= ``anchors.max_level`` (by default
     ``pada.max_level``: no anchor is made for a prompt PADA never sees) and ``data.max_level``, then the
     first ``anchors.n_records``; or with ``anchors.pool_size`` a pool of that many whose reference fits
-    ``pada.max_completion_length`` tokens, spread over the levels (:func:`.records.prompt_pool`)."""
+    ``pada.max_completion_length`` tokens, spread over the levels (:func:`.records.prompt_pool`).
+    ``anchors.exclude`` (a record or anchor file) leaves its prompts out: held-out anchors for
+    :func:`anchor_nll`, from prompts the RL pool does not hold."""
     a = cfg.anchors
     levels = [x for x in (cfg.data.get("max_level"), a.get("max_level")) if x is not None]
     records = load_records(str(cfg.data.train), seed=int(cfg.seed), max_level=min(levels) if levels else None)
+    if a.get("exclude"):  # held-out anchors: none of the prompts of that (RL pool's) file
+        taken = {r["id"] for r in load_records(str(a.exclude))}
+        records = [r for r in records if r.get("id") not in taken]
     if a.get("pool_size") is not None:
         records, counts = prompt_pool(records, load_tokenizer(str(a.model)), size=int(a.pool_size),
                                       max_tokens=int(cfg.pada.max_completion_length))
@@ -187,3 +195,40 @@ def run_anchors(cfg: DictConfig) -> Path:
         write_records(rows, out)
     state.wait_for_everyone()
     return out
+
+
+@torch.no_grad()
+def anchor_nll(model_path: str | Path, records: list[dict], *, column: str = "anchor", max_length: int = 8192,
+               device: str | None = None, batch_size: int = 16) -> dict:
+    """How likely the model at ``model_path`` (an SFT model or an RL adapter on it) finds anchors:
+    the mean NLL per anchor token (EOS included, as PADA's cross-entropy counts them) of the records'
+    ``column`` text given their prompts, teacher-forced. Held-out anchors (``anchors.exclude``) make it
+    the measure of what PADA claims: the policy kept close to the repaired layouts of prompts it did
+    not train on. Returns ``{"nll", "tokens", "n"}`` (records without an anchor are left out)."""
+    model, tokenizer, info = load_for_generation(model_path, device=device)
+    chat = bool(info.get("chat_format", False))
+    rows = []
+    for r in records:
+        target, mask = tokenize_anchor(tokenizer, r.get(column) or "", max_length=max_length)
+        if target:
+            text = render_prompt(tokenizer, r["prompt"], chat)
+            rows.append((tokenizer(text, add_special_tokens=False)["input_ids"], target, mask))
+    rows.sort(key=lambda row: len(row[0]) + len(row[1]))  # batches of similar length: little padding
+    total, tokens, pad = 0.0, 0, tokenizer.pad_token_id
+    for start in range(0, len(rows), batch_size):
+        batch = rows[start:start + batch_size]
+        width = max(len(p) + len(t) for p, t, _ in batch)
+        ids = torch.full((len(batch), width), pad, dtype=torch.long)
+        attention = torch.zeros((len(batch), width), dtype=torch.long)
+        supervised = torch.zeros((len(batch), width), dtype=torch.bool)
+        for k, (p, t, m) in enumerate(batch):  # right padded: positions count from the prompt's first token
+            ids[k, :len(p) + len(t)] = torch.tensor(p + t)
+            attention[k, :len(p) + len(t)] = 1
+            supervised[k, len(p):len(p) + len(t)] = torch.tensor(m, dtype=torch.bool)
+        ids, attention, supervised = (x.to(model.device) for x in (ids, attention, supervised))
+        logits = model(input_ids=ids, attention_mask=attention).logits[:, :-1].float()
+        nll = torch.nn.functional.cross_entropy(logits.transpose(1, 2), ids[:, 1:], reduction="none")
+        keep = supervised[:, 1:]
+        total += float(nll[keep].sum())
+        tokens += int(keep.sum())
+    return {"nll": total / max(tokens, 1), "tokens": tokens, "n": len(rows)}

@@ -37,7 +37,8 @@ from physcene.train.decode import FAST_CACHES
 from physcene.train.models import TrainingSetupError, load_model, load_tokenizer, read_run_info, torch_dtype
 
 __all__ = ["CACHE_MODES", "cache_generate_kwargs", "check_cache", "generate", "generate_token_ids",
-           "generate_with", "load_for_generation", "longest_prompt_tokens", "sampling", "set_trainer_cache"]
+           "generate_with", "load_for_generation", "longest_prompt_tokens", "render_prompt", "sampling",
+           "set_trainer_cache"]
 
 CACHE_MODES = ("dynamic", "static", "static_compile", *FAST_CACHES)
 """HF generate's KV caches (``dynamic``, ``static``, ``static_compile``) and the fast decoder's settings
@@ -131,7 +132,8 @@ def load_for_generation(model_path: str | Path, device: str | torch.device | Non
     return model, load_tokenizer(path), info
 
 
-def _render(tokenizer: PreTrainedTokenizerBase, prompt: str, chat_format: bool) -> str:
+def render_prompt(tokenizer: PreTrainedTokenizerBase, prompt: str, chat_format: bool) -> str:
+    """The prompt as the model reads it: the text itself, or the chat template's user turn."""
     if not chat_format:
         return prompt
     return tokenizer.apply_chat_template([{"role": "user", "content": prompt}], tokenize=False,
@@ -160,7 +162,7 @@ def generate_token_ids(model: PreTrainedModel, tokenizer: PreTrainedTokenizerBas
     check_cache(cache)
     torch.manual_seed(seed)
     device = next(model.parameters()).device
-    texts = [_render(tokenizer, p, chat_format) for p in prompts]
+    texts = [render_prompt(tokenizer, p, chat_format) for p in prompts]
     order = sorted(range(len(texts)), key=lambda i: len(texts[i]))
     out: list[list[int]] = [[] for _ in texts]
     tokenizer.padding_side = "left"

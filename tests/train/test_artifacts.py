@@ -162,6 +162,8 @@ def test_a_generator_names_an_artifact_and_an_adapter_finds_its_restored_base(re
     pada.mkdir()
     (pada / "adapter_config.json").write_text(json.dumps({"base_model_name_or_path": "/gone/runs/sft"}))
     (pada / "adapter_model.safetensors").write_bytes(b"\x00lora\x01")
+    (pada / "checkpoint-50").mkdir()  # a curve point: an adapter of its own, trained from the same base
+    (pada / "checkpoint-50" / "adapter_config.json").write_text((pada / "adapter_config.json").read_text())
     add_artifact("small-pada", "runs/pada", made_by="physcene train pada --config tiny", base="small-sft",
                  cwd=repo)
     git(repo, "commit", "-qm", "artifact small-pada")
@@ -174,6 +176,12 @@ def test_a_generator_names_an_artifact_and_an_adapter_finds_its_restored_base(re
     assert config["base_model_name_or_path"] == str(repo / "artifacts" / "small-sft")
     assert (repo / "artifacts" / "small-sft" / "model.safetensors").is_file()
     assert is_restored(folder, load_manifest(repo)["small-pada"])  # the rewrite is not a corruption
+    # a plain restore (physcene artifacts restore) points every adapter, the checkpoints' too
+    elsewhere = restore_artifact("small-pada", repo / "elsewhere", cwd=repo)
+    for config_path in (elsewhere / "adapter_config.json", elsewhere / "checkpoint-50/adapter_config.json"):
+        base = json.loads(config_path.read_text())["base_model_name_or_path"]
+        assert base == str(repo / "artifacts/small-sft")
+    assert is_restored(elsewhere, load_manifest(repo)["small-pada"])
     with pytest.raises(ArtifactError, match="--base 'nope' is not in"):
         add_artifact("x", "README.md", made_by="x", base="nope", cwd=repo)
 

@@ -25,8 +25,8 @@ from physcene.ctrc import ParseError, build_prompt, completion_text, parse
 from physcene.data.noisy import noisy_scenes
 from physcene.layout import layout_to_dict
 from physcene.reward import ChargeConfig, PhysicsReward, RewardConfig
-from physcene.train.anchors import anchor_records, anchor_summary, run_anchors
-from physcene.train.generate import generate
+from physcene.train.anchors import anchor_nll, anchor_prompts, anchor_records, anchor_summary, run_anchors
+from physcene.train.generate import generate, load_for_generation
 from physcene.train.pada import run_pada
 from physcene.train.records import load_records, write_records
 from physcene.train.sft import run_sft
@@ -207,14 +207,19 @@ def test_ablation_rows_per_level_and_per_checkpoint(tmp_path, one_thread, capsys
         "sft.max_length=1024", "anchors.max_new_tokens=16", f"anchors.tto=[{','.join(TTO_FAST)}]",
         "pada.max_steps=2", "pada.save_steps=1", "pada.save_total_limit=null",
         "pada.max_completion_length=16", "ablation.variants=[grpo]", "ablation.checkpoints=true",
-        "ablation.n_test=2", "eval.max_new_tokens=16"])
+        "ablation.n_test=2", "eval.max_new_tokens=16",
+        f"ablation.heldout_anchors={tmp_path / 'heldout.jsonl'}"])
+    write_records([dict(r, anchor=r["completion"]) for r in _records(3, seed=9)], tmp_path / "heldout.jsonl")
     result = run_ablation(cfg, budget_min=30)
     assert [r["name"] for r in result["rows"]] == ["sft", "sft+tto", "grpo"]
+    # every model row scores the held-out anchors (sft+tto is the SFT model's layouts repaired: no model)
+    nll = {r["name"]: r.get("anchor_nll") for r in result["rows"] + result["checkpoint_rows"]}
+    assert nll["sft+tto"] is None and all(0 < nll[k] < 20 for k in ("sft", "grpo", "grpo@1"))
     assert [r["name"] for r in result["checkpoint_rows"]] == ["grpo@1"]
     for row in result["rows"] + result["checkpoint_rows"]:
         assert sum(level["n"] for level in row["by_level"].values()) == row["n"] == 2
     table = (out / "ablation.md").read_text()
-    assert "| grpo@1 |" in table and "SCR / ACR" in table
+    assert "| grpo@1 |" in table and "SCR / ACR" in table and "held-out anchor NLL" in table
     assert "pada" not in result["stages"] and not (out / "pada").exists()
     written = json.loads((out / "ablation.json").read_text())
     assert written["checkpoint_rows"][0]["by_level"] == result["checkpoint_rows"][0]["by_level"]
@@ -476,3 +481,57 @@ def test_a_snapshot_of_a_running_pada_job_resumes_elsewhere(tmp_path, one_thread
     bad = subprocess.run(["bash", str(script), str(out), str(dest), str(home)], capture_output=True,
                          text=True)
     assert bad.returncode == 2 and "is not under" in bad.stderr
+
+
+def test_anchor_nll_is_the_mean_nll_of_the_anchor_tokens_whatever_the_batching(tmp_path, one_thread):
+    """The held-out anchor measure: the mean NLL per anchor token (EOS included) given the prompt, the
+    same one row at a time as in padded batches of rows of different lengths, and equal to the NLL
+    summed by hand from the model's logits; a record without an anchor is left out."""
+    cfg = _sft_for_pada(tmp_path, 4, seed=3)
+    rows = [dict(r, anchor=r["completion"]) for r in _records(5, seed=4)]
+    rows[1]["anchor"] = rows[1]["anchor"][:40]  # rows of different lengths share a padded batch
+    rows[2]["anchor"] = ""
+    one = anchor_nll(cfg.sft.output_dir, rows, batch_size=1, device="cpu")
+    batched = anchor_nll(cfg.sft.output_dir, rows, batch_size=4, device="cpu")
+    assert one["n"] == batched["n"] == 4 and one["tokens"] == batched["tokens"]
+    assert batched["nll"] == pytest.approx(one["nll"], rel=1e-4)
+    model, tokenizer, _ = load_for_generation(cfg.sft.output_dir, device="cpu")
+    prompt = tokenizer(rows[0]["prompt"], add_special_tokens=False)["input_ids"]
+    target = tokenizer(rows[0]["anchor"], add_special_tokens=False)["input_ids"] + [tokenizer.eos_token_id]
+    with torch.no_grad():
+        logps = model(input_ids=torch.tensor([prompt + target])).logits[0].float().log_softmax(-1)
+    by_hand = -sum(float(logps[len(prompt) - 1 + k, t]) for k, t in enumerate(target)) / len(target)
+    assert anchor_nll(cfg.sft.output_dir, rows[:1], device="cpu")["nll"] == pytest.approx(by_hand, rel=1e-4)
+
+
+def test_held_out_anchors_leave_out_the_pools_prompts(tmp_path):
+    """``anchors.exclude``: the prompts of an earlier anchor file (the RL pool's) get no anchor, so the
+    held-out anchors come from prompts the policy never trained on."""
+    records = _records(6, seed=5)
+    write_records(records, tmp_path / "train.jsonl")
+    write_records(records[1:3], tmp_path / "pool.jsonl")
+    cfg = load_config("train_tiny", [f"data.train={tmp_path / 'train.jsonl'}", f"output_dir={tmp_path}",
+                                     f"anchors.exclude={tmp_path / 'pool.jsonl'}", "anchors.n_records=10"])
+    assert [r["id"] for r in anchor_prompts(cfg)] == [records[k]["id"] for k in (0, 3, 4, 5)]
+
+
+def test_anchor_likelihood_cli_scores_each_named_checkpoint(tmp_path, one_thread, monkeypatch, capsys):
+    """`python -m physcene.train.analysis.anchor_likelihood ANCHORS NAME=PATH ... --out J`: each model's
+    held-out anchor NLL, the one the ablation writes into its rows; a NAME=PATH that names no folder
+    is one clear error."""
+    from physcene.train.analysis import anchor_likelihood
+
+    cfg = _sft_for_pada(tmp_path, 4, seed=3)
+    write_records([dict(r, anchor=r["completion"]) for r in _records(3, seed=6)], tmp_path / "held.jsonl")
+    out = tmp_path / "nll.json"
+    monkeypatch.setattr("sys.argv", ["anchor_likelihood", str(tmp_path / "held.jsonl"),
+                                     f"sft={cfg.sft.output_dir}", "--out", str(out)])
+    anchor_likelihood.main()
+    result = json.loads(out.read_text())
+    expected = anchor_nll(cfg.sft.output_dir, load_records(str(tmp_path / "held.jsonl")), max_length=2304)
+    assert result["n"] == 3 and result["models"]["sft"]["nll"] == pytest.approx(expected["nll"])
+    assert result["command"].startswith("python -m physcene.train.analysis.anchor_likelihood")
+    monkeypatch.setattr("sys.argv", ["anchor_likelihood", str(tmp_path / "held.jsonl"), "pada=/no/such/dir"])
+    with pytest.raises(SystemExit):
+        anchor_likelihood.main()
+    assert "model pada: '/no/such/dir' is not a checkpoint folder" in capsys.readouterr().err

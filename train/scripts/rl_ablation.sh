@@ -11,9 +11,10 @@
 #   physcene train ablation-merge --config small ablation.output=docs/results/ablation.json \
 #     --sources runs/rl/s0/ablation.json runs/rl/s1/ablation.json --layouts docs/results/ablation
 #
-# Stages: anchors (the base's greedy layouts of POOL training prompts, TTO-repaired: all GPUs), rl (the
-# VARIANTS x SEEDS runs, PER_GPU at a time on each GPU: slot k taking runs k, k + GPUS * PER_GPU, ...), eval (per seed: sft, sft+tto and each
-# variant with every kept checkpoint on N_TEST test scenes, rule judge: $RUN/s<seed>/ablation.json).
+# Stages: anchors (the base's greedy layouts of POOL training prompts, TTO-repaired, and of HELDOUT prompts
+# outside the pool: all GPUs), rl (the VARIANTS x SEEDS runs, PER_GPU at a time on each GPU: slot k taking
+# runs k, k + GPUS * PER_GPU, ...), eval (per seed: sft, sft+tto and each variant with every kept checkpoint
+# on N_TEST test scenes, rule judge, and each model's NLL of the held-out anchors: $RUN/s<seed>/ablation.json).
 # The reward is the paper's with the validity terms (floating, shrunk, out of zone: VALID='[]' for the
 # bare reward), advantages scaled over the batch (SCALE=group: the paper's per-group scaling), G rollouts
 # per prompt, global batch BATCH. Logs: $RUN/s<seed>/<variant>.log.
@@ -24,6 +25,7 @@ RUN=${RUN:-runs/rl}
 VARIANTS=${VARIANTS:-"pada grpo pada_star"}
 SEEDS=${SEEDS:-"0 1"}
 POOL=${POOL:-4096}                  # training prompts with an anchor (those whose reference fits TOKENS)
+HELDOUT=${HELDOUT:-256}             # anchors of prompts outside the pool: each evaluated model's NLL of them
 G=${G:-16}
 BATCH=${BATCH:-128}                 # completions per optimiser step (BATCH / G prompts)
 MICRO=${MICRO:-16}                  # of BATCH, per forward/backward
@@ -46,7 +48,8 @@ stamp() { echo "[$(date +%T)] $*"; }
 mkdir -p "$RUN"
 deadline=${STOP_IN:+$(($(date +%s) + STOP_IN))}
 left() { [ -n "$deadline" ] && echo "STOP_IN=$((deadline - $(date +%s)))"; }  # what is left of STOP_IN now
-common="sft.output_dir=$BASE anchors.output=$RUN/anchors.jsonl anchors.pool_size=$POOL $EXTRA"
+common="sft.output_dir=$BASE anchors.output=$RUN/anchors.jsonl.gz anchors.pool_size=$POOL $EXTRA"
+heldout="anchors.exclude=$RUN/anchors.jsonl.gz anchors.output=$RUN/anchors_heldout.jsonl.gz anchors.pool_size=$HELDOUT"
 rl="pada.num_generations=$G pada.scale_rewards=$SCALE pada.reward=[\"valid_terms=$VALID\"]"
 rl="$rl pada.max_steps=$STEPS pada.save_steps=$SAVE pada.save_total_limit=null"
 
@@ -54,6 +57,9 @@ if want anchors; then
   stamp "anchors: $POOL prompts on $GPUS GPU(s)"
   env $(left) NPROC=$GPUS RUN="$RUN" STAGES=anchors ANCHORS=$POOL MAX_TOKENS=$TOKENS CACHE=$EVAL_CACHE \
     EXTRA="$common" bash train/scripts/ablation_small.sh
+  stamp "held-out anchors: $HELDOUT prompts outside the pool"
+  env $(left) NPROC=$GPUS RUN="$RUN" STAGES=anchors ANCHORS=$HELDOUT MAX_TOKENS=$TOKENS CACHE=$EVAL_CACHE \
+    EXTRA="$common $heldout" bash train/scripts/ablation_small.sh
 fi
 if want rl; then
   runs=()
@@ -86,9 +92,11 @@ if want eval; then
       stamp "eval seed $seed on GPU $gpu"
       listed=$(echo $VARIANTS | tr ' ' ,)
       CUDA_VISIBLE_DEVICES=$gpu NPROC=1 CONFIG=$CONFIG RUN="$dir" STAGES=eval ANCHORS=$POOL \
-        MAX_TOKENS=$TOKENS N_TEST=$N_TEST PADA_MIN=100000 CACHE=$EVAL_CACHE \
+        MAX_TOKENS=$TOKENS N_TEST=$N_TEST PADA_MIN=100000 CACHE=$EVAL_CACHE PADA_TOKENS=$TOKENS \
+        PADA_BATCH=$BATCH PADA_MICRO=$MICRO \
         EXTRA="$common $rl seed=$seed ablation.checkpoints=true ablation.variants=[$listed] \
-ablation.output=$dir/ablation.json ablation.layouts=$dir/layouts" \
+ablation.output=$dir/ablation.json ablation.layouts=$dir/layouts \
+ablation.heldout_anchors=$RUN/anchors_heldout.jsonl.gz" \
         bash train/scripts/ablation_small.sh > "$dir/eval.log" 2>&1 || stamp "eval seed $seed failed: $dir/eval.log"
     ) &
     if (((k + 1) % GPUS == 0)); then wait; fi
