@@ -1,22 +1,27 @@
 #!/bin/bash
-# rl_remote.sh start|again|poll|pack: the RL study (rl_ablation.sh) on a GPU host that runs commands under a time
-# limit and loses its files when it is given back. The study runs detached in /tmp/run (a copy of the
-# working tree, so a new copy of the tree cannot change a script while bash reads it); each poll packs
-# what a later host needs into $OUT, and the next host's `start` unpacks it and goes on.
+# rl_remote.sh start|again|poll|pack|send: the RL study (rl_ablation.sh) on a GPU host that runs commands
+# under a time limit and loses its files when it is given back. The study runs detached in /tmp/run (a copy
+# of the working tree, so a new copy of the tree cannot change a script while bash reads it); each poll
+# packs what a later host needs and sends it to $OUT; the next host's `start` unpacks it and goes on.
 #
 #   bash train/scripts/rl_remote.sh start        # copy the tree, unpack the carried state, start rl_ablation.sh
 #   bash train/scripts/rl_remote.sh poll 540     # wait up to 540 s or until the study ends, print the runs'
-#                                                # steps, pack the state into $OUT
-#   STAGES=eval bash train/scripts/rl_remote.sh again  # rl_ablation.sh once more on what is there
-#   mkdir -p /tmp/state && cp .wp/state/* /tmp/state/   # the next host: the parts carried in calls of their own
+#                                                # steps, pack the state, send its first parts to $OUT
+#   bash train/scripts/rl_remote.sh send 4       # the pack's parts from the 5th on (a command brings back
+#                                                # ~64 MB: SEND=4 parts of 15 MiB at a time)
+#   STAGES=eval bash train/scripts/rl_remote.sh again  # rl_ablation.sh once more on what is there (refused
+#                                                # while it still runs)
+#   mkdir -p /tmp/state && cp .wp/state/* /tmp/state/   # the next host: the parts, carried in calls of their own
 #
-# `start` passes the environment on to rl_ablation.sh (BASE, STAGES, VARIANTS, SEEDS, STEPS, PER_GPU, STOP_IN,
-# ...; RUN is runs/rl); it unpacks the parts STATE names (default /tmp/state/rl_state.tar.xz.*) into /tmp/run, and
-# BASE from the tree
-# (carry artifacts/small-sft). The state: the anchors, every run's newest complete checkpoint whole (the
-# Trainer resumes from it), its earlier checkpoints without optimizer, scheduler and RNG state (the
-# evaluation's curve points), the final adapters, logs, and the evaluation's tables and layouts, as
-# rl_state.tar.xz.* parts under 16 MiB. `pack` alone writes them to $OUT (or $2).
+# `start` passes the environment on to rl_ablation.sh (BASE, STAGES, VARIANTS, SEEDS, STEPS, PER_GPU,
+# STOP_IN, ...; RUN is runs/rl); it unpacks the parts STATE names (default /tmp/state/rl_state.tar.xz.*)
+# into /tmp/run, and takes BASE from the tree (carry artifacts/small-sft). The state: the anchors, every
+# run's newest complete checkpoint whole (the Trainer resumes from it), its earlier checkpoints without
+# optimizer, scheduler and RNG state (the evaluation's curve points), the final adapters, logs, and the
+# evaluation's tables and layouts, as rl_state.tar.xz.* parts under 16 MiB, kept in /tmp/run/pack until
+# the next pack (PACK: elsewhere). The kept artifacts restored into runs/rl (docs/training.md, "GPU runs")
+# and packed here (WORK=. PACK=/tmp/pack SEND=99 bash train/scripts/rl_remote.sh pack .wp/state) are the
+# same state.
 set -uo pipefail
 here=$(cd "$(dirname "$0")" && pwd)
 src=$(cd "$here/../.." && pwd)
@@ -25,8 +30,8 @@ RUN=runs/rl
 log=$work/rl.log
 stamp() { echo "[$(date +%T)] $*"; }
 
-pack() {  # $1: where the parts go
-  local dest=$1 list
+pack() {  # the state as parts in $work/pack (kept on the host until the next pack)
+  local dest=${PACK:-$work/pack} list
   [ -d "$work/$RUN" ] || { echo "pack: nothing under $work/$RUN yet"; return 0; }
   mkdir -p "$dest"
   list=$(mktemp)
@@ -53,6 +58,17 @@ pack() {  # $1: where the parts go
   rm -f "$list"
 }
 
+send() {  # $1: the first part (0-based), $2: where to: SEND parts (a command brings back ~64 MB in all)
+  local parts
+  parts=$(ls "${PACK:-$work/pack}"/rl_state.tar.xz.* 2>/dev/null | tail -n +$(($1 + 1)) | head -n "${SEND:-4}")
+  [ -n "$parts" ] || { echo "send: no part from $1 on"; return 0; }
+  mkdir -p "$2" && cp $parts "$2"/
+  local total left
+  total=$(ls "${PACK:-$work/pack}"/rl_state.tar.xz.* | wc -l)
+  left=$((total - $1 - $(echo $parts | wc -w)))
+  echo "send: $(echo $parts | wc -w) of $total part(s)$([ $left -gt 0 ] && echo "; the rest: send $((total - left))")"
+}
+
 progress() {  # every run's optimizer steps (its newest trainer_state or its log's last step line)
   for run in "$work/$RUN"/s*/*/; do
     [ -f "$run/physcene_run.json" ] || ls -d "$run"checkpoint-* > /dev/null 2>&1 || continue
@@ -73,8 +89,13 @@ EOF
 }
 
 launch() {  # rl_ablation.sh detached in $work, with this environment; DONE holds its exit status
+  if [ -f "$work/PID" ] && kill -0 "$(cat "$work/PID")" 2> /dev/null; then
+    echo "rl_remote: rl_ablation.sh is still running (pid $(cat "$work/PID")): poll until it ends" >&2
+    return 1
+  fi
   rm -f "$work/DONE"
   RUN=$RUN setsid nohup bash -c 'bash train/scripts/rl_ablation.sh; echo $? > DONE' >> "$log" 2>&1 < /dev/null &
+  echo $! > "$work/PID"
   stamp "started: $log"
 }
 
@@ -102,12 +123,15 @@ case "${1:-}" in
     tail -n "${TAILN:-15}" "$log"
     progress
     nvidia-smi --query-gpu=utilization.gpu,memory.used --format=csv,noheader 2>/dev/null
-    [ -n "${OUT:-}" ] && pack "$OUT"
+    [ -n "${OUT:-}" ] && pack && send 0 "$OUT"
     ;;
   pack)
-    pack "${2:-${OUT:?pack needs a folder: \$2 or \$OUT}}"
+    pack && send 0 "${2:-${OUT:?pack needs a folder: \$2 or \$OUT}}"
+    ;;
+  send)  # the parts of the last pack from $2 on (what a command's ~64 MB left behind)
+    send "${2:?send needs the first part, e.g. 4}" "${3:-${OUT:?send needs a folder: \$3 or \$OUT}}"
     ;;
   *)
-    sed -n '2,17p' "$0"; exit 2
+    awk 'NR > 1 && !/^#/ {exit} NR > 1 {print}' "$0"; exit 2
     ;;
 esac
