@@ -232,3 +232,17 @@ def test_bench_generate_needs_no_warp():
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
     assert done.returncode == 0, done.stderr[-2000:]
     assert "fast" in done.stdout
+
+
+def test_bench_generate_agreement_compares_rows_up_to_their_eos():
+    """`--until-eos`: what follows a row's EOS (padding, or tokens a forced run kept writing) is not
+    compared; the first differing step is the first position where the cut rows differ."""
+    from physcene.commands.bench.generate import _agreement
+
+    reference = [[5, 6, 2, 9, 9], [5, 6, 7, 2, 0], [5, 6, 7, 8, 8]]
+    ids = [[5, 6, 2, 1, 1], [5, 4, 7, 2, 0], [5, 6, 7, 8, 3]]
+    cut = _agreement(ids, reference, eos=2)
+    assert cut["equal_rows"] == pytest.approx(1 / 3) and cut["first_diff_step"] == 1
+    assert cut["first_diff_step_median"] == 4  # rows 2 and 3 differ at steps 1 and 4
+    whole = _agreement(ids, reference)
+    assert whole["equal_rows"] == 0.0 and whole["first_diff_step"] == 1

@@ -39,10 +39,10 @@ from physcene.train.decode.attention import (
 )
 from physcene.train.decode.cache import StaticKV
 from physcene.train.decode.fuse import fused_layers
-from physcene.train.decode.loop import DecodeResult, FastDecoder, text_model
+from physcene.train.decode.loop import DecodeResult, FastDecoder, cut_at_eos, text_model
 from physcene.train.decode.overlap import OverlappedConstraint
 
-__all__ = ["ATTENTIONS", "FAST_CACHES", "FOLDED_ATTENTION", "DecodeResult", "FastDecoder",
+__all__ = ["ATTENTIONS", "FAST_CACHES", "FOLDED_ATTENTION", "DecodeResult", "FastDecoder", "cut_at_eos",
            "OverlappedConstraint", "StaticKV", "decoder_for", "fast_generate", "flex_decode_attention",
            "folded_cudnn_attention", "folded_gqa_attention", "folded_matmul_attention", "fused_layers",
            "register_folded_attention", "sampling_mode", "text_model"]

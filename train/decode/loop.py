@@ -28,7 +28,7 @@ from physcene.train.decode.attention import register_folded_attention
 from physcene.train.decode.cache import StaticKV
 from physcene.train.decode.fuse import fused_layers
 
-__all__ = ["DecodeResult", "FastDecoder", "text_model"]
+__all__ = ["DecodeResult", "FastDecoder", "cut_at_eos", "text_model"]
 
 logger = logging.getLogger(__name__)
 
@@ -341,7 +341,7 @@ class FastDecoder:
             steps += 1
         rows = self.out.tolist()
         eos = set(self.eos.tolist())
-        return [_cut(row, eos) for row in rows], steps, 0, read
+        return [cut_at_eos(row, eos) for row in rows], steps, 0, read
 
     def _read_length_peek(self) -> int:
         furthest = self._furthest + 1
@@ -417,8 +417,8 @@ def _warper_key(warpers) -> tuple:
                  for w in warpers)
 
 
-def _cut(row: list[int], eos: set[int]) -> list[int]:
-    """``row`` up to and with its first EOS."""
+def cut_at_eos(row: list[int], eos: set[int]) -> list[int]:
+    """``row`` up to and with its first token of ``eos`` (the whole row when none)."""
     for i, t in enumerate(row):
         if t in eos:
             return row[:i + 1]

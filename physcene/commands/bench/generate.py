@@ -230,8 +230,9 @@ def _agreement(ids: list[list[int]], reference: list[list[int]], eos: int | None
     """Equal token ids with the reference (rows cut after their first ``eos`` when given): all rows,
     share of rows, the first differing step of any row and its median over the differing rows."""
     if eos is not None:
-        ids, reference = ([row[:row.index(eos) + 1] if eos in row else row for row in rows]
-                          for rows in (ids, reference))
+        from physcene.train.decode import cut_at_eos
+
+        ids, reference = ([cut_at_eos(row, {eos}) for row in rows] for rows in (ids, reference))
     equal = [a == b for a, b in zip(ids, reference)]
     first = [next((t for t, (x, y) in enumerate(zip(a, b)) if x != y), min(len(a), len(b)))
              for a, b, e in zip(ids, reference, equal) if not e]
