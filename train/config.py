@@ -56,12 +56,10 @@ class PADAConfig(GRPOConfig):
     generation_compile: bool = field(
         default=False, metadata={"help": "Compile the decoding forward of a static-cache generation "
                                          "(pada.cache=static_compile); TRL itself always disables it."})
-    fast_decode: bool = field(
-        default=False, metadata={"help": "Generate the groups with the fast decoder (pada.cache=fast...: "
-                                         "physcene.train.decode; HF generate only, not vLLM)."})
-    fast_decode_cache: str = field(
-        default="fast", metadata={"help": "The fast decoder's setting (physcene.train.decode.FAST_CACHES: "
-                                          "fast, fast+fused, fast+flex, ...): pada.cache."})
+    fast_decode: str | None = field(
+        default=None, metadata={"help": "Generate the groups with the fast decoder at this setting "
+                                        "(physcene.train.decode.FAST_CACHES: fast, fast+fused, ...: "
+                                        "pada.cache; not with vLLM); None: HF generate."})
     constrained_decoding: bool = field(
         default=False, metadata={"help": "Sample the groups under the CTRC constraint, passed to generate "
                                          "as a logits processor (physcene.train.constrained_rollouts; HF "
@@ -191,9 +189,8 @@ def pada_arguments(cfg, variant: str) -> PADAConfig:
         # TRL passes it to GenerationConfig (HF generate, use_vllm=False); None = HF's dynamic cache
         cache_implementation=None if cache == "dynamic" or cache in FAST_CACHES else "static",
         generation_compile=cache == "static_compile",
-        fast_decode=cache in FAST_CACHES,
+        fast_decode=cache if cache in FAST_CACHES else None,
         length_grouping=bool(p.get("length_grouping", True)),
-        fast_decode_cache=cache if cache in FAST_CACHES else "fast",
         constrained_decoding=bool(p.get("constrained", False)),
         mask_overruled=bool(p.get("mask_overruled", True)),
         nonfinite_probe=int(p.get("nonfinite_probe", 0) or 0),

@@ -151,7 +151,7 @@ def fast_rollouts(trainer: GRPOTrainer, prompt_ids: list[list[int]],
         longest = max(longest_prompt_tokens(trainer._tokenizer, prompts), max(map(len, prompt_ids)))
         multiple = trainer.pad_to_multiple_of or 1
         length = trainer._fast_decode_length = -(-longest // multiple) * multiple + config.max_new_tokens
-    attention, fuse = FAST_CACHES[trainer.args.fast_decode_cache]
+    attention, fuse = FAST_CACHES[trainer.args.fast_decode]
     inputs = _generation_inputs(trainer, prompt_ids)
     profiling, unwrapping, no_grad, full_params = _unwrapped(trainer)
     with profiling, unwrapping as unwrapped_model, no_grad, full_params:

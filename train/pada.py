@@ -178,7 +178,7 @@ class PADATrainer(GRPOTrainer):
         usable = prompts is not None and len(prompts) == len(prompt_ids) and not self.use_vllm
         used = [(e, e.logits_processors(self, prompts)) for e in self.extensions] if usable else []
         processors = [p for _, ps in used for p in ps]
-        fast = self.args.fast_decode and not self.use_vllm and not multimodal_fields
+        fast = self.args.fast_decode is not None and not self.use_vllm and not multimodal_fields
         if not processors and not fast:
             return super()._generate_single_turn(prompt_ids, images, multimodal_fields, num_generations,
                                                  has_tool_images)

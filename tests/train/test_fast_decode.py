@@ -195,17 +195,16 @@ def test_pada_generates_with_the_fast_decoder(tmp_path, records, tokenizer):
 
     cfg = load_config("train_tiny", [f"output_dir={tmp_path}", "pada.cache=fast"])
     args = pada_arguments(cfg, "grpo")
-    assert args.fast_decode and args.cache_implementation is None and args.fast_decode_cache == "fast"
+    assert args.fast_decode == "fast" and args.cache_implementation is None
     fused_cfg = load_config("train_tiny", [f"output_dir={tmp_path}", "pada.cache=fast+fused"])
     fused = pada_arguments(fused_cfg, "grpo")
-    assert fused.fast_decode and fused.fast_decode_cache == "fast+fused"
+    assert fused.fast_decode == "fast+fused"
     for constrained, cache in ((True, "fast"), (False, "fast+fused")):
         model = build_scratch_model(ARCH, tokenizer, seed=3)
         args = PADAConfig(output_dir=str(tmp_path / str(constrained)), num_generations=2,
                           per_device_train_batch_size=2, max_completion_length=12, use_cpu=True,
-                          report_to="none", beta=0.0, anchor_alpha=0.0, max_steps=1, fast_decode=True,
-                          fast_decode_cache=cache, constrained_decoding=constrained, logging_steps=1,
-                          save_strategy="no")
+                          report_to="none", beta=0.0, anchor_alpha=0.0, max_steps=1, fast_decode=cache,
+                          constrained_decoding=constrained, logging_steps=1, save_strategy="no")
         prompts = [records[0]["prompt"][:200], records[1]["prompt"][:260]]
         trainer = PADATrainer(model, reward_funcs=[lambda prompts, completions, **kw: [0.0] * len(prompts)],
                               args=args, processing_class=tokenizer,
