@@ -26,16 +26,11 @@ import torch
 
 
 def _model(config: str, batch: int):
-    from physcene.config import load_config
+    from physcene.commands.bench.generate import random_weight_model
     from physcene.data import synthesize
-    from physcene.train.models import build_scratch_model
-    from physcene.train.tokenizer import build_tokenizer
 
-    cfg = load_config(f"train_{config}")
     records = list(synthesize("train", n=max(32, batch), seed=0))
-    texts = [r["prompt"] for r in records[:32]] + [r["completion"] for r in records[:32]]
-    tokenizer = build_tokenizer(texts, vocab_size=int(cfg.model.tokenizer.vocab_size))
-    model = build_scratch_model(cfg.model.arch, tokenizer, seed=0, dtype="bfloat16").cuda().eval()
+    model, tokenizer = random_weight_model(config, records, seed=0, dtype="bfloat16", device="cuda")
     prompts = [records[b % len(records)]["prompt"] for b in range(batch)]
     tokenizer.padding_side = "left"
     enc = tokenizer(prompts, return_tensors="pt", padding=True, add_special_tokens=False)

@@ -40,7 +40,7 @@ import torch
 from physcene.commands.bench.timing import BenchTarget, device_name, timed
 from physcene.files import write_atomic
 
-__all__ = ["BANDWIDTH_TB_S", "TARGET", "VARIANT_ALIASES", "memory_bandwidth"]
+__all__ = ["BANDWIDTH_TB_S", "TARGET", "VARIANT_ALIASES", "memory_bandwidth", "random_weight_model"]
 
 # a variant is a generation cache setting (physcene.train.generate.CACHE_MODES: HF generate's caches and
 # the fast decoder's settings, physcene.train.decode.FAST_CACHES); older spellings kept
@@ -123,14 +123,27 @@ def kv_floor_bytes(model, batch: int, prompt_tokens: int, tokens: int) -> int:
     return batch * columns * column
 
 
+def random_weight_model(config: str, records: list[dict], *, seed: int = 0, dtype: str = "bfloat16",
+                        device: str | torch.device = "cuda", overrides=()):
+    """(model in eval mode, tokenizer): ``config``'s architecture with random weights and a digit-level
+    bpe tokenizer trained on the first 32 records, whatever the config's kind (the prompt lengths of the
+    figures in docs/training.md)."""
+    from physcene.config import load_config
+    from physcene.train.models import build_scratch_model
+    from physcene.train.tokenizer import build_tokenizer
+
+    cfg = load_config(f"train_{config}", list(overrides))
+    texts = [r["prompt"] for r in records[:32]] + [r["completion"] for r in records[:32]]
+    tokenizer = build_tokenizer(texts, vocab_size=int(cfg.model.tokenizer.vocab_size))
+    return build_scratch_model(cfg.model.arch, tokenizer, seed=seed, dtype=dtype).to(device).eval(), tokenizer
+
+
 def run(args) -> dict:
     # transformers is heavy: imported when this target runs, not when the bench registry is built
     from physcene.artifacts import resolve_model
-    from physcene.config import load_config
     from physcene.data import synthesize
     from physcene.train.generate import check_cache, generate_token_ids, load_for_generation
-    from physcene.train.models import build_scratch_model, count_parameters
-    from physcene.train.tokenizer import build_tokenizer
+    from physcene.train.models import count_parameters
 
     if args.batch < 1 or args.tokens < 1:
         raise ValueError(f"--batch {args.batch} --tokens {args.tokens}: both must be >= 1")
@@ -143,11 +156,8 @@ def run(args) -> dict:
     if args.model:
         model, tokenizer, _ = load_for_generation(resolve_model(args.model), device=device, dtype=dtype)
     else:
-        cfg = load_config(f"train_{args.config}", list(getattr(args, "overrides", [])))
-        # digit-level bpe whatever the config's kind: the prompt lengths of the figures in docs/training.md
-        texts = [r["prompt"] for r in records[:32]] + [r["completion"] for r in records[:32]]
-        tokenizer = build_tokenizer(texts, vocab_size=int(cfg.model.tokenizer.vocab_size))
-        model = build_scratch_model(cfg.model.arch, tokenizer, seed=args.seed, dtype=dtype).to(device).eval()
+        model, tokenizer = random_weight_model(args.config, records, seed=args.seed, dtype=dtype,
+                                               device=device, overrides=list(getattr(args, "overrides", [])))
     prompts = [r["prompt"] for r in records[:args.batch]]
     prompt_tokens = [len(tokenizer(p, add_special_tokens=False)["input_ids"]) for p in prompts]
     bandwidth, source = memory_bandwidth(device)
