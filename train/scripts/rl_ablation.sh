@@ -13,7 +13,7 @@
 #
 # Stages: anchors (the base's greedy layouts of POOL training prompts, TTO-repaired, and of HELDOUT prompts
 # outside the pool: all GPUs), rl (the VARIANTS x SEEDS runs, PER_GPU at a time on each GPU: slot k taking
-# runs k, k + GPUS * PER_GPU, ...), eval (per seed: sft, sft+tto and each variant with every kept checkpoint
+# runs k, k + GPUS * PER_GPU, ...), eval (per seed: reference, sft, sft+tto, each variant with every checkpoint
 # on N_TEST test scenes, rule judge, and each model's NLL of the held-out anchors: $RUN/s<seed>/ablation.json).
 # The reward is the paper's with the validity terms (floating, shrunk, out of zone: VALID='[]' for the
 # bare reward), advantages scaled over the batch (SCALE=group: the paper's per-group scaling), G rollouts
@@ -94,7 +94,7 @@ if want eval; then
       CUDA_VISIBLE_DEVICES=$gpu NPROC=1 CONFIG=$CONFIG RUN="$dir" STAGES=eval ANCHORS=$POOL \
         MAX_TOKENS=$TOKENS N_TEST=$N_TEST PADA_MIN=100000 CACHE=$EVAL_CACHE PADA_TOKENS=$TOKENS \
         PADA_BATCH=$BATCH PADA_MICRO=$MICRO \
-        EXTRA="$common $rl seed=$seed ablation.checkpoints=true ablation.variants=[$listed] \
+        EXTRA="$common $rl seed=$seed ablation.checkpoints=true ablation.reference=true ablation.variants=[$listed] \
 ablation.output=$dir/ablation.json ablation.layouts=$dir/layouts \
 ablation.heldout_anchors=$RUN/anchors_heldout.jsonl.gz" \
         bash train/scripts/ablation_small.sh > "$dir/eval.log" 2>&1 || stamp "eval seed $seed failed: $dir/eval.log"
