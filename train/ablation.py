@@ -244,7 +244,12 @@ def _evaluate(cfg: DictConfig, models: dict[str, Path], budget_s: float) -> list
     engine = PhysicsEngine(device=str(state.device))
     layouts = a.get("layouts")
     temperature = float(cfg.eval.get("temperature", 0.0))
-    heldout = load_records(str(a.heldout_anchors)) if a.get("heldout_anchors") else None
+    heldout = None
+    if a.get("heldout_anchors"):
+        if not Path(str(a.heldout_anchors)).is_file():
+            raise TrainingSetupError(f"ablation.heldout_anchors: {a.heldout_anchors!r} does not exist (the "
+                                     "anchors of prompts outside the RL pool: anchors.exclude)")
+        heldout = load_records(str(a.heldout_anchors))
     rows, start = [], time.monotonic()
 
     def add_row(name, outputs, results, rl_steps=0):

@@ -49,7 +49,8 @@ mkdir -p "$RUN"
 deadline=${STOP_IN:+$(($(date +%s) + STOP_IN))}
 left() { [ -n "$deadline" ] && echo "STOP_IN=$((deadline - $(date +%s)))"; }  # what is left of STOP_IN now
 common="sft.output_dir=$BASE anchors.output=$RUN/anchors.jsonl.gz anchors.pool_size=$POOL $EXTRA"
-heldout="anchors.exclude=$RUN/anchors.jsonl.gz anchors.output=$RUN/anchors_heldout.jsonl.gz anchors.pool_size=$HELDOUT"
+held=$RUN/anchors_heldout.jsonl.gz  # (named here: a RUN= word of a later command would change $RUN inside it)
+heldout="anchors.exclude=$RUN/anchors.jsonl.gz anchors.output=$held anchors.pool_size=$HELDOUT"
 rl="pada.num_generations=$G pada.scale_rewards=$SCALE pada.reward=[\"valid_terms=$VALID\"]"
 rl="$rl pada.max_steps=$STEPS pada.save_steps=$SAVE pada.save_total_limit=null"
 
@@ -96,7 +97,7 @@ if want eval; then
         PADA_BATCH=$BATCH PADA_MICRO=$MICRO \
         EXTRA="$common $rl seed=$seed ablation.checkpoints=true ablation.reference=true ablation.variants=[$listed] \
 ablation.output=$dir/ablation.json ablation.layouts=$dir/layouts \
-ablation.heldout_anchors=$RUN/anchors_heldout.jsonl.gz" \
+ablation.heldout_anchors=$held" \
         bash train/scripts/ablation_small.sh > "$dir/eval.log" 2>&1 || stamp "eval seed $seed failed: $dir/eval.log"
     ) &
     if (((k + 1) % GPUS == 0)); then wait; fi
