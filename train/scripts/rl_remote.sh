@@ -1,7 +1,8 @@
 #!/bin/bash
 # rl_remote.sh start|again|poll|pack|send: the RL study (rl_ablation.sh) on a GPU host that runs commands
 # under a time limit and loses its files when it is given back. The study runs detached in /tmp/run (a copy
-# of the working tree, so a new copy of the tree cannot change a script while bash reads it); each poll
+# of the working tree, so a new copy of the tree cannot change a script while bash reads it; `start`
+# installs that copy in editable mode, so the host's `physcene` is the copy's); each poll
 # packs what a later host needs and sends it to $OUT; the next host's `start` unpacks it and goes on.
 #
 #   bash train/scripts/rl_remote.sh start        # copy the tree, unpack the carried state, start rl_ablation.sh
