@@ -342,7 +342,7 @@ def test_flex_attention_runs_inside_cuda_graphs(records, tokenizer):
 @pytest.mark.slow
 def test_bench_pada_times_whole_steps(capsys, tmp_path):
     """``physcene bench pada`` at tiny sizes: one timed step per cache, split into its parts, and the
-    profiled step's tables."""
+    profiled step's tables, its figures written beside them first."""
     import json
 
     from physcene.cli import main
@@ -360,3 +360,6 @@ def test_bench_pada_times_whole_steps(capsys, tmp_path):
         parts = v["profile"]["parts"]
         assert {"training_step", "backward", "_generate_and_score_completions"} <= set(parts)
         assert "Operators by cpu self time" in (tmp_path / f"pada_{cache}.txt").read_text()
+        # the step's figures were written before the (slow) tables
+        figures = json.loads((tmp_path / f"pada_{cache}.json").read_text())
+        assert figures["seconds_per_step"] == v["seconds_per_step"]

@@ -18,6 +18,7 @@ calls) and the rest (log-probabilities, loss, backward, optimiser: ``update``).
 from __future__ import annotations
 
 import contextlib
+import json
 import statistics
 import sys
 import tempfile
@@ -161,8 +162,6 @@ def _time_steps(cfg, args, device: torch.device) -> dict:
         _label_parts(trainer)
     with contextlib.redirect_stdout(sys.stderr):  # the trainer's log lines: stdout is the figures' (--json)
         trainer.train()
-    if profiler is not None:
-        row_profile = _write_profile(profiler, Path(args.profile) / f"pada_{cfg.pada.cache}.txt", device)
     history = trainer.state.log_history
     generate = [h["time/generate_s"] for h in history if "time/generate_s" in h]
     lengths = [(h["completions/mean_length"], h["completions/max_length"]) for h in history
@@ -182,11 +181,16 @@ def _time_steps(cfg, args, device: torch.device) -> dict:
            "path": ("cuda_graphs" if graphs and min(graphs) == 1.0 else "eager") if graphs else "hf_generate",
            "global_batch": pada_args.per_device_train_batch_size * pada_args.gradient_accumulation_steps,
            "num_generations": pada_args.num_generations, "parameters": count_parameters(model)}
-    if profiler is not None:
-        row["profile"] = row_profile
     if device.type == "cuda":
         row["max_memory_gib"] = torch.cuda.max_memory_allocated(device) / 2**30
         torch.cuda.reset_peak_memory_stats(device)
+    if profiler is not None:
+        # the timings first: reading a long step's events back takes minutes, and a command's time
+        # limit that cuts it still leaves the step's figures
+        timing = Path(args.profile) / f"pada_{cfg.pada.cache}.json"
+        timing.parent.mkdir(parents=True, exist_ok=True)
+        timing.write_text(json.dumps(row, indent=1) + "\n")
+        row["profile"] = _write_profile(profiler, Path(args.profile) / f"pada_{cfg.pada.cache}.txt", device)
     return row
 
 
