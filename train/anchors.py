@@ -35,7 +35,7 @@ from physcene.scene import SceneError
 from physcene.train.generate import generate_token_ids, load_for_generation, render_prompt
 from physcene.train.models import load_tokenizer
 from physcene.train.records import load_records, prompt_pool, write_records
-from physcene.train.targets import tokenize_anchor
+from physcene.train.targets import teacher_forced_nll, tokenize_anchor
 from physcene.tto import TTOConfig, repair
 
 __all__ = ["anchor_nll", "anchor_prompts", "anchor_records", "anchor_summary", "completion_length",
@@ -214,21 +214,9 @@ def anchor_nll(model_path: str | Path, records: list[dict], *, column: str = "an
             text = render_prompt(tokenizer, r["prompt"], chat)
             rows.append((tokenizer(text, add_special_tokens=False)["input_ids"], target, mask))
     rows.sort(key=lambda row: len(row[0]) + len(row[1]))  # batches of similar length: little padding
-    total, tokens, pad = 0.0, 0, tokenizer.pad_token_id
+    total, tokens = 0.0, 0
     for start in range(0, len(rows), batch_size):
-        batch = rows[start:start + batch_size]
-        width = max(len(p) + len(t) for p, t, _ in batch)
-        ids = torch.full((len(batch), width), pad, dtype=torch.long)
-        attention = torch.zeros((len(batch), width), dtype=torch.long)
-        supervised = torch.zeros((len(batch), width), dtype=torch.bool)
-        for k, (p, t, m) in enumerate(batch):  # right padded: positions count from the prompt's first token
-            ids[k, :len(p) + len(t)] = torch.tensor(p + t)
-            attention[k, :len(p) + len(t)] = 1
-            supervised[k, len(p):len(p) + len(t)] = torch.tensor(m, dtype=torch.bool)
-        ids, attention, supervised = (x.to(model.device) for x in (ids, attention, supervised))
-        logits = model(input_ids=ids, attention_mask=attention).logits[:, :-1].float()
-        nll = torch.nn.functional.cross_entropy(logits.transpose(1, 2), ids[:, 1:], reduction="none")
-        keep = supervised[:, 1:]
-        total += float(nll[keep].sum())
-        tokens += int(keep.sum())
+        nll, count = teacher_forced_nll(model, rows[start:start + batch_size], pad=tokenizer.pad_token_id)
+        total += float(nll)
+        tokens += int(count)
     return {"nll": total / max(tokens, 1), "tokens": tokens, "n": len(rows)}

@@ -28,6 +28,7 @@ __all__ = [
     "object_line_spans",
     "object_text_spans",
     "padded_targets",
+    "teacher_forced_nll",
     "tokenize_anchor",
     "tokenize_target",
 ]
@@ -105,3 +106,25 @@ def _tokens_over(offsets, spans: list[tuple[int, int]]) -> list[int]:
         if k >= 0 and ends[k] > a:
             out.append(t)
     return out
+
+
+def teacher_forced_nll(model, rows: list[tuple[list[int], list[int], list[int]]],
+                       pad: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
+    """(summed NLL, supervised token count) of ``rows`` of (prompt ids, target ids, target loss mask),
+    each read as [prompt | target] right padded with ``pad``, teacher-forced: the NLL of every target
+    token whose mask is set, given everything before it. Differentiable (callers that only measure wrap
+    it in ``torch.no_grad``)."""
+    width = max(len(p) + len(t) for p, t, _ in rows)
+    ids = torch.full((len(rows), width), pad, dtype=torch.long)
+    attention = torch.zeros((len(rows), width), dtype=torch.long)
+    supervised = torch.zeros((len(rows), width), dtype=torch.bool)
+    for k, (p, t, m) in enumerate(rows):  # positions count from the prompt's first token
+        ids[k, :len(p) + len(t)] = torch.tensor(p + t, dtype=torch.long)
+        attention[k, :len(p) + len(t)] = 1
+        supervised[k, len(p):len(p) + len(t)] = torch.tensor(m, dtype=torch.bool)
+    device = next(model.parameters()).device
+    ids, attention, supervised = (x.to(device) for x in (ids, attention, supervised))
+    logits = model(input_ids=ids, attention_mask=attention).logits[:, :-1].float()
+    nll = torch.nn.functional.cross_entropy(logits.transpose(1, 2), ids[:, 1:], reduction="none")
+    keep = supervised[:, 1:]
+    return nll[keep].sum(), keep.sum()

@@ -25,6 +25,7 @@ from pathlib import Path
 import torch
 
 from physcene.train.analysis import context_probe
+from physcene.train.targets import teacher_forced_nll
 
 _NUMBER = re.compile(r"-?\d+(?:\.\d+)?(?:[eE][-+]?\d+)?")
 
@@ -73,17 +74,8 @@ def mean_nll(model, rows: list[dict], ids_key: str = "ids", mask_key: str = "mas
 
 
 def _batch_nll(model, rows: list[dict], ids_key: str, mask_key: str) -> tuple[torch.Tensor, torch.Tensor]:
-    """(summed NLL, supervised tokens) of a right-padded batch of [prompt | target] rows."""
-    seqs = [r["prompt"] + r[ids_key] for r in rows]
-    width = max(map(len, seqs))
-    input_ids = torch.tensor([s + [0] * (width - len(s)) for s in seqs])
-    attention = torch.tensor([[1] * len(s) + [0] * (width - len(s)) for s in seqs])
-    labels_mask = torch.tensor([[0] * len(r["prompt"]) + r[mask_key] + [0] * (width - len(s))
-                                for r, s in zip(rows, seqs)], dtype=torch.float32)
-    logits = model(input_ids=input_ids, attention_mask=attention).logits[:, :-1].float()
-    logp = torch.log_softmax(logits, -1).gather(-1, input_ids[:, 1:, None])[..., 0]
-    mask = labels_mask[:, 1:]
-    return -(logp * mask).sum(), mask.sum()
+    """(summed NLL, supervised tokens) of a batch of [prompt | target] rows (``ids_key`` / ``mask_key``)."""
+    return teacher_forced_nll(model, [(r["prompt"], r[ids_key], r[mask_key]) for r in rows])
 
 
 def main() -> None:
