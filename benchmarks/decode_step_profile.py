@@ -27,10 +27,12 @@ import torch
 
 def _model(config: str, batch: int):
     from physcene.commands.bench.generate import random_weight_model
+    from physcene.config import load_config
     from physcene.data import synthesize
 
     records = list(synthesize("train", n=max(32, batch), seed=0))
-    model, tokenizer = random_weight_model(config, records, seed=0, dtype="bfloat16", device="cuda")
+    model, tokenizer = random_weight_model(load_config(f"train_{config}"), records, seed=0, dtype="bfloat16")
+    model = model.cuda().eval()
     prompts = [records[b % len(records)]["prompt"] for b in range(batch)]
     tokenizer.padding_side = "left"
     enc = tokenizer(prompts, return_tensors="pt", padding=True, add_special_tokens=False)

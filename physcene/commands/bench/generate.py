@@ -123,24 +123,22 @@ def kv_floor_bytes(model, batch: int, prompt_tokens: int, tokens: int) -> int:
     return batch * columns * column
 
 
-def random_weight_model(config: str, records: list[dict], *, seed: int = 0, dtype: str = "bfloat16",
-                        device: str | torch.device = "cuda", overrides=()):
-    """(model in eval mode, tokenizer): ``config``'s architecture with random weights and a digit-level
-    bpe tokenizer trained on the first 32 records, whatever the config's kind (the prompt lengths of the
-    figures in docs/training.md)."""
-    from physcene.config import load_config
+def random_weight_model(cfg, records: list[dict], *, seed: int = 0, dtype: str = "bfloat16"):
+    """(model, tokenizer): the training config ``cfg``'s architecture with random weights (on the CPU) and
+    a digit-level bpe tokenizer trained on the first 32 records, whatever the config's kind (the prompt
+    lengths of the figures in docs/training.md)."""
     from physcene.train.models import build_scratch_model
     from physcene.train.tokenizer import build_tokenizer
 
-    cfg = load_config(f"train_{config}", list(overrides))
     texts = [r["prompt"] for r in records[:32]] + [r["completion"] for r in records[:32]]
     tokenizer = build_tokenizer(texts, vocab_size=int(cfg.model.tokenizer.vocab_size))
-    return build_scratch_model(cfg.model.arch, tokenizer, seed=seed, dtype=dtype).to(device).eval(), tokenizer
+    return build_scratch_model(cfg.model.arch, tokenizer, seed=seed, dtype=dtype), tokenizer
 
 
 def run(args) -> dict:
     # transformers is heavy: imported when this target runs, not when the bench registry is built
     from physcene.artifacts import resolve_model
+    from physcene.config import load_config
     from physcene.data import synthesize
     from physcene.train.generate import check_cache, generate_token_ids, load_for_generation
     from physcene.train.models import count_parameters
@@ -156,8 +154,9 @@ def run(args) -> dict:
     if args.model:
         model, tokenizer, _ = load_for_generation(resolve_model(args.model), device=device, dtype=dtype)
     else:
-        model, tokenizer = random_weight_model(args.config, records, seed=args.seed, dtype=dtype,
-                                               device=device, overrides=list(getattr(args, "overrides", [])))
+        cfg = load_config(f"train_{args.config}", list(getattr(args, "overrides", [])))
+        model, tokenizer = random_weight_model(cfg, records, seed=args.seed, dtype=dtype)
+        model = model.to(device).eval()
     prompts = [r["prompt"] for r in records[:args.batch]]
     prompt_tokens = [len(tokenizer(p, add_special_tokens=False)["input_ids"]) for p in prompts]
     bandwidth, source = memory_bandwidth(device)

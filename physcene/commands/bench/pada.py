@@ -87,20 +87,14 @@ def _time_steps(cfg, args, device: torch.device) -> dict:
     from transformers import TrainerCallback
 
     from physcene.artifacts import resolve_model
+    from physcene.commands.bench.generate import random_weight_model
     from physcene.data import synthesize
     from physcene.reward.trl import PhysicsRewardFunction
     from physcene.train.config import pada_arguments
-    from physcene.train.models import (
-        build_scratch_model,
-        count_parameters,
-        load_model,
-        load_tokenizer,
-        set_attention_kernels,
-    )
+    from physcene.train.models import count_parameters, load_model, load_tokenizer, set_attention_kernels
     from physcene.train.pada import PADATrainer
     from physcene.train.records import training_dataset
     from physcene.train.sft import lora_config
-    from physcene.train.tokenizer import build_tokenizer
 
     steps = 1 + args.steps
     pada_args = pada_arguments(cfg, args.variant)
@@ -116,9 +110,7 @@ def _time_steps(cfg, args, device: torch.device) -> dict:
         path = resolve_model(args.model)
         model, tokenizer = load_model(path, dtype=dtype), load_tokenizer(path)
     else:
-        texts = [r["prompt"] for r in records[:32]] + [r["completion"] for r in records[:32]]
-        tokenizer = build_tokenizer(texts, vocab_size=int(cfg.model.tokenizer.vocab_size))
-        model = build_scratch_model(cfg.model.arch, tokenizer, seed=args.seed, dtype=dtype)
+        model, tokenizer = random_weight_model(cfg, records, seed=args.seed, dtype=dtype)
     reward = PhysicsRewardFunction(device)
     reward_seconds: list[float] = []
 
