@@ -53,8 +53,7 @@ FAST_CACHES = {"fast" + ("+fused" if fuse else "") + ("" if attention == "sdpa" 
                (attention, fuse) for fuse in (False, True) for attention in ATTENTIONS}
 """The generation ``cache`` settings of the fast decoder -> (attention, fused layers): ``fast`` (the folded
 sdpa attention, eager layers: HF generate's ids), ``+cudnn`` / ``+matmul`` / ``+flex`` another decoding
-attention,
-``+fused`` the compiled layers (:mod:`~physcene.train.decode.fuse`)."""
+attention, ``+fused`` the compiled layers (:mod:`~physcene.train.decode.fuse`)."""
 
 # model -> {(batch, length, graphs, attention, fuse): decoder}
 _DECODERS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
