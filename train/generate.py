@@ -20,17 +20,24 @@ Prompts are sorted by length before batching so left padding stays small.
 
 For the static modes the cache is sized once for the longest prompt of the whole call plus
 ``max_new_tokens`` (``max_cache_len``) so every batch reuses one shape and one compiled graph.
+
+``progress=True`` shows a bar on stderr advanced by the prompts of each decoded batch (``physcene
+eval`` with a ``model:`` generator, unless ``--quiet``); it is off by default, for the callers that
+decode inside their own loop (ablation, anchors, PADA, benchmarks).
 """
 
 from __future__ import annotations
 
 import copy
 import json
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
 from pathlib import Path
 
 import torch
+from tqdm.auto import tqdm
 from transformers import CompileConfig, LogitsProcessorList, PreTrainedModel, PreTrainedTokenizerBase
+from transformers.utils import logging as transformers_logging
 
 from physcene.train.constrained import CTRCConstraint, sampling_warpers
 from physcene.train.decode import FAST_CACHES
@@ -146,7 +153,7 @@ def generate_token_ids(model: PreTrainedModel, tokenizer: PreTrainedTokenizerBas
                        do_sample: bool = False, temperature: float = 1.0, seed: int = 0,
                        cache: str = "dynamic", min_new_tokens: int | None = None,
                        constrained: bool = False, follow_plan: bool = True,
-                       report: list | None = None) -> list[list[int]]:
+                       report: list | None = None, progress: bool = False) -> list[list[int]]:
     """Completion token ids of ``prompts`` (prompt and left padding cut off; each row is
     ``max_new_tokens`` long or ends in EOS + pad), in input order.
 
@@ -156,29 +163,39 @@ def generate_token_ids(model: PreTrainedModel, tokenizer: PreTrainedTokenizerBas
     ``follow_plan``: its layout follows the completion's own plan (order, parents, relations).
     ``report``: a list that the fast decoder (``cache="fast"``, ``"fast+fused"``, ...) appends each
     batch's :class:`~physcene.train.decode.DecodeResult` to (graphs used, bytes read, repairs, timings).
+    ``progress``: a bar on stderr over the prompts, advanced as each batch is decoded.
     """
     if batch_size < 1 or max_new_tokens < 1:
         raise ValueError(f"batch_size and max_new_tokens must be >= 1, got {batch_size}, {max_new_tokens}")
     check_cache(cache)
     torch.manual_seed(seed)
-    device = next(model.parameters()).device
     texts = [render_prompt(tokenizer, p, chat_format) for p in prompts]
     order = sorted(range(len(texts)), key=lambda i: len(texts[i]))
-    out: list[list[int]] = [[] for _ in texts]
     tokenizer.padding_side = "left"
     encoded = [tokenizer([texts[i] for i in order[start:start + batch_size]], return_tensors="pt",
                          padding=True, add_special_tokens=False)
                for start in range(0, len(order), batch_size)]
     longest = max((enc["input_ids"].shape[1] for enc in encoded), default=0)
-    if cache in FAST_CACHES:
-        return _fast_token_ids(model, tokenizer, prompts, order, encoded, batch_size=batch_size,
-                               max_new_tokens=max_new_tokens, min_new_tokens=min_new_tokens or 0,
-                               do_sample=do_sample, temperature=temperature, constrained=constrained,
-                               follow_plan=follow_plan, length=longest + max_new_tokens, report=report,
-                               cache=cache)
+    options = dict(batch_size=batch_size, max_new_tokens=max_new_tokens, do_sample=do_sample,
+                   temperature=temperature, constrained=constrained, follow_plan=follow_plan,
+                   length=longest + max_new_tokens)
+    with tqdm(total=len(prompts), desc="decode", unit="prompt", disable=not progress) as bar:
+        if cache in FAST_CACHES:
+            return _fast_token_ids(model, tokenizer, prompts, order, encoded, bar, **options,
+                                   min_new_tokens=min_new_tokens or 0, report=report, cache=cache)
+        return _hf_token_ids(model, tokenizer, prompts, order, encoded, bar, **options,
+                             min_new_tokens=min_new_tokens, cache=cache)
+
+
+def _hf_token_ids(model, tokenizer, prompts, order, encoded, bar, *, batch_size: int, max_new_tokens: int,
+                  min_new_tokens: int | None, do_sample: bool, temperature: float, constrained: bool,
+                  follow_plan: bool, length: int, cache: str) -> list[list[int]]:
+    """:func:`generate_token_ids` with HF ``model.generate``, one call per batch of ``encoded``;
+    ``bar`` advances by each batch's prompts."""
+    device = next(model.parameters()).device
     kwargs = {"do_sample": do_sample, "max_new_tokens": max_new_tokens,
               "pad_token_id": tokenizer.pad_token_id, "eos_token_id": tokenizer.eos_token_id,
-              **cache_generate_kwargs(cache, device, max_cache_len=longest + max_new_tokens)}
+              **cache_generate_kwargs(cache, device, max_cache_len=length)}
     if do_sample:
         kwargs["temperature"] = temperature
     if min_new_tokens is not None:
@@ -188,6 +205,7 @@ def generate_token_ids(model: PreTrainedModel, tokenizer: PreTrainedTokenizerBas
         config = copy.deepcopy(model.generation_config)
         config.update(do_sample=True, temperature=temperature)
         warpers = sampling_warpers(config)
+    out: list[list[int]] = [[] for _ in prompts]
     for k, enc in enumerate(encoded):
         idx = order[k * batch_size:(k + 1) * batch_size]
         enc = enc.to(device)
@@ -198,14 +216,16 @@ def generate_token_ids(model: PreTrainedModel, tokenizer: PreTrainedTokenizerBas
         ids = model.generate(**enc, **kwargs)[:, enc["input_ids"].shape[1]:]
         for i, row in zip(idx, ids.tolist()):
             out[i] = row
+        bar.update(len(idx))
     return out
 
 
-def _fast_token_ids(model, tokenizer, prompts, order, encoded, *, batch_size: int, max_new_tokens: int,
+def _fast_token_ids(model, tokenizer, prompts, order, encoded, bar, *, batch_size: int, max_new_tokens: int,
                     min_new_tokens: int, do_sample: bool, temperature: float, constrained: bool,
                     follow_plan: bool, length: int, report: list | None, cache: str) -> list[list[int]]:
     """:func:`generate_token_ids` with :func:`physcene.train.decode.fast_generate`: the same rows (EOS
-    then padding up to the batch's longest completion, as HF ``generate`` returns them)."""
+    then padding up to the batch's longest completion, as HF ``generate`` returns them); ``bar``
+    advances by each batch's prompts."""
     from physcene.train.decode import fast_generate
 
     attention, fuse = FAST_CACHES[cache]
@@ -231,30 +251,33 @@ def _fast_token_ids(model, tokenizer, prompts, order, encoded, *, batch_size: in
         width = max((len(row) for row in result.tokens), default=0)
         for i, row in zip(idx, result.tokens):
             out[i] = row + [tokenizer.pad_token_id] * (width - len(row))
+        bar.update(len(idx))
     return out
 
 
 def generate_with(model: PreTrainedModel, tokenizer: PreTrainedTokenizerBase, prompts: Sequence[str], *,
                   chat_format: bool = False, max_new_tokens: int = 1024, batch_size: int = 16,
                   do_sample: bool = False, temperature: float = 1.0, seed: int = 0,
-                  cache: str = "dynamic", constrained: bool = False, follow_plan: bool = True) -> list[str]:
+                  cache: str = "dynamic", constrained: bool = False, follow_plan: bool = True,
+                  progress: bool = False) -> list[str]:
     """Completions (decoded, special tokens dropped) of ``prompts`` with a loaded model, in input order.
 
     ``cache``: the KV cache, one of :data:`CACHE_MODES` (module docstring); ``constrained``: CTRC-
     constrained decoding (:mod:`physcene.train.constrained`), whose layout follows the completion's
-    plan unless ``follow_plan`` is False.
+    plan unless ``follow_plan`` is False. ``progress``: a bar on stderr over the prompts.
     """
     ids = generate_token_ids(model, tokenizer, prompts, chat_format=chat_format,
                              max_new_tokens=max_new_tokens, batch_size=batch_size, do_sample=do_sample,
                              temperature=temperature, seed=seed, cache=cache, constrained=constrained,
-                             follow_plan=follow_plan)
+                             follow_plan=follow_plan, progress=progress)
     return [tokenizer.decode(row, skip_special_tokens=True) for row in ids]
 
 
 def generate(model_path: str | Path, prompts: Sequence[str], *, max_new_tokens: int = 1024,
              batch_size: int | None = None, do_sample: bool = False, temperature: float = 1.0, seed: int = 0,
              device: str | torch.device | None = None, dtype: str | None = None,
-             cache: str = "dynamic", constrained: bool = False, follow_plan: bool = True) -> list[str]:
+             cache: str = "dynamic", constrained: bool = False, follow_plan: bool = True,
+             progress: bool = False) -> list[str]:
     """Completions of ``prompts`` by the checkpoint at ``model_path`` (greedy unless ``do_sample``).
 
     ``prompts`` are CTRC prompt strings (``physcene.ctrc.build_prompt``); chat-format checkpoints get
@@ -262,14 +285,30 @@ def generate(model_path: str | Path, prompts: Sequence[str], *, max_new_tokens: 
     (its training config's ``eval.batch_size``; 16 for foreign checkpoints). Returns one completion
     string per prompt, in order. ``cache``: the KV cache, one of :data:`CACHE_MODES`;
     ``constrained``: CTRC-constrained decoding (:mod:`physcene.train.constrained`; ``follow_plan``: its
-    layout follows the completion's own plan).
+    layout follows the completion's own plan). ``progress``: a bar on stderr over the prompts,
+    advanced as each batch is decoded (off for callers with their own bars: the ablation, analyses).
     """
     check_cache(cache)
     if dtype is not None:
         torch_dtype(dtype)  # validate early
-    model, tokenizer, info = load_for_generation(model_path, device=device, dtype=dtype)
+    with _loading_bar(progress):
+        model, tokenizer, info = load_for_generation(model_path, device=device, dtype=dtype)
     batch_size = batch_size or int(info.get("eval_batch_size", 16))
     return generate_with(model, tokenizer, prompts, chat_format=bool(info.get("chat_format", False)),
                          max_new_tokens=max_new_tokens, batch_size=batch_size, do_sample=do_sample,
                          temperature=temperature, seed=seed, cache=cache, constrained=constrained,
-                         follow_plan=follow_plan)
+                         follow_plan=follow_plan, progress=progress)
+
+
+@contextmanager
+def _loading_bar(shown: bool) -> Iterator[None]:
+    """transformers' own "Loading weights" bar (stderr) only where ``shown``: with progress off a
+    caller's stderr stays empty. The switch is transformers' global one, set back on the way out."""
+    was_on = transformers_logging.is_progress_bar_enabled()
+    if was_on and not shown:
+        transformers_logging.disable_progress_bar()
+    try:
+        yield
+    finally:
+        if was_on and not shown:
+            transformers_logging.enable_progress_bar()

@@ -49,12 +49,14 @@ def _config(args):
     return cfg
 
 
-def model_generators(cfg, *, max_new_tokens: int = 4096, device: str | None = None) -> dict:
+def model_generators(cfg, *, max_new_tokens: int = 4096, device: str | None = None,
+                     progress: bool = False) -> dict:
     """A :data:`physcene.eval.harness.Generate` per ``model:PATH`` in ``cfg.generator``: the
     checkpoint's completions of the items' prompts (:func:`physcene.train.generate.generate`) with
     the config's KV ``cache``, ``constrained`` decoding, ``follow_plan`` and ``temperature`` (0:
-    greedy, else sampled with the config's ``seed``); ``device``: None = the first GPU, else CPU. The
-    harness itself never imports the training code (eval/ sits below train/)."""
+    greedy, else sampled with the config's ``seed``); ``device``: None = the first GPU, else CPU;
+    ``progress``: a bar on stderr over the prompts as their batches are decoded. The harness itself
+    never imports the training code (eval/ sits below train/)."""
     specs = [g.strip() for g in str(cfg.generator).split(",") if g.strip().startswith("model:")]
     cache, constrained = str(cfg.get("cache", "dynamic")), bool(cfg.get("constrained", False))
     follow_plan = bool(cfg.get("follow_plan", True))
@@ -69,7 +71,7 @@ def model_generators(cfg, *, max_new_tokens: int = 4096, device: str | None = No
                                 f"({exc})") from exc
             return generate(path, [it.prompt for it in items], max_new_tokens=max_new_tokens, device=device,
                             cache=cache, constrained=constrained, follow_plan=follow_plan,
-                            seed=seed, **sampling(temperature))
+                            seed=seed, progress=progress, **sampling(temperature))
         return run_model
 
     return {spec: model(spec[len("model:"):]) for spec in specs}
@@ -81,7 +83,8 @@ def run(args) -> int:
     command = "physcene " + " ".join(shlex.quote(a) for a in argv)
     tables, path = run_evaluation(cfg, command=command, title=f"physcene eval — {cfg.split} split",
                                   progress=not args.quiet,
-                                  generators=model_generators(cfg, max_new_tokens=int(cfg.max_new_tokens)))
+                                  generators=model_generators(cfg, max_new_tokens=int(cfg.max_new_tokens),
+                                                              progress=not args.quiet))
     if args.json:
         print_json({"split": cfg.split, "n": cfg.n, "report": path, "results": path.parent / "results.json",
                     "methods": tables})
