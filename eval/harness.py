@@ -280,6 +280,8 @@ def score_scenes(items: Sequence[BenchmarkItem], outputs: Sequence, judge, engin
     judged, judge_errors = 0, []
     for k, (it, out) in enumerate(zip(items, outputs)):
         extra = dict(extras[k])
+        if k not in physics:  # unparsed, failed or empty: counted here, the engine never saw it
+            bar.update(1)
         if isinstance(out, GenerationFailure):
             extra["generation_error"] = out.reason
             failed = {"error": f"generation failed: {out.reason}", "avg": float("nan")}
@@ -291,8 +293,6 @@ def score_scenes(items: Sequence[BenchmarkItem], outputs: Sequence, judge, engin
             results.append(SceneResult(it.id, it.scene_type, it.level, ScenePhysics(0), failed, extra))
             continue
         ph = physics.get(k, ScenePhysics(len(out)))
-        if k not in physics:
-            bar.update(1)
         if settle and len(out):
             from physcene.settle import settle as settle_scene  # here: MuJoCo only for the stability column
 

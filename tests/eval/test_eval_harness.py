@@ -147,3 +147,14 @@ def test_parse_error_kinds_group_a_models_failure_modes():
     assert kinds[0][1] == 2, kinds  # the two truncations differ only in names and numbers
     assert "1_cup_0" not in kinds[0][0] and "2_mug_0" not in kinds[0][0]
     assert parse_error_kinds([]) == []
+
+
+def test_score_bar_counts_every_output_parsed_or_not(items, capsys):
+    """The score bar ends at the number of outputs also where some did not parse (they never reach
+    the engine, and the bar used to stop short of them)."""
+    judge = make_judge("rule", [it.reference for it in items])
+    outputs = generate(items, "reference", progress=False)
+    outputs[0] = ParseError("truncated JSON at char 1")
+    score_scenes(items, outputs, judge, progress=True, desc="scoring")
+    err = capsys.readouterr().err
+    assert f"{len(items)}/{len(items)}" in err.replace("\r", "\n").splitlines()[-1]
