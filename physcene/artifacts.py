@@ -7,14 +7,26 @@ small and the bytes stay reachable. ``artifacts.json`` at the repository root li
     {"artifacts": {"small-sft": {"commit": "<sha of the commit holding the files>", "root": "runs/small/sft",
                                  "files": [{"path": "model.safetensors", "sha256": "...", "size": 54525952}],
                                  "digest": "...", "made_by": "physcene train sft --config small",
-                                 "data": ["data/train.jsonl"], "base": null}}}
+                                 "data": ["data/train.jsonl"], "base": null},
+                   "rl-s0-pada-300": {"commit": "...", "root": "runs/rl/s0/pada", "files": [
+                                 {"path": "checkpoint-50/adapter_model.safetensors", "sha256": "...",
+                                  "size": 8391352, "commit": "<sha of rl-s0-pada's commit>",
+                                  "at": "runs/rl/s0/pada/checkpoint-50/adapter_model.safetensors"},
+                                 ...], ...}}}
 
 ``add`` hashes the files, writes the entry (``commit`` null) and stages both; after the commit that
 holds them, ``pin`` records that commit, checks every file in it against its hash and takes the files
 out of the index (the next commit removes them from the tree). ``restore`` reads each file back from
 the commit with ``git cat-file --batch`` (binary-safe), checks its sha256 and writes it atomically
-under ``artifacts/NAME`` (ignored). Paths in the manifest are relative to the repository root (``root``) and
-to the artifact's root (``files``). docs/training.md, "Artifacts", gives the workflow.
+under ``artifacts/NAME`` (ignored). Paths in the manifest are relative to the repository root (``root``,
+``at``) and to the artifact's root (``path``). docs/training.md, "Artifacts", gives the workflow.
+
+Reuse: a file whose sha256 equals a file of an artifact already pinned (a continued RL run's early
+checkpoints) is not staged again; its entry names where that artifact keeps it, ``commit`` and ``at``
+(its path in that commit), and ``pin`` and ``restore`` check and read it there. Bytes committed in one
+commit and removed in the next count twice against what one push may carry, so the history keeps each
+file's bytes once. Files without ``commit`` live in the artifact's own commit; ``digest`` covers all
+files, kept or referred to.
 """
 
 from __future__ import annotations
@@ -25,15 +37,16 @@ import json
 import os
 import re
 import subprocess
-from collections.abc import Iterable, Sequence
+from collections.abc import Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
 from physcene.files import temp_path, write_atomic
 
 __all__ = ["MANIFEST", "MAX_FILE_BYTES", "RESTORED", "Artifact", "ArtifactError", "add_artifact",
-           "checkpoint_digest", "file_sha256", "is_restored", "load_manifest", "pin_artifact", "repo_root",
-           "resolve_generators", "resolve_model", "restore_artifact", "restored_dir"]
+           "checkpoint_digest", "file_sha256", "is_restored", "load_manifest", "pin_artifact",
+           "referenced_from", "repo_root", "resolve_generators", "resolve_model", "restore_artifact",
+           "restored_dir"]
 
 MANIFEST = "artifacts.json"
 # Where ``restore`` writes an artifact by default (ignored by .gitignore), and the marker it leaves there.
@@ -61,7 +74,8 @@ class Artifact:
     root: str
     """The artifact's folder, relative to the repository root, where it was added and committed."""
     files: tuple[dict, ...]
-    """``{"path", "sha256", "size"}`` per file, ``path`` relative to ``root``, sorted by path."""
+    """``{"path", "sha256", "size"}`` per file, ``path`` relative to ``root``, sorted by path; a file
+    that an earlier artifact keeps adds ``{"commit", "at"}``: where it is read from."""
     made_by: str
     """The command that made it."""
     data: tuple[str, ...] = ()
@@ -73,6 +87,16 @@ class Artifact:
     digest: str = ""
     """sha256 over the sorted ``sha256  path`` lines: one hash for the whole artifact."""
 
+    @property
+    def own_files(self) -> tuple[dict, ...]:
+        """The files kept in this artifact's own commit."""
+        return tuple(f for f in self.files if "commit" not in f)
+
+    @property
+    def referenced_files(self) -> tuple[dict, ...]:
+        """The files read from an earlier artifact's commit."""
+        return tuple(f for f in self.files if "commit" in f)
+
     def to_dict(self) -> dict:
         return {"root": self.root, "commit": self.commit, "digest": self.digest, "made_by": self.made_by,
                 "data": list(self.data), "base": self.base, "files": [dict(f) for f in self.files]}
@@ -80,13 +104,19 @@ class Artifact:
     @classmethod
     def from_dict(cls, name: str, entry: dict, source: str) -> Artifact:
         try:
-            files = tuple({"path": str(f["path"]), "sha256": str(f["sha256"]), "size": int(f["size"])}
-                          for f in entry["files"])
+            files = tuple(_file_entry(f) for f in entry["files"])
             return cls(name=name, root=str(entry["root"]), files=files, made_by=str(entry.get("made_by", "")),
                        data=tuple(str(d) for d in entry.get("data") or ()), base=entry.get("base"),
                        commit=entry.get("commit"), digest=str(entry.get("digest", "")))
         except (KeyError, TypeError, ValueError) as exc:
             raise ArtifactError(f"{source}: artifact {name!r} is malformed ({exc!r})") from None
+
+
+def _file_entry(f: dict) -> dict:
+    entry = {"path": str(f["path"]), "sha256": str(f["sha256"]), "size": int(f["size"])}
+    if "commit" in f or "at" in f:  # both or neither: a reference names a commit and a path in it
+        entry.update(commit=str(f["commit"]), at=str(f["at"]))
+    return entry
 
 
 def _git(root: Path | None, *args: str, stdin: bytes | None = None, check: bool = True) -> bytes:
@@ -124,14 +154,31 @@ def _digest(files: Iterable[dict]) -> str:
 
 
 def checkpoint_digest(model_dir: str | Path) -> str:
-    """sha256 over the weights, config and tokenizer files at the top of a checkpoint directory (the
-    same bytes give the same digest wherever they lie): what an RL run records of its base."""
+    """sha256 over the weights, config and tokenizer files at the top of a checkpoint directory: what
+    an RL run records of its base and what the ablation compares before re-scoring kept layouts. The
+    same checkpoint gives the same digest wherever it lies: each file is hashed as bytes, except a PEFT
+    adapter's ``adapter_config.json``, hashed as canonical JSON without ``base_model_name_or_path`` (the
+    absolute path of the host it was trained on, which ``restore`` rewrites to the restored base's).
+    Leaving it out loses nothing: the base's identity is its own digest, which the RL run records."""
     folder = Path(model_dir)
     files = [p for p in sorted(folder.iterdir()) if p.is_file()
              and (p.name in _MODEL_FILES or p.suffix in _WEIGHT_SUFFIXES)] if folder.is_dir() else []
     if not files:
         raise ArtifactError(f"{folder}: no model files to hash (config.json, *.safetensors ...)")
-    return _digest({"path": p.name, "sha256": file_sha256(p)} for p in files)
+    return _digest({"path": p.name, "sha256": _model_file_sha256(p)} for p in files)
+
+
+def _model_file_sha256(path: Path) -> str:
+    if path.name != "adapter_config.json":
+        return file_sha256(path)
+    try:
+        config = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, ValueError) as exc:
+        raise ArtifactError(f"{path}: not an adapter config ({exc})") from None
+    if not isinstance(config, dict):
+        raise ArtifactError(f"{path}: not an adapter config (a JSON object)")
+    config.pop("base_model_name_or_path", None)
+    return hashlib.sha256(json.dumps(config, sort_keys=True, separators=(",", ":")).encode()).hexdigest()
 
 
 def load_manifest(root: Path) -> dict[str, Artifact]:
@@ -161,17 +208,40 @@ def _entry(root: Path, name: str) -> Artifact:
 
 
 def add_artifact(name: str, path: str | Path, *, made_by: str, data: Sequence[str] = (),
-                 base: str | None = None, exclude: Sequence[str] = (),
+                 base: str | None = None, exclude: Sequence[str] = (), reuse: bool = True,
                  cwd: str | Path | None = None) -> Artifact:
     """Hash every file under ``path`` (a file or a folder inside the checkout) but those with a path
     component matching an ``exclude`` glob (``checkpoint-*``: an SFT base without its intermediate
-    checkpoints), write the manifest entry ``name`` with no commit yet and stage exactly those files
-    and the manifest (``git add -f``: they may lie in an ignored folder such as ``runs/``), ready for
-    the commit that holds them. Re-adding a name is allowed until it is pinned."""
+    checkpoints), write the manifest entry ``name`` with no commit yet and stage those files and the
+    manifest (``git add -f``: they may lie in an ignored folder such as ``runs/``), ready for the commit
+    that holds them. With ``reuse`` a file whose sha256 equals a file of a pinned artifact is not
+    staged: its entry refers to that artifact's commit (``commit``, ``at``), so the history keeps its
+    bytes once. Re-adding a name is allowed until it is pinned."""
     root = repo_root(cwd)
     if not re.fullmatch(r"[A-Za-z0-9][A-Za-z0-9._-]*", name):
         raise ArtifactError(f"artifact name {name!r}: use letters, digits, '-', '_' and '.', starting with "
                             "a letter or digit")
+    artifacts = load_manifest(root)
+    if name in artifacts and artifacts[name].commit:
+        raise ArtifactError(f"artifact {name!r} is pinned at {artifacts[name].commit[:12]}: pick a new name")
+    if base is not None and base not in artifacts:
+        raise ArtifactError(f"artifact {name}: --base {base!r} is not in {MANIFEST}")
+    folder, paths = _files_under(root, name, path, exclude, cwd)
+    files = tuple({"path": p.relative_to(folder).as_posix(), "sha256": file_sha256(p),
+                   "size": p.stat().st_size} for p in paths)
+    if reuse:
+        files = _with_references(files, _kept_files(artifacts.values()))
+    artifact = Artifact(name=name, root=folder.relative_to(root.resolve()).as_posix() or ".", files=files,
+                        made_by=made_by, data=tuple(data), base=base, digest=_digest(files))
+    artifacts[name] = artifact
+    _save_manifest(root, artifacts)
+    _git(root, "add", "-f", "--", *(_committed_path(artifact, f) for f in artifact.own_files), MANIFEST)
+    return artifact
+
+
+def _files_under(root: Path, name: str, path: str | Path, exclude: Sequence[str],
+                 cwd: str | Path | None) -> tuple[Path, list[Path]]:
+    """The artifact's folder and its files, none excluded, none too large for a git host."""
     target = (Path(cwd or ".") / path).resolve()
     if not target.exists():
         raise ArtifactError(f"artifact {name}: {path} does not exist")
@@ -179,11 +249,6 @@ def add_artifact(name: str, path: str | Path, *, made_by: str, data: Sequence[st
         target.relative_to(root.resolve())
     except ValueError:
         raise ArtifactError(f"artifact {name}: {target} is outside the repository {root}") from None
-    artifacts = load_manifest(root)
-    if name in artifacts and artifacts[name].commit:
-        raise ArtifactError(f"artifact {name!r} is pinned at {artifacts[name].commit[:12]}: pick a new name")
-    if base is not None and base not in artifacts:
-        raise ArtifactError(f"artifact {name}: --base {base!r} is not in {MANIFEST}")
     folder = target if target.is_dir() else target.parent
     paths = sorted(p for p in target.rglob("*") if p.is_file()) if target.is_dir() else [target]
     paths = [p for p in paths if not any(fnmatch.fnmatch(part, pattern) for pattern in exclude
@@ -195,18 +260,66 @@ def add_artifact(name: str, path: str | Path, *, made_by: str, data: Sequence[st
         raise ArtifactError(f"artifact {name}: {where} has {mib:.1f} MiB, over the {MAX_FILE_BYTES // 2**20} "
                             "MiB a git host takes in one file: save the weights in bf16 or --exclude what a "
                             "later run does not read")
-    files = tuple({"path": p.relative_to(folder).as_posix(), "sha256": file_sha256(p),
-                   "size": p.stat().st_size} for p in paths)
-    artifact = Artifact(name=name, root=folder.relative_to(root.resolve()).as_posix() or ".", files=files,
-                        made_by=made_by, data=tuple(data), base=base, digest=_digest(files))
-    artifacts[name] = artifact
-    _save_manifest(root, artifacts)
-    _git(root, "add", "-f", "--", *(_committed_path(artifact, f) for f in files), MANIFEST)
-    return artifact
+    return folder, paths
 
 
 def _committed_path(artifact: Artifact, f: dict) -> str:
     return f["path"] if artifact.root in ("", ".") else f"{artifact.root}/{f['path']}"
+
+
+def _source(artifact: Artifact, f: dict) -> tuple[str, str]:
+    """The commit that keeps file ``f`` of a pinned artifact and its path there."""
+    return (f["commit"], f["at"]) if "commit" in f else (artifact.commit, _committed_path(artifact, f))
+
+
+def _kept_files(artifacts: Iterable[Artifact]) -> dict[str, tuple[str, str]]:
+    """Where the pinned artifacts keep each sha256 they hold: (commit, path there). A reference leads
+    to the commit that holds the bytes, not to the artifact that refers to them."""
+    kept: dict[str, tuple[str, str]] = {}
+    for artifact in sorted(artifacts, key=lambda a: a.name):
+        if artifact.commit:
+            for f in artifact.files:
+                kept.setdefault(f["sha256"], _source(artifact, f))
+    return kept
+
+
+def _with_references(files: tuple[dict, ...], kept: dict[str, tuple[str, str]]) -> tuple[dict, ...]:
+    return tuple({**f, "commit": kept[f["sha256"]][0], "at": kept[f["sha256"]][1]} if f["sha256"] in kept
+                 else f for f in files)
+
+
+def referenced_from(artifact: Artifact, artifacts: Mapping[str, Artifact]) -> dict[str, list[dict]]:
+    """The files ``artifact`` refers to, by the pinned artifact that keeps them (by the commit's first
+    12 digits where the manifest names none)."""
+    keepers: dict[tuple[str, str], str] = {}
+    for other in sorted(artifacts.values(), key=lambda a: a.name):
+        for f in other.own_files if other.commit else ():
+            keepers.setdefault(_source(other, f), other.name)
+    by_keeper: dict[str, list[dict]] = {}
+    for f in artifact.referenced_files:
+        by_keeper.setdefault(keepers.get((f["commit"], f["at"]), f["commit"][:12]), []).append(f)
+    return by_keeper
+
+
+def _sources(artifact: Artifact) -> dict[str, list[tuple[dict, str]]]:
+    """A pinned artifact's files by the commit that keeps them, each with its path in that commit."""
+    groups: dict[str, list[tuple[dict, str]]] = {}
+    for f in artifact.files:
+        commit, path = _source(artifact, f)
+        groups.setdefault(commit, []).append((f, path))
+    return groups
+
+
+def _read_sources(root: Path, groups: dict[str, list[tuple[dict, str]]],
+                  temps: Mapping[str, Path] | None = None) -> Iterator[tuple[dict, str, str, str | None]]:
+    """``(file, commit, path there, sha256)`` for every file of ``groups`` (:func:`_sources`), one
+    ``git cat-file --batch`` per commit; with ``temps`` (by the file's ``path``) each blob is also
+    written there. The sha256 is None where the commit holds no file at that path."""
+    for commit, entries in groups.items():
+        paths = [path for _, path in entries]
+        sinks = [temps[f["path"]] for f, _ in entries] if temps is not None else None
+        for (f, path), got in zip(entries, _blob_digests(root, commit, paths, sinks)):
+            yield f, commit, path, got
 
 
 def _blob_digests(root: Path, commit: str, paths: Sequence[str],
@@ -261,29 +374,49 @@ def _commit_present(root: Path, commit: str, name: str) -> None:
 
 
 def pin_artifact(name: str, commit: str = "HEAD", *, cwd: str | Path | None = None) -> Artifact:
-    """Record ``commit`` as the one holding artifact ``name`` after checking each of its files there
-    against the manifest's sha256; then take the files out of the index (``git rm --cached``) and
-    delete the working copies that git does not ignore, so that the next commit leaves the tree small."""
+    """Record ``commit`` as the one holding artifact ``name`` after checking each of its own files there,
+    and each file it refers to in that file's commit, against the manifest's sha256; then take its own
+    files out of the index (``git rm --cached``) and delete their working copies that git does not
+    ignore, so that the next commit leaves the tree small."""
     root = repo_root(cwd)
     artifact = _entry(root, name)
     sha = _git(root, "rev-parse", "--verify", f"{commit}^{{commit}}").decode().strip()
-    paths = [_committed_path(artifact, f) for f in artifact.files]
-    for f, path, got in zip(artifact.files, paths, _blob_digests(root, sha, paths)):
-        if got is None:
+    pinned = Artifact(**{**artifact.__dict__, "commit": sha})
+    groups = _sources(pinned)
+    for source in groups:
+        _commit_present(root, source, name)
+    for f, source, path, got in _read_sources(root, groups):
+        if "commit" in f:
+            _check_reference(name, f, source, path, got)
+        elif got is None:
             raise ArtifactError(f"artifact {name}: commit {sha[:12]} does not hold {path}; commit the files "
                                 f"first (`git add -f {artifact.root} {MANIFEST} && git commit`)")
-        if got != f["sha256"]:
+        elif got != f["sha256"]:
             raise ArtifactError(f"artifact {name}: {path} in commit {sha[:12]} has sha256 {got}, the "
                                 f"manifest says {f['sha256']} (add and commit it again)")
+    _untrack(root, [_committed_path(pinned, f) for f in pinned.own_files])
+    artifacts = load_manifest(root)
+    artifacts[name] = pinned
+    _save_manifest(root, artifacts)
+    return pinned
+
+
+def _check_reference(name: str, f: dict, commit: str, path: str, got: str | None) -> None:
+    if got != f["sha256"]:
+        held = "holds no such file" if got is None else f"has sha256 {got}, the manifest says {f['sha256']}"
+        raise ArtifactError(f"artifact {name}: {f['path']} refers to {path} in commit {commit[:12]}, which "
+                            f"{held}; add the artifact again (`--no-reuse` stages every file)")
+
+
+def _untrack(root: Path, paths: Sequence[str]) -> None:
+    """Take ``paths`` out of the index and delete the working copies that git does not ignore."""
+    if not paths:  # an artifact whose files all live in earlier commits
+        return
     _git(root, "rm", "-r", "-q", "--cached", "--ignore-unmatch", "--", *paths)
     ignored = set(_git(root, "check-ignore", "--no-index", "--", *paths, check=False).decode().splitlines())
     for path in paths:
         if path not in ignored:
             (root / path).unlink(missing_ok=True)
-    artifacts = load_manifest(root)
-    artifacts[name] = pinned = Artifact(**{**artifact.__dict__, "commit": sha})
-    _save_manifest(root, artifacts)
-    return pinned
 
 
 def restored_dir(root: Path, name: str) -> Path:
@@ -306,8 +439,9 @@ def is_restored(folder: Path, artifact: Artifact) -> bool:
 
 
 def restore_artifact(name: str, to: str | Path | None = None, *, cwd: str | Path | None = None) -> Path:
-    """Write artifact ``name`` from its commit into ``to`` (default ``<repo>/artifacts/NAME``), each
-    file checked against its sha256 before it is renamed into place; returns the folder. A folder that
+    """Write artifact ``name`` into ``to`` (default ``<repo>/artifacts/NAME``), each file read from the
+    commit that keeps it (its own, or an earlier artifact's for a reference) and checked against its
+    sha256 before any is renamed into place: a mismatch writes nothing. Returns the folder; a folder that
     already holds it is left as it is."""
     root = repo_root(cwd)
     artifact = _entry(root, name)
@@ -317,25 +451,25 @@ def restore_artifact(name: str, to: str | Path | None = None, *, cwd: str | Path
     folder = Path(cwd or ".", to).resolve() if to is not None else restored_dir(root, name)
     if is_restored(folder, artifact):
         return folder
-    _commit_present(root, artifact.commit, name)
-    paths = [_committed_path(artifact, f) for f in artifact.files]
-    finals = [folder / f["path"] for f in artifact.files]
-    temps = [temp_path(p) for p in finals]
-    for p in temps:
+    groups = _sources(artifact)
+    for source in groups:
+        _commit_present(root, source, name)
+    temps = {f["path"]: temp_path(folder / f["path"]) for f in artifact.files}
+    for p in temps.values():
         p.parent.mkdir(parents=True, exist_ok=True)
     try:  # every file checked before any is renamed into place: a mismatch writes nothing
-        for f, path, got in zip(artifact.files, paths, _blob_digests(root, artifact.commit, paths, temps)):
+        for f, source, path, got in _read_sources(root, groups, temps):
             if got is None:
-                raise ArtifactError(f"artifact {name}: commit {artifact.commit[:12]} does not hold {path}")
+                raise ArtifactError(f"artifact {name}: commit {source[:12]} does not hold {path}")
             if got != f["sha256"]:
-                raise ArtifactError(f"artifact {name}: {path} at {artifact.commit[:12]} has sha256 {got}, "
+                raise ArtifactError(f"artifact {name}: {path} at {source[:12]} has sha256 {got}, "
                                     f"the manifest says {f['sha256']}: refusing to restore it")
     except BaseException:
-        for p in temps:
+        for p in temps.values():
             p.unlink(missing_ok=True)
         raise
-    for tmp, final in zip(temps, finals):
-        os.replace(tmp, final)
+    for path, tmp in temps.items():
+        os.replace(tmp, folder / path)
     write_atomic(folder / _MARKER, json.dumps({"name": name, "commit": artifact.commit,
                                                 "digest": artifact.digest}).encode())
     if artifact.base is not None and any(f["path"].endswith("adapter_config.json") for f in artifact.files):

@@ -3,7 +3,8 @@
 
     physcene artifacts add small-sft runs/small/sft --exclude 'checkpoint-*' \\
         --made-by "physcene train sft --config small" --data data/train.jsonl
-    git commit -m "artifact small-sft"        # add staged the files and artifacts.json
+    git commit -m "artifact small-sft"        # add staged the files and artifacts.json (a file that a
+                                              # pinned artifact keeps is referred to, not staged)
     physcene artifacts pin small-sft          # records HEAD, takes the files out of the index
     git commit -am "artifact small-sft: out of the tree"
     physcene artifacts restore small-sft      # -> artifacts/small-sft/ (ignored), sha256-checked
@@ -17,6 +18,7 @@ from physcene.artifacts import (
     is_restored,
     load_manifest,
     pin_artifact,
+    referenced_from,
     repo_root,
     restore_artifact,
     restored_dir,
@@ -41,6 +43,9 @@ def add_arguments(parser) -> None:
     add.add_argument("--exclude", action="append", default=[], metavar="GLOB",
                      help="leave out files with a path component matching GLOB, e.g. 'checkpoint-*' "
                           "(repeatable)")
+    add.add_argument("--no-reuse", dest="reuse", action="store_false",
+                     help="stage every file, also those a pinned artifact already keeps (by default they are "
+                          "referred to in the manifest, not committed again)")
     pin = sub.add_parser("pin", help="record the commit holding an artifact's files and take them out of "
                                      "the index (commit again afterwards)")
     pin.add_argument("name")
@@ -50,11 +55,18 @@ def add_arguments(parser) -> None:
     restore.add_argument("--to", metavar="DIR", help="target folder (default: artifacts/NAME, ignored)")
 
 
+def _size(files) -> int:
+    return sum(f["size"] for f in files)
+
+
 def _list(args) -> int:
     root = repo_root()
     artifacts = load_manifest(root)
     rows = {name: {**a.to_dict(), "restored": is_restored(restored_dir(root, name), a),
-                   "size": sum(f["size"] for f in a.files)} for name, a in artifacts.items()}
+                   "size": _size(a.files), "own_size": _size(a.own_files),
+                   "referenced_size": _size(a.referenced_files),
+                   "referenced_from": {k: _size(v) for k, v in referenced_from(a, artifacts).items()}}
+            for name, a in artifacts.items()}
     if getattr(args, "json", False):
         print_json({"manifest": str(root / MANIFEST), "artifacts": rows})
         return 0
@@ -63,9 +75,24 @@ def _list(args) -> int:
     for name, row in rows.items():
         commit = (row["commit"] or "not pinned")[:12]
         state = "restored" if row["restored"] else "not restored"
-        print(f"{name}: {len(row['files'])} file(s), {row['size'] / 2**20:.1f} MiB, commit {commit}, "
-              f"{state}; made by: {row['made_by']}" + (f"; base: {row['base']}" if row["base"] else ""))
+        sources = f" from {', '.join(row['referenced_from'])}" if row["referenced_from"] else ""
+        print(f"{name}: {len(row['files'])} file(s), {row['own_size'] / 2**20:.1f} MiB own, "
+              f"{row['referenced_size'] / 2**20:.1f} MiB referenced{sources}, commit {commit}, {state}; "
+              f"made by: {row['made_by']}" + (f"; base: {row['base']}" if row["base"] else ""))
     return 0
+
+
+def _added(a, artifacts) -> str:
+    """What ``add`` did: the files staged, those referred to and where they are kept."""
+    staged, referenced = a.own_files, a.referenced_files
+    mib = _size(staged) / 2**20
+    line = (f"{a.name}: {len(a.files)} file(s), {_size(a.files) / 2**20:.1f} MiB under {a.root}, digest "
+            f"{a.digest[:12]}; staged {len(staged)} file(s), {mib:.1f} MiB with {MANIFEST}")
+    if referenced:
+        line += (f"; referenced {len(referenced)} file(s), {_size(referenced) / 2**20:.1f} MiB kept by "
+                 f"{', '.join(referenced_from(a, artifacts))}")
+    return (line + f"; next: `git commit`, then `physcene artifacts pin {a.name}` (a push that adds and then "
+            f"removes the staged files carries them twice: {2 * mib:.1f} MiB of diffs)")
 
 
 def run(args) -> int:
@@ -74,11 +101,8 @@ def run(args) -> int:
         return _list(args)
     if args.action == "add":
         a = add_artifact(args.name, args.path, made_by=args.made_by, data=args.data, base=args.base,
-                         exclude=args.exclude)
-        size = sum(f["size"] for f in a.files) / 2**20
-        print(f"{a.name}: {len(a.files)} file(s), {size:.1f} MiB under {a.root}, digest {a.digest[:12]}, "
-              f"staged with {MANIFEST}; next: `git commit`, then `physcene artifacts pin {a.name}` (a push "
-              f"that adds and then removes the files carries them twice: {2 * size:.1f} MiB of diffs)")
+                         exclude=args.exclude, reuse=args.reuse)
+        print(_added(a, load_manifest(repo_root())))
     elif args.action == "pin":
         a = pin_artifact(args.name, args.commit)
         print(f"{a.name}: pinned at {a.commit[:12]}, its files are out of the index; next: "

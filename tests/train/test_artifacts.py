@@ -5,11 +5,14 @@ from __future__ import annotations
 
 import hashlib
 import json
+import shutil
 import subprocess
+from pathlib import Path
 
 import pytest
 
 from physcene.artifacts import (
+    Artifact,
     ArtifactError,
     add_artifact,
     checkpoint_digest,
@@ -182,6 +185,7 @@ def test_a_generator_names_an_artifact_and_an_adapter_finds_its_restored_base(re
         base = json.loads(config_path.read_text())["base_model_name_or_path"]
         assert base == str(repo / "artifacts/small-sft")
     assert is_restored(elsewhere, load_manifest(repo)["small-pada"])
+    assert checkpoint_digest(elsewhere) == checkpoint_digest(pada)  # pointed at another base: one digest
     with pytest.raises(ArtifactError, match="--base 'nope' is not in"):
         add_artifact("x", "README.md", made_by="x", base="nope", cwd=repo)
 
@@ -194,3 +198,143 @@ def test_a_file_too_large_for_a_git_host_is_refused_before_anything_is_staged(re
         add_artifact("small-sft", "runs/sft", made_by="x", cwd=repo)
     assert git(repo, "diff", "--cached", "--name-only") == "" and not (repo / "artifacts.json").exists()
     add_artifact("small-sft", "runs/sft", made_by="x", exclude=["model.safetensors"], cwd=repo)
+
+
+def adapter(folder, base, r=8, weights=b"\x00lora\x01"):
+    folder.mkdir(parents=True)
+    config = {"base_model_name_or_path": base, "peft_type": "LORA", "r": r, "lora_alpha": 16,
+              "target_modules": ["q_proj", "v_proj"]}
+    (folder / "adapter_config.json").write_text(json.dumps(config))
+    (folder / "adapter_model.safetensors").write_bytes(weights)
+    return folder
+
+
+def test_an_adapter_has_one_digest_wherever_its_base_lay(tmp_path):
+    here = adapter(tmp_path / "host-a" / "pada", "/host-a/runs/sft")
+    there = tmp_path / "host-b" / "pada"
+    shutil.copytree(here, there)
+    config = json.loads((there / "adapter_config.json").read_text())
+    config["base_model_name_or_path"] = "/host-b/artifacts/small-sft"
+    (there / "adapter_config.json").write_text(json.dumps(config, indent=2))  # as restore rewrites it
+    assert checkpoint_digest(here) == checkpoint_digest(there)
+    assert checkpoint_digest(adapter(tmp_path / "r16", "/host-a/runs/sft", r=16)) != checkpoint_digest(here)
+    assert checkpoint_digest(adapter(tmp_path / "w", "/host-a/runs/sft", weights=b"other")) != \
+        checkpoint_digest(here)
+
+
+def test_a_checkpoint_without_an_adapter_keeps_its_bytes_digest(repo):
+    sft = repo / "runs/sft"  # config.json and model.safetensors at the top; tokenizer/ is a folder
+    lines = sorted(f"{hashlib.sha256((sft / n).read_bytes()).hexdigest()}  {n}\n"
+                   for n in ("config.json", "model.safetensors"))
+    assert checkpoint_digest(sft) == hashlib.sha256("".join(lines).encode()).hexdigest()
+
+
+def pinned_run(repo):
+    """An RL run kept as artifact pada-50: a final adapter and the checkpoint it resumes from."""
+    run = adapter(repo / "runs/rl/pada", "/host-a/runs/sft")
+    shutil.copytree(run, run / "checkpoint-50")
+    (run / "checkpoint-50/optimizer.pt").write_bytes(b"adam state at 50" * 64)
+    add_artifact("pada-50", "runs/rl/pada", made_by="physcene train pada", cwd=repo)
+    git(repo, "commit", "-qm", "artifact pada-50")
+    pin_artifact("pada-50", cwd=repo)
+    git(repo, "commit", "-qam", "out of the tree")
+    return load_manifest(repo)["pada-50"]
+
+
+def continued_run(repo):
+    """The same run continued to step 100 in another folder: pada-50's files and new ones."""
+    run = repo / "runs/rl/pada-100"
+    shutil.copytree(repo / "runs/rl/pada", run)
+    shutil.copytree(run / "checkpoint-50", run / "checkpoint-100")
+    (run / "checkpoint-100/adapter_model.safetensors").write_bytes(b"\x00lora at 100")
+    (run / "checkpoint-100/optimizer.pt").write_bytes(b"adam state at 100" * 64)
+    (run / "adapter_model.safetensors").write_bytes(b"\x00lora at 100")
+    return {p.relative_to(run).as_posix(): p.read_bytes() for p in run.rglob("*") if p.is_file()}
+
+
+def test_a_continued_run_refers_to_the_files_an_earlier_artifact_keeps(repo, monkeypatch, capsys):
+    first = pinned_run(repo)
+    original = continued_run(repo)
+    monkeypatch.chdir(repo)
+    assert main(["artifacts", "add", "pada-100", "runs/rl/pada-100", "--made-by", "physcene train pada"]) == 0
+    added = capsys.readouterr().out
+    assert "staged 3 file(s)" in added and "referenced 5 file(s)" in added and "kept by pada-50" in added
+    new = [f"runs/rl/pada-100/{p}" for p in ("adapter_model.safetensors",
+                                             "checkpoint-100/adapter_model.safetensors",
+                                             "checkpoint-100/optimizer.pt")]
+    assert git(repo, "diff", "--cached", "--name-only").split() == ["artifacts.json", *new]
+    referenced = {f["path"]: f for f in load_manifest(repo)["pada-100"].referenced_files}
+    shared = {"adapter_config.json", "checkpoint-50/adapter_config.json",
+              "checkpoint-100/adapter_config.json", "checkpoint-50/adapter_model.safetensors",
+              "checkpoint-50/optimizer.pt"}
+    assert set(referenced) == shared
+    for path, f in referenced.items():  # A's commit holds the same bytes at "at"
+        assert f["commit"] == first.commit and f["at"].startswith("runs/rl/pada/")
+        kept = subprocess.run(["git", "show", f"{f['commit']}:{f['at']}"], cwd=repo, check=True,
+                              capture_output=True).stdout
+        assert kept == original[path]
+    assert referenced["checkpoint-100/adapter_config.json"]["at"] == "runs/rl/pada/adapter_config.json"
+    git(repo, "commit", "-qm", "artifact pada-100")
+    assert git(repo, "ls-tree", "-r", "--name-only", "HEAD", "runs").split() == new  # the new bytes only
+    pin_artifact("pada-100", cwd=repo)
+    assert git(repo, "diff", "--cached", "--name-only").split() == new  # only its own files leave the index
+    git(repo, "commit", "-qam", "out of the tree")
+    assert main(["artifacts", "list", "--json"]) == 0
+    row = json.loads(capsys.readouterr().out)["artifacts"]["pada-100"]
+    assert row["own_size"] == sum(len(original[p[len("runs/rl/pada-100/"):]]) for p in new)
+    assert row["referenced_size"] == sum(len(original[p]) for p in shared)
+    assert row["referenced_from"] == {"pada-50": row["referenced_size"]}
+    assert main(["artifacts", "list"]) == 0
+    assert "MiB referenced from pada-50, commit" in capsys.readouterr().out
+    shutil.rmtree(repo / "runs/rl")  # no working copy left: every byte comes from the history
+    folder = restore_artifact("pada-100", repo / "fresh", cwd=repo)
+    assert {p.relative_to(folder).as_posix(): p.read_bytes() for p in folder.rglob("*")
+            if p.is_file() and p.name != ".physcene-artifact.json"} == original
+    assert is_restored(folder, load_manifest(repo)["pada-100"])
+
+
+def test_a_wrong_reference_is_refused_by_pin_and_restore(repo):
+    pinned_run(repo)
+    continued_run(repo)
+    add_artifact("pada-100", "runs/rl/pada-100", made_by="x", cwd=repo)
+    git(repo, "commit", "-qm", "artifact pada-100")
+    good = (repo / "artifacts.json").read_text()
+    manifest = json.loads(good)
+    entry = next(f for f in manifest["artifacts"]["pada-100"]["files"] if "commit" in f)
+    entry["sha256"] = "0" * 64
+    (repo / "artifacts.json").write_text(json.dumps(manifest))
+    with pytest.raises(ArtifactError, match=f"{entry['path']} refers to {entry['at']} in commit .*, which "
+                                            "has sha256"):
+        pin_artifact("pada-100", cwd=repo)
+    (repo / "artifacts.json").write_text(good)
+    pin_artifact("pada-100", cwd=repo)
+    manifest = json.loads((repo / "artifacts.json").read_text())
+    next(f for f in manifest["artifacts"]["pada-100"]["files"] if "commit" in f)["sha256"] = "0" * 64
+    (repo / "artifacts.json").write_text(json.dumps(manifest))
+    with pytest.raises(ArtifactError, match="refusing to restore"):
+        restore_artifact("pada-100", repo / "fresh", cwd=repo)
+    assert not [p for p in (repo / "fresh").rglob("*") if p.is_file()]  # all or nothing
+
+
+def test_no_reuse_stages_every_file(repo, monkeypatch):
+    pinned_run(repo)
+    original = continued_run(repo)
+    monkeypatch.chdir(repo)
+    assert main(["artifacts", "add", "pada-100", "runs/rl/pada-100", "--made-by", "x", "--no-reuse"]) == 0
+    assert git(repo, "diff", "--cached", "--name-only").split() == \
+        ["artifacts.json", *sorted(f"runs/rl/pada-100/{p}" for p in original)]
+    assert not load_manifest(repo)["pada-100"].referenced_files
+
+
+def test_the_manifest_round_trips_references_and_loads_entries_without_them(repo):
+    plain = {"root": "runs/sft", "commit": "a" * 40, "files": [{"path": "x", "sha256": "0" * 64, "size": 1}]}
+    referenced = {**plain, "files": [{"path": "x", "sha256": "0" * 64, "size": 1, "commit": "b" * 40,
+                                      "at": "runs/old/x"}]}
+    for entry in (plain, referenced):
+        artifact = Artifact.from_dict("a", entry, "test")
+        assert Artifact.from_dict("a", artifact.to_dict(), "test") == artifact
+        assert artifact.to_dict()["files"] == entry["files"]
+    with pytest.raises(ArtifactError, match="artifact 'a' is malformed"):
+        Artifact.from_dict("a", {**plain, "files": [{**plain["files"][0], "commit": "b" * 40}]}, "test")
+    project = load_manifest(Path(__file__).resolve().parents[2])  # the repository's own artifacts.json
+    assert all(not a.referenced_files for a in project.values())
