@@ -2,12 +2,16 @@
 
 ``run_ablation(cfg, budget_min)`` runs SFT -> anchors -> ``grpo``, ``pada_star``, ``pada`` -> eval of
 the reference, SFT, SFT + TTO, GRPO, PADA* and PADA on the test split with the eval harness (rule
-judge), and writes ``ablation.json`` ``{"rows": [{name, seed, rl_steps, scr, acr, qpr7, qpr8, qpr9,
-judge_avg, parse_rate, floating, shrunk, out_of_zone, layouts, n, by_level}], "gpu", "commands",
-"stages"}`` (:data:`ROW_KEYS`; rates and shares as fractions) plus Markdown tables (all levels; SCR /
-ACR per level) and the learning curves (:mod:`physcene.train.ablation_plot`). ``ablation.variants``
-picks the RL rows; ``ablation.checkpoints`` adds a row per kept intermediate checkpoint of them
-(``"pada@12"``, under ``checkpoint_rows``, ``rl_steps`` 12: the metrics against RL steps);
+judge; the split's draw is ``ablation.test_seed`` whatever the run's seed, so rows of every seed score
+the same scenes), and writes ``ablation.json`` ``{"rows": [{name, seed, rl_steps, scr, acr, qpr7,
+qpr8, qpr9, judge_avg, parse_rate, floating, shrunk, out_of_zone, layouts, n, by_level}], "gpu",
+"commands", "stages", "test_split"}`` (:data:`ROW_KEYS`; rates and shares as fractions) plus Markdown
+tables (all levels; SCR / ACR per level) and the learning curves (:mod:`physcene.train.ablation_plot`).
+``ablation.variants`` picks the RL rows; ``ablation.checkpoints`` adds a row per kept intermediate
+checkpoint of them (``"pada@12"``, under ``checkpoint_rows``, ``rl_steps`` 12: the metrics against RL
+steps); ``ablation.validation`` (N scenes of another draw of the split, ``ablation.validation_seed``)
+gives every model row its ``val_scr`` and marks the row of each RL run with the lowest one ``chosen``,
+so the kept checkpoint is picked without reading the test split;
 ``ablation.layouts`` keeps every row's layouts as ``<layouts>/<row>.jsonl.gz`` (one ``{"id", "layout"}``
 record per scene, ``layout`` null and ``parse_error`` set where the output did not parse), which
 ``physcene check`` and ``physcene eval --generator file:...`` read to recompute the row
@@ -47,15 +51,18 @@ from physcene.train.pada import NoAnchorsError, run_pada
 from physcene.train.records import load_records
 from physcene.train.sft import TimeBudget, run_sft
 
-__all__ = ["ROW_KEYS", "ROW_NAMES", "TimeBudget", "ablation_row", "check_ablation", "checkpoint_models",
-           "layout_records", "level_table", "markdown_table", "merge_ablations", "row_file", "run_ablation",
-           "shrunk_share", "table_figures", "table_row", "write_ablation"]
+__all__ = ["ROW_KEYS", "ROW_NAMES", "TimeBudget", "ablation_row", "ablation_variants", "check_ablation",
+           "checkpoint_models", "evaluation_split", "layout_records", "level_table", "mark_chosen",
+           "markdown_table", "merge_ablations", "row_file", "run_ablation", "shrunk_share", "table_figures",
+           "table_row", "validation_split", "write_ablation"]
 
 ROW_NAMES = ("reference", "sft", "sft+tto", "grpo", "pada*", "pada")
 # Every row of ablation.json has these (shares and rates as fractions, null where nothing parsed).
 ROW_KEYS = ("name", "seed", "rl_steps", "scr", "acr", "qpr7", "qpr8", "qpr9", "judge_avg", "parse_rate",
             "floating", "shrunk", "out_of_zone", "layouts")
 _FRACTIONS = ("scr", "acr", "qpr7", "qpr8", "qpr9", "parse_rate", "floating", "shrunk", "out_of_zone")
+_RL_ROWS = ("grpo", "pada*", "pada")
+_VARIANTS = {"grpo": "grpo", "pada_star": "pada*", "pada": "pada"}  # ablation.variants -> row name
 DEFAULT_SHARES = {"sft": 0.45, "anchors": 0.10, "grpo": 0.10, "pada_star": 0.10, "pada": 0.10, "eval": 0.15}
 
 
@@ -176,10 +183,36 @@ def check_ablation(data: dict, source: str = "ablation.json") -> dict:
             raise ValueError(f"{where} lacks {missing}")
         if row["name"].split("@")[0] not in ROW_NAMES:
             raise ValueError(f"{where}: name must be one of {list(ROW_NAMES)} (@N for a checkpoint)")
-        for key in _FRACTIONS:
-            if row[key] is not None and not 0.0 <= row[key] <= 1.0:
-                raise ValueError(f"{where}: {key} must be a fraction in [0, 1] or null, got {row[key]}")
+        for key in [k for k in (*_FRACTIONS, "val_scr") if k in row]:  # val_scr: only with validation
+            if row[key] is not None and not _is_fraction(row[key]):
+                raise ValueError(f"{where}: {key} must be a fraction in [0, 1] or null, got {row[key]!r}")
+        if "chosen" in row and not isinstance(row["chosen"], bool):
+            raise ValueError(f"{where}: chosen must be true or false, got {row['chosen']!r}")
     return data
+
+
+def _is_fraction(x) -> bool:
+    return isinstance(x, (int, float)) and not isinstance(x, bool) and 0.0 <= x <= 1.0
+
+
+def mark_chosen(rows: list[dict]) -> list[dict]:
+    """``rows`` with ``chosen`` on every row of an RL run that validation scored (``grpo``, ``pada*``,
+    ``pada`` and their ``name@N`` checkpoints, per seed): true on the row with the lowest ``val_scr``,
+    false on the others. The kept checkpoint is thereby picked on the validation draw, never on the
+    test split it is reported on. Ties go to the later step (more training at the same SCR); a row where
+    nothing parsed has no SCR and ranks last."""
+    runs: dict[tuple, list[int]] = {}
+    for k, row in enumerate(rows):
+        if "val_scr" in row and row["name"].split("@")[0] in _RL_ROWS:
+            runs.setdefault((row["name"].split("@")[0], row.get("seed")), []).append(k)
+
+    def rank(k: int) -> tuple:
+        scr = rows[k]["val_scr"]
+        return scr is None, scr or 0.0, -int(rows[k].get("rl_steps") or 0)
+
+    chosen = {min(members, key=rank) for members in runs.values()}
+    scored = {k for members in runs.values() for k in members}
+    return [{**row, "chosen": k in chosen} if k in scored else row for k, row in enumerate(rows)]
 
 
 def checkpoint_models(models: dict[str, Path]) -> dict[str, Path]:
@@ -218,32 +251,99 @@ def _rl_steps(name: str, path: Path) -> int:
     return int(read_run_info(path).get("steps") or 0)
 
 
+def evaluation_split(a: DictConfig) -> dict:
+    """The scenes every row is scored on: the first ``ablation.n_test`` of ``ablation.test_split`` drawn
+    with ``ablation.test_seed``. Not the run's seed: rows of every seed then score the same scenes and
+    stand in one table (``ablation-merge``)."""
+    return {"name": str(a.test_split), "seed": int(a.get("test_seed", 0)), "n": int(a.n_test)}
+
+
+def validation_split(a: DictConfig) -> dict | None:
+    """The scenes the kept checkpoint is picked on (``ablation.validation`` of them, drawn from the test
+    split's generator with ``ablation.validation_seed``), None when ``ablation.validation`` is null. The
+    draw of the test split itself is refused: picking on it would read the figures it reports."""
+    n = a.get("validation")
+    if n is None:
+        return None
+    if isinstance(n, bool) or not isinstance(n, int) or n < 1:
+        raise TrainingSetupError(f"ablation.validation: {n!r} is not a number of scenes (a positive "
+                                 "integer; null: no validation)")
+    test, seed = evaluation_split(a), int(a.get("validation_seed", 1))
+    if seed == test["seed"]:
+        raise TrainingSetupError(f"ablation.validation_seed: {seed} equals ablation.test_seed: the "
+                                 "validation scenes would be the test scenes; set another validation_seed")
+    return {"name": test["name"], "seed": seed, "n": n}
+
+
+def _load_split(split: dict) -> list:
+    from physcene.eval.harness import load_benchmark
+
+    return load_benchmark(split["name"], n=split["n"], seed=split["seed"], progress=False)
+
+
+def _decode(cfg: DictConfig, path: Path, items: list) -> list:
+    """The model's outputs for ``items`` at the table's generation settings (``eval.*``, the run's
+    seed): the one decoding of the test rows and of the validation scenes, so a checkpoint is picked
+    on the decoding it is reported with. Under accelerate the items are split between the processes
+    (generation is the slow part) and gathered in input order."""
+    from physcene.eval.harness import generate
+
+    state = PartialState()
+    with state.split_between_processes(list(range(len(items)))) as shard:
+        model = partial(_completions, path, max_new_tokens=int(cfg.eval.max_new_tokens),
+                        device=str(state.device), cache=str(cfg.eval.get("cache", "dynamic")),
+                        constrained=bool(cfg.eval.get("constrained", False)),
+                        follow_plan=bool(cfg.eval.get("follow_plan", True)),
+                        seed=int(cfg.seed), **sampling(float(cfg.eval.get("temperature", 0.0))))
+        part = generate([items[i] for i in shard], f"model:{path}", progress=False,
+                        generators={f"model:{path}": model})
+    return gather_object(part)  # rank order = shard order = input order
+
+
+def _model_outputs(cfg: DictConfig, name: str, path: Path, items: list, folder, source: dict | None) -> list:
+    """A model's outputs for ``items``: its layouts under ``folder`` when an earlier evaluation wrote them
+    from the same checkpoint, settings and split (``source``, with ``ablation.reuse``), else decoded."""
+    earlier = _earlier_layouts(items, folder, name, source) if cfg.ablation.get("reuse", True) else None
+    return earlier if earlier is not None else _decode(cfg, path, items)
+
+
+def _validation_scr(items: list, outputs: list, engine, folder, name: str,
+                    source: dict | None) -> float | None:
+    """SCR of a model's outputs on the validation scenes (null where nothing parsed); with
+    ``ablation.layouts`` they are kept under ``<layouts>/validation/`` (the ids are the test split's
+    too) for a rerun to re-score."""
+    from physcene.eval.harness import make_judge, score_scenes
+    from physcene.eval.metrics import summarize
+
+    judge = make_judge("rule", [it.reference for it in items])  # SCR reads no judge; score_scenes needs one
+    results = score_scenes(items, outputs, judge, engine, progress=False)
+    if folder is not None:
+        write_layout_records(layout_records(items, outputs), Path(folder) / row_file(name))
+        _record_source(folder, name, source)
+    return _figures(summarize(results))["scr"]
+
+
 def _evaluate(cfg: DictConfig, models: dict[str, Path], budget_s: float) -> list[dict]:
     """Rows for every model, in ``models``' order: generate once per model, TTO the SFT output for
-    ``sft+tto``, after a row for the reference layouts. With ``ablation.layouts`` each row's layouts are
-    written to ``<layouts>/<row>.jsonl.gz`` (re-score with ``physcene eval --generator file:FILE``).
+    ``sft+tto``, after a row for the reference layouts; with ``ablation.validation`` each model row
+    also gets ``val_scr``. With ``ablation.layouts`` each row's layouts are written to
+    ``<layouts>/<row>.jsonl.gz`` (re-score with ``physcene eval --generator file:FILE``).
 
-    Under accelerate the test prompts are split between the processes for generation (the slow
-    part) and gathered in input order; the main process scores, repairs and reports, the others
-    return no rows.
+    Under accelerate every process generates its share of every model (:func:`_decode`); the main
+    process scores, repairs and reports, the others return no rows.
     """
-    from physcene.eval.harness import (
-        generate,
-        load_benchmark,
-        make_judge,
-        repair_outputs,
-        score_scenes,
-    )
+    from physcene.eval.harness import make_judge, repair_outputs, score_scenes
     from physcene.physics import PhysicsEngine
 
     a = cfg.ablation
     state = PartialState()
-    reuse = bool(a.get("reuse", True))
-    items = load_benchmark(str(a.test_split), n=int(a.n_test), seed=int(cfg.seed), progress=False)
+    test, validation = evaluation_split(a), validation_split(a)
+    items = _load_split(test)
+    val_items = _load_split(validation) if validation else None
     judge = make_judge("rule", [it.reference for it in items])
     engine = PhysicsEngine(device=str(state.device))
     layouts = a.get("layouts")
-    temperature = float(cfg.eval.get("temperature", 0.0))
+    val_folder = Path(str(layouts)) / "validation" if layouts else None
     heldout = None
     if a.get("heldout_anchors"):
         if not Path(str(a.heldout_anchors)).is_file():
@@ -260,24 +360,16 @@ def _evaluate(cfg: DictConfig, models: dict[str, Path], budget_s: float) -> list
         references = [it.reference for it in items]
         add_row("reference", references, score_scenes(items, references, judge, engine, progress=False))
 
-    decoding = {"n_test": int(a.n_test), "seed": int(cfg.seed),
-                **OmegaConf.to_container(cfg.eval, resolve=True)}
+    decoding = {"seed": int(cfg.seed), **OmegaConf.to_container(cfg.eval, resolve=True)}
     for name, path in models.items():
-        # hashed only where the layouts are kept: what the reuse check and the record compare
-        source = {"model": checkpoint_digest(path), "decoding": decoding} if layouts else None
-        earlier = _earlier_layouts(items, layouts, name, source) if reuse else None
-        if earlier is not None:  # the same checkpoint decoded with the same settings: re-scored only
-            outputs = earlier
-        else:
-            with state.split_between_processes(list(range(len(items)))) as shard:
-                model = partial(_completions, path, max_new_tokens=int(cfg.eval.max_new_tokens),
-                                device=str(state.device), cache=str(cfg.eval.get("cache", "dynamic")),
-                                constrained=bool(cfg.eval.get("constrained", False)),
-                                follow_plan=bool(cfg.eval.get("follow_plan", True)),
-                                seed=int(cfg.seed), **sampling(temperature))
-                part = generate([items[i] for i in shard], f"model:{path}", progress=False,
-                                generators={f"model:{path}": model})
-            outputs = gather_object(part)  # rank order = shard order = input order
+        # hashed only where the layouts are kept: what the reuse check and the record compare; the split
+        # and its seed are part of it, so layouts of another draw are never re-scored as these scenes
+        origin = {"model": checkpoint_digest(path), "decoding": decoding} if layouts else None
+        source = {**origin, "split": test} if origin else None
+        val_source = {**origin, "split": validation} if origin else None
+        outputs = _model_outputs(cfg, name, path, items, layouts, source)
+        val_outputs = (_model_outputs(cfg, name, path, val_items, val_folder, val_source)
+                       if validation else None)
         if not state.is_main_process:
             continue
         results = score_scenes(items, outputs, judge, engine, progress=False)
@@ -286,6 +378,9 @@ def _evaluate(cfg: DictConfig, models: dict[str, Path], budget_s: float) -> list
             rows[-1]["anchor_nll"] = anchor_nll(path, heldout, device=str(state.device),
                                                 max_length=int(cfg.pada.max_completion_length))["nll"]
         _record_source(layouts, name, source)
+        if validation:
+            rows[-1]["val_scr"] = _validation_scr(val_items, val_outputs, engine, val_folder, name,
+                                                  val_source)
         if name == "sft":  # repaired again even from reused outputs: the row reports TTO's own figures
             repaired, extras = repair_outputs(outputs, tto_overrides=list(cfg.anchors.tto), engine=engine,
                                               progress=False)
@@ -302,14 +397,16 @@ def _source_file(layouts, name: str) -> Path:
 
 
 def _record_source(layouts, name: str, source: dict) -> None:
-    """Beside a row's layouts, what wrote them (the checkpoint's digest, the decoding settings)."""
+    """Beside a row's layouts, what wrote them (the checkpoint's digest, the decoding settings, the
+    split and its seed)."""
     if layouts:
         write_atomic(_source_file(layouts, name), json.dumps(source, sort_keys=True) + "\n")
 
 
 def _earlier_layouts(items, layouts, name: str, source: dict) -> list | None:
     """A row's outputs from its layouts file when an earlier evaluation wrote it from the same
-    checkpoint with the same settings (``source``), else None: a rerun decodes only what changed."""
+    checkpoint with the same settings on the same draw of the split (``source``; a record without the
+    split never matches), else None: a rerun decodes only what changed."""
     if not layouts or not (Path(str(layouts)) / row_file(name)).is_file():
         return None
     recorded = _source_file(layouts, name)
@@ -323,22 +420,27 @@ def _earlier_layouts(items, layouts, name: str, source: dict) -> list | None:
 
 def markdown_table(rows: list[dict]) -> str:
     """The ablation rows as a Markdown table (rates and shares in %): every figure of the schema, so a
-    reward that is gamed shows beside the SCR (floating, shrunk and out-of-zone objects)."""
+    reward that is gamed shows beside the SCR (floating, shrunk and out-of-zone objects); with
+    validation a ``val SCR`` column, and the row each RL run keeps named ``(chosen)``."""
     pct = (lambda x: "—" if x is None else f"{100 * x:.1f}%")  # noqa: E731
     num = (lambda x: "—" if x is None else f"{x:.2f}")  # noqa: E731
     nll = any("anchor_nll" in r for r in rows)  # a column where the held-out anchors were scored
-    lines = ["| method | seed | RL steps | SCR | ACR | QPR 7 / 8 / 9 | judge avg | parse rate | floating | "
-             "shrunk | out of zone |" + (" held-out anchor NLL |" if nll else "") + " n |",
-             "|---|---|---|---|---|---|---|---|---|---|---|" + ("---|" if nll else "") + "---|"]
+    val = any("val_scr" in r for r in rows)  # a column (and the chosen rows marked) where validation ran
+    columns = ["method", "seed", "RL steps", "SCR", *(["val SCR"] if val else []), "ACR", "QPR 7 / 8 / 9",
+               "judge avg", "parse rate", "floating", "shrunk", "out of zone",
+               *(["held-out anchor NLL"] if nll else []), "n"]
+    lines = ["| " + " | ".join(columns) + " |", "|" + "---|" * len(columns)]
     for r in rows:
         if "skipped" in r:
-            empty = " |" * (9 if nll else 8)
+            empty = " |" * (len(columns) - 4)
             lines.append(f"| {r['name']} | | | skipped: {r['skipped']} |{empty}")
             continue
         qpr = " / ".join(pct(r.get(k)) for k in ("qpr7", "qpr8", "qpr9"))
         value = r.get("anchor_nll")
         anchor = (" —" if value is None else f" {value:.4f}") + " |" if nll else ""
-        lines.append(f"| {r['name']} | {r.get('seed', 0)} | {r.get('rl_steps', 0)} | {pct(r['scr'])} | "
+        name = r["name"] + (" (chosen)" if val and r.get("chosen") else "")
+        validated = f" {pct(r.get('val_scr'))} |" if val else ""
+        lines.append(f"| {name} | {r.get('seed', 0)} | {r.get('rl_steps', 0)} | {pct(r['scr'])} |{validated} "
                      f"{pct(r['acr'])} | {qpr} | {num(r['judge_avg'])} | {pct(r['parse_rate'])} | "
                      f"{pct(r.get('floating'))} | {pct(r.get('shrunk'))} | {pct(r.get('out_of_zone'))} |"
                      f"{anchor} {r['n']} |")
@@ -361,9 +463,25 @@ def level_table(rows: list[dict]) -> str:
     return "\n".join(lines) + "\n"
 
 
+def ablation_variants(a: DictConfig) -> list[str]:
+    """The RL variants ``ablation.variants`` names: null (or no key) is all three, an empty list none
+    (the table of SFT, SFT + TTO and the reference alone)."""
+    listed = a.get("variants")
+    if listed is None:
+        return list(_VARIANTS)
+    if not (OmegaConf.is_list(listed) or isinstance(listed, (list, tuple))):
+        raise TrainingSetupError(f"ablation.variants: {listed!r} is not a list; expected some of "
+                                 f"{list(_VARIANTS)}, e.g. ablation.variants=[pada]")
+    if unknown := [v for v in listed if v not in _VARIANTS]:
+        raise TrainingSetupError(f"ablation.variants: unknown variant(s) {unknown}; "
+                                 f"expected some of {list(_VARIANTS)}")
+    return list(listed)
+
+
 def run_ablation(cfg: DictConfig, budget_min: float | None = None) -> dict:
     """Run the whole ablation per ``cfg`` (see the module docstring); returns the ablation.json dict."""
     a = cfg.ablation
+    variants, validation = ablation_variants(a), validation_split(a)  # refused before hours of training
     budget_s = 60.0 * float(budget_min if budget_min is not None else a.budget_min)
     shares = {**DEFAULT_SHARES, **(OmegaConf.to_container(a.shares) if a.get("shares") else {})}
     stages, t0 = {}, time.monotonic()
@@ -391,12 +509,7 @@ def run_ablation(cfg: DictConfig, budget_min: float | None = None) -> dict:
     timed("anchors", run_anchors, cfg)
     models = {"sft": sft_dir}
     skipped = []
-    names = {"grpo": "grpo", "pada_star": "pada*", "pada": "pada"}
-    variants = list(a.get("variants") or names)
-    if unknown := [v for v in variants if v not in names]:
-        raise TrainingSetupError(f"ablation.variants: unknown variant(s) {unknown}; "
-                                 f"expected some of {list(names)}")
-    for variant, name in ((v, names[v]) for v in names if v in variants):
+    for variant, name in ((v, _VARIANTS[v]) for v in _VARIANTS if v in variants):
         out_dir = OmegaConf.merge(cfg, {"pada": {"variant": variant}}).pada.output_dir
         if finished(out_dir):
             models[name], stages[variant] = Path(str(out_dir)), {"reused": True}
@@ -409,7 +522,7 @@ def run_ablation(cfg: DictConfig, budget_min: float | None = None) -> dict:
             continue
         stages[variant]["stopped_by_budget"] = budget.stopped_early
     extra = checkpoint_models(models) if a.get("checkpoints", False) else {}
-    evaluated = timed("eval", _evaluate, cfg, {**models, **extra}, shares["eval"] * budget_s)
+    evaluated = mark_chosen(timed("eval", _evaluate, cfg, {**models, **extra}, shares["eval"] * budget_s))
     rows = [r for r in evaluated if r["name"] not in extra and r["name"] != "reference"] + skipped
     reference = [r for r in evaluated if r["name"] == "reference"]
     rows = reference + rows
@@ -425,6 +538,8 @@ def run_ablation(cfg: DictConfig, budget_min: float | None = None) -> dict:
         "total_seconds": round(time.monotonic() - t0, 1),
         "stages": stages,
         "anchors": json.loads(anchors_summary.read_text()) if anchors_summary.is_file() else None,
+        "test_split": evaluation_split(a),
+        **({"validation_split": validation} if validation else {}),
         "decoding": {"eval": "constrained" if cfg.eval.get("constrained", False) else "greedy",
                      "eval_temperature": float(cfg.eval.get("temperature", 0.0)),
                      "follow_plan": bool(cfg.eval.get("follow_plan", True)),
