@@ -6,6 +6,8 @@ RNG state, ``trainer_state.json`` last). A run killed while it writes leaves a f
 (``SafetensorError`` on a truncated ``model.safetensors``). :func:`last_complete_checkpoint` picks
 the newest folder whose files are all whole and skips the others with a warning; they stay on disk
 (the Trainer's rotation removes them in time) so nothing is deleted behind the user's back.
+:func:`complete_checkpoints` lists every complete one, oldest first: what ``rl_remote.sh pack`` carries
+to the next host (a folder the Trainer is still writing is left behind).
 
 The check is the guarantee; checkpoints are not staged in a temporary folder and renamed. The
 Trainer itself did that in transformers 4.36 (``tmp-checkpoint-N``): ranks racing on the rename
@@ -29,13 +31,14 @@ import zipfile
 from pathlib import Path
 
 from safetensors import safe_open
-from transformers.trainer_utils import PREFIX_CHECKPOINT_DIR
 
-__all__ = ["checkpoint_problem", "last_complete_checkpoint", "weights_problem"]
+__all__ = ["checkpoint_problem", "complete_checkpoints", "last_complete_checkpoint", "weights_problem"]
 
 logger = logging.getLogger(__name__)
 
-_CHECKPOINT = re.compile(rf"^{PREFIX_CHECKPOINT_DIR}-(\d+)$")
+# The Trainer's folder names (transformers.trainer_utils.PREFIX_CHECKPOINT_DIR): spelled here, since
+# importing that module loads torch and peft (seconds) and rl_remote.sh lists checkpoints in a shell loop.
+_CHECKPOINT = re.compile(r"^checkpoint-(\d+)$")
 _WEIGHTS = ("model.safetensors", "model.safetensors.index.json", "adapter_model.safetensors",
             "pytorch_model.bin", "pytorch_model.bin.index.json", "adapter_model.bin")
 _TORCH_SAVE_SUFFIXES = (".pt", ".pth", ".bin")
@@ -53,7 +56,7 @@ def _safetensors_problem(path: Path) -> str | None:
         end = max((t["data_offsets"][1] for k, t in header.items() if k != "__metadata__"), default=0)
         if 8 + n + end != size:
             return f"{path.name}: {size} bytes, its header describes {8 + n + end}"
-        with safe_open(str(path), framework="pt"):
+        with safe_open(str(path), framework="numpy"):  # checks the header; numpy: no torch to import
             pass
     except (struct.error, ValueError, KeyError, TypeError, OSError) as exc:  # SafetensorError is an OSError
         return f"{path.name}: {exc}"
@@ -103,16 +106,27 @@ def weights_problem(folder: str | Path) -> str | None:
     return None
 
 
+def _checkpoint_folders(run_dir: str | Path) -> list[Path]:
+    """The ``checkpoint-N`` folders under ``run_dir`` in step order (checkpoint-10 after checkpoint-4),
+    complete or not; none when ``run_dir`` is not a folder."""
+    root = Path(run_dir)
+    if not root.is_dir():
+        return []
+    found = ((int(m.group(1)), p) for p in root.iterdir() if p.is_dir() and (m := _CHECKPOINT.match(p.name)))
+    return [p for _, p in sorted(found)]
+
+
+def complete_checkpoints(run_dir: str | Path) -> list[Path]:
+    """The complete ``checkpoint-N`` folders under ``run_dir`` in step order, oldest first; an
+    incomplete one (being written, or cut short) is left out."""
+    return [p for p in _checkpoint_folders(run_dir) if checkpoint_problem(p) is None]
+
+
 def last_complete_checkpoint(output_dir: str | Path) -> str | None:
     """The newest complete ``checkpoint-N`` under ``output_dir`` (a path string, as the Trainer's
     ``resume_from_checkpoint`` takes it), or None when there is none; incomplete newer ones are
     skipped with a warning naming what is wrong."""
-    root = Path(output_dir)
-    if not root.is_dir():
-        return None
-    found = sorted(((int(m.group(1)), p) for p in root.iterdir()
-                    if p.is_dir() and (m := _CHECKPOINT.match(p.name))), reverse=True)
-    for _, path in found:
+    for path in reversed(_checkpoint_folders(output_dir)):
         problem = checkpoint_problem(path)
         if problem is None:
             return str(path)

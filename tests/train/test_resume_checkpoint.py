@@ -8,12 +8,12 @@ import logging
 import pytest
 import torch
 from transformers import Qwen3Config, Qwen3ForCausalLM, TrainerCallback
-from transformers.trainer_utils import get_last_checkpoint
+from transformers.trainer_utils import PREFIX_CHECKPOINT_DIR, get_last_checkpoint
 
 from physcene.config import load_config
 from physcene.ctrc import build_prompt, completion_text
 from physcene.data.noisy import noisy_scenes
-from physcene.train.checkpoints import checkpoint_problem, last_complete_checkpoint
+from physcene.train.checkpoints import checkpoint_problem, complete_checkpoints, last_complete_checkpoint
 from physcene.train.models import RUN_INFO, TrainingSetupError, read_run_info
 from physcene.train.records import write_records
 from physcene.train.sft import run_sft
@@ -78,6 +78,21 @@ def test_each_kind_of_incomplete_checkpoint_is_named(tmp_path, tiny_model, damag
 def test_no_checkpoint_folder(tmp_path):
     assert last_complete_checkpoint(tmp_path / "missing") is None
     assert last_complete_checkpoint(tmp_path) is None
+    assert complete_checkpoints(tmp_path / "missing") == complete_checkpoints(tmp_path) == []
+
+
+def test_complete_checkpoints_in_step_order_without_incomplete_ones(tmp_path, tiny_model):
+    """Every complete ``checkpoint-N`` oldest first, by step (10 after 4, not as text); one being
+    written (no trainer_state.json yet) and one with a cut safetensors are left out."""
+    assert PREFIX_CHECKPOINT_DIR == "checkpoint"  # the folder names checkpoints.py spells out
+    for step in (4, 10, 12, 16):
+        _checkpoint(tmp_path, step, tiny_model)
+    (tmp_path / "checkpoint-12" / "trainer_state.json").unlink()
+    _cut(tmp_path / "checkpoint-16" / "model.safetensors", 0.9)
+    (tmp_path / "checkpoint-x").mkdir()
+    (tmp_path / "checkpoint-7.json").write_text("{}")
+    assert complete_checkpoints(tmp_path) == [tmp_path / "checkpoint-4", tmp_path / "checkpoint-10"]
+    assert last_complete_checkpoint(tmp_path) == str(tmp_path / "checkpoint-10")
 
 
 class _FirstStep(TrainerCallback):

@@ -9,11 +9,7 @@ from SFT output); the anchors stage itself still runs on the model's own generat
 
 from __future__ import annotations
 
-import io
 import json
-import shutil
-import subprocess
-import tarfile
 from pathlib import Path
 
 import pytest
@@ -437,50 +433,6 @@ def test_pada_with_object_credit_trains_on_per_token_advantages(tmp_path, one_th
     with pytest.raises(ValueError, match="object_credit must be >= 0"):
         run_pada(load_config("train_tiny", [f"output_dir={tmp_path / 'neg'}", "pada.object_credit=-1"]),
                  variant="pada")
-
-
-def test_a_snapshot_of_a_running_pada_job_resumes_elsewhere(tmp_path, one_thread, step_counter):
-    """train/scripts/snapshot.sh, as poll.sh runs it while a remote GPU host trains: it packs the
-    newest checkpoint the Trainer finished (a checkpoint without its trainer_state.json is being
-    written) and its log history; unpacked into another machine's tree, the same PADA command goes
-    on from that checkpoint's step."""
-    script = Path(__file__).resolve().parents[2] / "train" / "scripts" / "snapshot.sh"
-    train = _records(8, seed=2)
-    write_records(train, tmp_path / "train.jsonl")
-    machine, home = tmp_path / "machine", tmp_path / "home"
-
-    def config(root, steps):
-        return load_config("train_tiny", [
-            f"data.train={tmp_path / 'train.jsonl'}", f"output_dir={root / 'run'}", "sft.max_steps=1",
-            "sft.max_length=1024", f"pada.anchors={tmp_path / 'train.jsonl'}",
-            "pada.max_completion_length=16", "pada.logging_steps=1", "pada.save_steps=1",
-            "pada.constrained=false", f"pada.max_steps={steps}"])
-
-    run_sft(config(machine, 2))
-    reward = PhysicsReward(RewardConfig(device="cpu"))
-    out = run_pada(config(machine, 2), variant="grpo", reward=reward)
-    (out / "checkpoint-3").mkdir()  # being written: no trainer_state.json yet
-    (out / "checkpoint-3" / "optimizer.pt").write_bytes(b"partial")
-    dest = tmp_path / "out"
-    dest.mkdir()
-    done = subprocess.run(["bash", str(script), str(out), str(dest), str(machine)], capture_output=True,
-                          text=True, check=True)
-    assert "checkpoint-2 -> 1 part(s)" in done.stdout
-    log = json.loads((dest / "snapshot_train_log.json").read_text())
-    assert max(e["step"] for e in log) == 2
-    parts = sorted(dest.glob("snapshot.tar.xz.*"))
-    with tarfile.open(fileobj=io.BytesIO(b"".join(p.read_bytes() for p in parts)), mode="r:xz") as tar:
-        names = tar.getnames()
-        assert f"run/{out.name}/checkpoint-2/trainer_state.json" in names
-        assert not any("checkpoint-3" in n or "checkpoint-1/" in n for n in names)
-        tar.extractall(home, filter="data")
-    shutil.copytree(machine / "run" / "sft", home / "run" / "sft")  # the SFT model travels on its own
-    counter = step_counter()
-    run_pada(config(home, 3), variant="grpo", reward=reward, callbacks=[counter])
-    assert (counter.begin, counter.steps) == (2, 1)  # went on from the snapshot's step 2: only step 3
-    bad = subprocess.run(["bash", str(script), str(out), str(dest), str(home)], capture_output=True,
-                         text=True)
-    assert bad.returncode == 2 and "is not under" in bad.stderr
 
 
 def test_anchor_nll_is_the_mean_nll_of_the_anchor_tokens_whatever_the_batching(tmp_path, one_thread):

@@ -10,11 +10,18 @@
 #   STAGES=eval bash train/scripts/rl_ablation.sh                              # every kept checkpoint
 #   physcene train ablation-merge --config small ablation.output=docs/results/ablation.json \
 #     --sources runs/rl/s0/ablation.json runs/rl/s1/ablation.json --layouts docs/results/ablation
+#   RUNS="0:pada_star 1:pada 1:grpo" bash train/scripts/rl_ablation.sh         # these runs only
+#   DRY=1 RUNS="0:pada_star 1:pada" GPUS=2 bash train/scripts/rl_ablation.sh   # print the commands, run none
 #
+# Runs: RUNS names them one by one as seed:variant words (variant: grpo, pada_star or pada); unset, they
+# are every SEEDS x VARIANTS pair. A malformed word stops the script before anything runs (exit 2).
 # Stages: anchors (the base's greedy layouts of POOL training prompts, TTO-repaired, and of HELDOUT prompts
-# outside the pool: all GPUs), rl (the VARIANTS x SEEDS runs, PER_GPU at a time on each GPU: slot k taking
-# runs k, k + GPUS * PER_GPU, ...), eval (per seed: reference, sft, sft+tto, each variant with every checkpoint
-# on N_TEST test scenes, rule judge, and each model's NLL of the held-out anchors: $RUN/s<seed>/ablation.json).
+# outside the pool: all GPUs), rl (the runs, PER_GPU at a time on each GPU: slot k taking runs k,
+# k + GPUS * PER_GPU, ...), eval (per seed with a run: reference, sft, sft+tto, each of the seed's variants
+# with every checkpoint on N_TEST test scenes, rule judge, and each model's NLL of the held-out anchors:
+# $RUN/s<seed>/ablation.json; give eval the RUNS the runs had).
+# DRY=1 prints each ablation_small.sh command (its environment, its log) instead of running it, the
+# stages one after the other; nothing is written.
 # The reward is the paper's with the validity terms (floating, shrunk, out of zone: VALID='[]' for the
 # bare reward), advantages scaled over the batch (SCALE=group: the paper's per-group scaling), G rollouts
 # per prompt, global batch BATCH. Logs: $RUN/s<seed>/<variant>.log.
@@ -24,6 +31,8 @@ CONFIG=${CONFIG:-small}
 RUN=${RUN:-runs/rl}
 VARIANTS=${VARIANTS:-"pada grpo pada_star"}
 SEEDS=${SEEDS:-"0 1"}
+RUNS=${RUNS:-}                      # seed:variant words (unset: every SEEDS x VARIANTS pair)
+DRY=${DRY:-}                        # 1: print the commands instead of running them
 POOL=${POOL:-4096}                  # training prompts with an anchor (those whose reference fits TOKENS)
 HELDOUT=${HELDOUT:-256}             # anchors of prompts outside the pool: each evaluated model's NLL of them
 G=${G:-16}
@@ -45,63 +54,99 @@ PER_GPU=${PER_GPU:-1}               # RL runs sharing one GPU at a time (a 27 M 
                                     # its kernels: 2 fill the gaps of one)
 want() { [[ " $STAGES " == *" $1 "* ]]; }
 stamp() { echo "[$(date +%T)] $*"; }
-mkdir -p "$RUN"
+
+# The runs as seed:variant words, checked before anything runs.
+if [ -n "$RUNS" ]; then
+  read -ra runs <<< "$RUNS" && named=RUNS
+else
+  runs=() && named="SEEDS x VARIANTS"
+  for seed in $SEEDS; do for variant in $VARIANTS; do runs+=("$seed:$variant"); done; done
+fi
+for k in "${!runs[@]}"; do
+  word=${runs[$k]} seed=${runs[$k]%%:*} variant=${runs[$k]#*:}
+  if [[ "$word" != *:* || ! "$seed" =~ ^[0-9]+$ || " grpo pada_star pada " != *" $variant "* ]]; then
+    echo "rl_ablation.sh: $named: '$word' is not seed:variant (seed an integer; variant grpo, pada_star or pada)" >&2
+    exit 2
+  fi
+  if [[ " ${runs[*]:0:$k} " == *" $word "* ]]; then
+    echo "rl_ablation.sh: $named: '$word' is named twice" >&2
+    exit 2
+  fi
+done
+seeds=()                            # the seeds with a run, in the order they first appear
+for word in "${runs[@]}"; do [[ " ${seeds[*]} " == *" ${word%%:*} "* ]] || seeds+=("${word%%:*}"); done
+variants_of() {  # $1: a seed: its runs' variants, comma-separated (ablation.variants)
+  local word out=()
+  for word in "${runs[@]}"; do [ "${word%%:*}" = "$1" ] && out+=("${word#*:}"); done
+  (IFS=,; echo "${out[*]}")
+}
+
+quoted() {  # the words of a command as a shell reads them back (quotes only where needed)
+  local word out=()
+  for word in "$@"; do [[ "$word" =~ ^[][A-Za-z0-9_./:=,+@%-]*$ ]] && out+=("$word") || out+=("${word@Q}"); done
+  echo "${out[*]}"
+}
+small() {  # $1: a log ('': this script's output), then NAME=value words: ablation_small.sh in that environment
+  local log=$1; shift
+  local cmd=(env "$@" bash train/scripts/ablation_small.sh)
+  if [ "$DRY" = 1 ]; then
+    echo "$(quoted "${cmd[@]}")${log:+ > $log 2>&1}"
+  elif [ -n "$log" ]; then
+    mkdir -p "$(dirname "$log")" && "${cmd[@]}" > "$log" 2>&1
+  else
+    "${cmd[@]}"
+  fi
+}
+spawn() { if [ "$DRY" = 1 ]; then "$@"; else "$@" & fi; }  # in the background (DRY=1: in turn)
+
+[ "$DRY" = 1 ] || mkdir -p "$RUN"
 deadline=${STOP_IN:+$(($(date +%s) + STOP_IN))}
-left() { [ -n "$deadline" ] && echo "STOP_IN=$((deadline - $(date +%s)))"; }  # what is left of STOP_IN now
+left() { [ -z "$deadline" ] || echo $((deadline - $(date +%s))); }  # what is left of STOP_IN now (none: '')
 common="sft.output_dir=$BASE anchors.output=$RUN/anchors.jsonl.gz anchors.pool_size=$POOL $EXTRA"
 held=$RUN/anchors_heldout.jsonl.gz  # (named here: a RUN= word of a later command would change $RUN inside it)
 heldout="anchors.exclude=$RUN/anchors.jsonl.gz anchors.output=$held anchors.pool_size=$HELDOUT"
 rl="pada.num_generations=$G pada.scale_rewards=$SCALE pada.reward=[\"valid_terms=$VALID\"]"
 rl="$rl pada.max_steps=$STEPS pada.save_steps=$SAVE pada.save_total_limit=null"
 
+rl_slot() {  # $1: a slot (GPU $1 % GPUS): runs $1, $1 + GPUS * PER_GPU, ... one after the other
+  local gpu=$(($1 % GPUS)) k seed variant dir
+  for k in $(seq "$1" $((GPUS * PER_GPU)) $((${#runs[@]} - 1))); do
+    seed=${runs[$k]%%:*} variant=${runs[$k]#*:} dir=$RUN/s${runs[$k]%%:*}
+    stamp "$variant seed $seed on GPU $gpu"
+    small "$dir/$variant.log" CUDA_VISIBLE_DEVICES="$gpu" STOP_IN="$(left)" NPROC=1 CONFIG="$CONFIG" RUN="$dir" \
+      STAGES="$variant" PORT=$((29600 + 10 * k)) ANCHORS="$POOL" MAX_TOKENS="$TOKENS" PADA_TOKENS="$TOKENS" \
+      PADA_BATCH="$BATCH" PADA_MICRO="$MICRO" PADA_MIN=100000 PADA_CACHE="$RL_CACHE" CACHE="$EVAL_CACHE" \
+      EXTRA="$common $rl seed=$seed" || stamp "$variant seed $seed failed: $dir/$variant.log"
+  done
+}
+eval_seed() {  # $1: a seed, $2: its GPU: the seed's table, its variants those it has runs of
+  local dir=$RUN/s$1
+  stamp "eval seed $1 on GPU $2: $(variants_of "$1")"
+  small "$dir/eval.log" CUDA_VISIBLE_DEVICES="$2" NPROC=1 CONFIG="$CONFIG" RUN="$dir" STAGES=eval \
+    ANCHORS="$POOL" MAX_TOKENS="$TOKENS" N_TEST="$N_TEST" PADA_MIN=100000 CACHE="$EVAL_CACHE" \
+    PADA_TOKENS="$TOKENS" PADA_BATCH="$BATCH" PADA_MICRO="$MICRO" \
+    EXTRA="$common $rl seed=$1 ablation.checkpoints=true ablation.reference=true \
+ablation.variants=[$(variants_of "$1")] ablation.output=$dir/ablation.json ablation.layouts=$dir/layouts \
+ablation.heldout_anchors=$held" || stamp "eval seed $1 failed: $dir/eval.log"
+}
+
 if want anchors; then
   stamp "anchors: $POOL prompts on $GPUS GPU(s)"
-  env $(left) NPROC=$GPUS RUN="$RUN" STAGES=anchors ANCHORS=$POOL MAX_TOKENS=$TOKENS CACHE=$EVAL_CACHE \
-    EXTRA="$common" bash train/scripts/ablation_small.sh
+  small "" STOP_IN="$(left)" NPROC="$GPUS" RUN="$RUN" STAGES=anchors ANCHORS="$POOL" MAX_TOKENS="$TOKENS" \
+    CACHE="$EVAL_CACHE" EXTRA="$common"
   stamp "held-out anchors: $HELDOUT prompts outside the pool"
-  env $(left) NPROC=$GPUS RUN="$RUN" STAGES=anchors ANCHORS=$HELDOUT MAX_TOKENS=$TOKENS CACHE=$EVAL_CACHE \
-    EXTRA="$common $heldout" bash train/scripts/ablation_small.sh
+  small "" STOP_IN="$(left)" NPROC="$GPUS" RUN="$RUN" STAGES=anchors ANCHORS="$HELDOUT" MAX_TOKENS="$TOKENS" \
+    CACHE="$EVAL_CACHE" EXTRA="$common $heldout"
 fi
 if want rl; then
-  runs=()
-  for seed in $SEEDS; do for variant in $VARIANTS; do runs+=("$seed:$variant"); done; done
-  slots=$((GPUS * PER_GPU))
-  for slot in $(seq 0 $((slots - 1))); do
-    (
-      gpu=$((slot % GPUS))
-      for k in $(seq "$slot" "$slots" $((${#runs[@]} - 1))); do
-        seed=${runs[$k]%%:*} variant=${runs[$k]##*:}
-        dir=$RUN/s$seed  # (not RUN=...: a later word of the same command would read the new value)
-        mkdir -p "$dir"
-        stamp "$variant seed $seed on GPU $gpu"
-        CUDA_VISIBLE_DEVICES=$gpu env $(left) NPROC=1 CONFIG=$CONFIG RUN="$dir" STAGES="$variant" PORT=$((29600 + 10 * k)) \
-          ANCHORS=$POOL MAX_TOKENS=$TOKENS PADA_TOKENS=$TOKENS PADA_BATCH=$BATCH PADA_MICRO=$MICRO \
-          PADA_MIN=100000 PADA_CACHE=$RL_CACHE CACHE=$EVAL_CACHE EXTRA="$common $rl seed=$seed" \
-          bash train/scripts/ablation_small.sh > "$dir/$variant.log" 2>&1 \
-          || stamp "$variant seed $seed failed: $dir/$variant.log"
-      done
-    ) &
-  done
+  for slot in $(seq 0 $((GPUS * PER_GPU - 1))); do spawn rl_slot "$slot"; done
   wait
 fi
 if want eval; then
-  seeds=($SEEDS)
   for k in "${!seeds[@]}"; do
-    seed=${seeds[$k]}
-    (
-      gpu=$((k % GPUS)) dir=$RUN/s$seed
-      stamp "eval seed $seed on GPU $gpu"
-      listed=$(echo $VARIANTS | tr ' ' ,)
-      CUDA_VISIBLE_DEVICES=$gpu NPROC=1 CONFIG=$CONFIG RUN="$dir" STAGES=eval ANCHORS=$POOL \
-        MAX_TOKENS=$TOKENS N_TEST=$N_TEST PADA_MIN=100000 CACHE=$EVAL_CACHE PADA_TOKENS=$TOKENS \
-        PADA_BATCH=$BATCH PADA_MICRO=$MICRO \
-        EXTRA="$common $rl seed=$seed ablation.checkpoints=true ablation.reference=true ablation.variants=[$listed] \
-ablation.output=$dir/ablation.json ablation.layouts=$dir/layouts \
-ablation.heldout_anchors=$held" \
-        bash train/scripts/ablation_small.sh > "$dir/eval.log" 2>&1 || stamp "eval seed $seed failed: $dir/eval.log"
-    ) &
+    spawn eval_seed "${seeds[$k]}" $((k % GPUS))
     if (((k + 1) % GPUS == 0)); then wait; fi
   done
   wait
 fi
-stamp done
+stamp "done"

@@ -32,7 +32,7 @@ log=$work/rl.log
 stamp() { echo "[$(date +%T)] $*"; }
 
 pack() {  # the state as parts in $work/pack (kept on the host until the next pack)
-  local dest=${PACK:-$work/pack} list
+  local dest=${PACK:-$work/pack} list parts
   [ -d "$work/$RUN" ] || { echo "pack: nothing under $work/$RUN yet"; return 0; }
   mkdir -p "$dest"
   list=$(mktemp)
@@ -40,23 +40,27 @@ pack() {  # the state as parts in $work/pack (kept on the host until the next pa
     cd "$work" || exit
     find "$RUN" -type f ! -path '*/checkpoint-*' ! -name '*.lock'
     for run in "$RUN"/s*/*/; do
-      newest=$(python3 -c "from physcene.train.checkpoints import last_complete_checkpoint as l; print(l('$run') or '')" \
-        2>/dev/null)
-      for ckpt in "$run"checkpoint-*; do
-        [ -d "$ckpt" ] || continue
-        if [ "$ckpt" = "${newest%/}" ]; then
+      ckpts=$(checkpoints "$run") || exit
+      newest=${ckpts##*$'\n'}  # the Trainer resumes from it
+      for ckpt in $ckpts; do
+        if [ "$ckpt" = "$newest" ]; then
           find "$ckpt" -type f
         else
           find "$ckpt" -type f ! -name 'optimizer.pt' ! -name 'scheduler.pt' ! -name 'rng_state*.pth'
         fi
       done
     done
-  ) | sort -u > "$list"
+  ) | sort -u > "$list" || { echo "pack: listing the checkpoints under $work/$RUN failed" >&2; rm -f "$list"; return 1; }
   rm -f "$dest"/rl_state.tar.xz.*
   tar -C "$work" -cf - -T "$list" | xz -1 -T0 | split -b 15M - "$dest/rl_state.tar.xz."
-  echo "pack: $(wc -l < "$list") files -> $(ls "$dest" | grep -c '^rl_state.tar.xz') part(s)," \
-    "$(du -ch "$dest"/rl_state.tar.xz.* | tail -1 | cut -f1)"
+  parts=("$dest"/rl_state.tar.xz.*)
+  echo "pack: $(wc -l < "$list") files -> ${#parts[@]} part(s), $(du -ch "${parts[@]}" | tail -1 | cut -f1)"
   rm -f "$list"
+}
+
+checkpoints() {  # $1: a run folder: its complete checkpoint-N folders, oldest first (one being written: left out)
+  python3 -c 'import sys; from physcene.train.checkpoints import complete_checkpoints as c
+sys.stdout.writelines(f"{p}\n" for p in c(sys.argv[1]))' "$1"
 }
 
 send() {  # $1: the first part (0-based), $2: where to: SEND parts (a command brings back ~64 MB in all)

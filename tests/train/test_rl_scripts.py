@@ -1,0 +1,157 @@
+"""The RL study's shell scripts without a GPU: ``rl_ablation.sh`` in ``DRY=1`` mode (the commands it
+would run, printed) for the runs RUNS names and the per-seed evaluation they imply, and
+``rl_remote.sh pack`` on a fake run tree of small real checkpoint files."""
+
+from __future__ import annotations
+
+import io
+import json
+import os
+import shlex
+import subprocess
+import tarfile
+from pathlib import Path
+
+import pytest
+import torch
+from safetensors.torch import save_file
+
+from physcene.train.checkpoints import last_complete_checkpoint
+
+SCRIPTS = Path(__file__).resolve().parents[2] / "train" / "scripts"
+
+
+def _rl_ablation(tmp_path, **env: str) -> subprocess.CompletedProcess:
+    """``rl_ablation.sh`` with DRY=1 and only ``env`` set (GPUS given: no torch to ask)."""
+    base = {"PATH": os.environ["PATH"], "HOME": str(tmp_path), "DRY": "1", "GPUS": "2"}
+    return subprocess.run(["bash", str(SCRIPTS / "rl_ablation.sh")], cwd=tmp_path, env={**base, **env},
+                          capture_output=True, text=True, timeout=30)
+
+
+def _commands(stdout: str) -> list[dict[str, str]]:
+    """The printed ablation_small.sh commands: each one's NAME=value words, its log under ``>``."""
+    found = []
+    for line in stdout.splitlines():
+        if not line.startswith("env "):
+            continue
+        words = shlex.split(line)
+        assert words[0] == "env" and "train/scripts/ablation_small.sh" in words
+        end = words.index("bash")
+        command = dict(w.split("=", 1) for w in words[1:end])
+        command["log"] = words[words.index(">") + 1] if ">" in words else ""
+        found.append(command)
+    return found
+
+
+def _variants(command: dict[str, str]) -> list[str]:
+    (listed,) = [w for w in command["EXTRA"].split() if w.startswith("ablation.variants=")]
+    return listed.removeprefix("ablation.variants=[").removesuffix("]").split(",")
+
+
+def test_runs_named_one_by_one_train_and_evaluate_only_those(tmp_path):
+    done = _rl_ablation(tmp_path, RUNS="0:pada_star 1:pada 1:grpo", STAGES="rl eval", SEEDS="0 1 2")
+    assert done.returncode == 0, done.stderr
+    commands = _commands(done.stdout)
+    rl = [c for c in commands if c["STAGES"] != "eval"]
+    # slot k (GPU k % GPUS) takes runs k, k + GPUS, ...: 0:pada_star and 1:grpo on GPU 0, 1:pada on GPU 1
+    assert [(c["RUN"], c["STAGES"], c["CUDA_VISIBLE_DEVICES"], c["log"]) for c in rl] == [
+        ("runs/rl/s0", "pada_star", "0", "runs/rl/s0/pada_star.log"),
+        ("runs/rl/s1", "grpo", "0", "runs/rl/s1/grpo.log"),
+        ("runs/rl/s1", "pada", "1", "runs/rl/s1/pada.log")]
+    assert [c["EXTRA"].split()[-1] for c in rl] == ["seed=0", "seed=1", "seed=1"]
+    evals = [c for c in commands if c["STAGES"] == "eval"]
+    assert [(c["RUN"], _variants(c)) for c in evals] == [("runs/rl/s0", ["pada_star"]),
+                                                        ("runs/rl/s1", ["pada", "grpo"])]
+    assert not list(tmp_path.iterdir())  # DRY=1 writes nothing
+
+
+def test_without_runs_every_seed_has_every_variant(tmp_path):
+    done = _rl_ablation(tmp_path, SEEDS="3 5", VARIANTS="pada grpo", STAGES="rl eval")
+    assert done.returncode == 0, done.stderr
+    commands = _commands(done.stdout)
+    assert sorted((c["RUN"], c["STAGES"]) for c in commands if c["STAGES"] != "eval") == [
+        ("runs/rl/s3", "grpo"), ("runs/rl/s3", "pada"), ("runs/rl/s5", "grpo"), ("runs/rl/s5", "pada")]
+    assert [(c["RUN"], _variants(c)) for c in commands if c["STAGES"] == "eval"] == [
+        ("runs/rl/s3", ["pada", "grpo"]), ("runs/rl/s5", ["pada", "grpo"])]
+
+
+def test_a_seed_without_a_run_is_not_evaluated(tmp_path):
+    done = _rl_ablation(tmp_path, RUNS="1:grpo", SEEDS="0 1", STAGES="eval")
+    assert done.returncode == 0, done.stderr
+    assert [(c["RUN"], _variants(c), c["CUDA_VISIBLE_DEVICES"]) for c in _commands(done.stdout)] == [
+        ("runs/rl/s1", ["grpo"], "0")]
+
+
+@pytest.mark.parametrize("word", ["0-pada", "pada", "x:pada", "-1:pada", "0:pdaa", "0:", ":grpo",
+                                  "0:pada:grpo"])
+def test_a_malformed_run_is_one_error_line_before_anything_runs(tmp_path, word):
+    done = _rl_ablation(tmp_path, RUNS=f"1:grpo {word} 0:pada")
+    assert done.returncode == 2
+    assert done.stdout == ""  # no stage started
+    (line,) = done.stderr.splitlines()
+    assert f"'{word}'" in line and "RUNS" in line
+
+
+def test_a_run_named_twice_is_refused(tmp_path):
+    done = _rl_ablation(tmp_path, RUNS="0:pada 1:pada 0:pada")
+    assert done.returncode == 2 and done.stdout == ""
+    assert done.stderr.strip() == "rl_ablation.sh: RUNS: '0:pada' is named twice"
+
+
+def _checkpoint(folder: Path, step: int, *, state: bool = True) -> None:
+    """A checkpoint as the Trainer writes it (a LoRA adapter, optimizer, scheduler, RNG, its state
+    last); ``state=False``: one still being written."""
+    folder.mkdir(parents=True)
+    save_file({"lora_A": torch.full((2, 3), float(step))}, folder / "adapter_model.safetensors")
+    (folder / "adapter_config.json").write_text("{}")
+    torch.save({"state": {}, "param_groups": []}, folder / "optimizer.pt")
+    torch.save({"last_epoch": step}, folder / "scheduler.pt")
+    torch.save({"python": step}, folder / "rng_state.pth")
+    if state:
+        (folder / "trainer_state.json").write_text(json.dumps({"global_step": step, "log_history": []}))
+
+
+def test_pack_carries_the_newest_complete_checkpoint_whole_and_leaves_incomplete_ones(tmp_path):
+    """``rl_remote.sh pack``: every run's newest complete checkpoint whole (the next host resumes from
+    it), its older complete ones without optimizer, scheduler and RNG state, a checkpoint being written
+    or cut short not at all, the run's other files beside them; unpacked elsewhere, the run resumes
+    from the same checkpoint."""
+    work = tmp_path / "work"
+    rl = work / "runs" / "rl"
+    pada, grpo = rl / "s0" / "pada", rl / "s0" / "grpo"
+    for step in (4, 10):
+        _checkpoint(pada / f"checkpoint-{step}", step)
+    _checkpoint(pada / "checkpoint-12", 12, state=False)  # being written: no trainer_state.json yet
+    _checkpoint(grpo / "checkpoint-2", 2)
+    _checkpoint(grpo / "checkpoint-6", 6)
+    cut = grpo / "checkpoint-6" / "adapter_model.safetensors"
+    cut.write_bytes(cut.read_bytes()[:-4])
+    (rl / "anchors.jsonl.gz").write_bytes(b"anchors")
+    (rl / "s0" / "pada.log").write_text("step 10\n")
+    (pada / "physcene_run.json").write_text("{}")
+    (rl / "s0" / "eval.lock").write_text("")
+
+    dest = tmp_path / "dest"
+    env = {**os.environ, "WORK": str(work), "PACK": str(tmp_path / "pack")}
+    done = subprocess.run(["bash", str(SCRIPTS / "rl_remote.sh"), "pack", str(dest)], env=env,
+                          capture_output=True, text=True, timeout=60)
+    assert done.returncode == 0, done.stdout + done.stderr
+    parts = sorted(dest.glob("rl_state.tar.xz.*"))
+    assert parts and "send: 1 of 1 part(s)" in done.stdout
+    home = tmp_path / "home"
+    with tarfile.open(fileobj=io.BytesIO(b"".join(p.read_bytes() for p in parts)), mode="r:xz") as tar:
+        tar.extractall(home, filter="data")
+    packed = sorted(str(p.relative_to(home)) for p in home.rglob("*") if p.is_file())
+
+    def files(run: str, step: int, *names: str) -> list[str]:
+        return [f"runs/rl/s0/{run}/checkpoint-{step}/{n}" for n in names]
+
+    whole = ("adapter_config.json", "adapter_model.safetensors", "optimizer.pt", "rng_state.pth",
+             "scheduler.pt", "trainer_state.json")
+    curve = ("adapter_config.json", "adapter_model.safetensors", "trainer_state.json")
+    assert packed == sorted([
+        "runs/rl/anchors.jsonl.gz", "runs/rl/s0/pada.log", "runs/rl/s0/pada/physcene_run.json",
+        *files("pada", 10, *whole), *files("pada", 4, *curve), *files("grpo", 2, *whole)])
+    for name in files("pada", 10, *whole):
+        assert (home / name).read_bytes() == (work / name).read_bytes()
+    assert last_complete_checkpoint(home / "runs/rl/s0/pada") == str(home / "runs/rl/s0/pada/checkpoint-10")
