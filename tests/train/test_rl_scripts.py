@@ -155,3 +155,22 @@ def test_pack_carries_the_newest_complete_checkpoint_whole_and_leaves_incomplete
     for name in files("pada", 10, *whole):
         assert (home / name).read_bytes() == (work / name).read_bytes()
     assert last_complete_checkpoint(home / "runs/rl/s0/pada") == str(home / "runs/rl/s0/pada/checkpoint-10")
+
+
+def test_remote_runs_the_script_it_is_given_detached_and_poll_sees_it_end(tmp_path):
+    """``rl_remote.sh again`` with SCRIPT: that script runs detached in WORK with the caller's
+    environment, DONE holds its exit status, and ``poll`` returns once it ended (an SFT base runs
+    under the same start/poll as the RL study)."""
+    work = tmp_path / "work"
+    (work / "train").mkdir(parents=True)
+    (work / "train" / "sft_stub.sh").write_text('echo "stub ran: CONFIG=$CONFIG"; exit 3\n')
+    env = {"PATH": os.environ["PATH"], "HOME": str(tmp_path), "WORK": str(work),
+           "SCRIPT": "train/sft_stub.sh", "RUN": "runs/medium", "CONFIG": "medium"}
+    started = subprocess.run(["bash", str(SCRIPTS / "rl_remote.sh"), "again"], env=env, capture_output=True,
+                             text=True, timeout=30)
+    assert started.returncode == 0, started.stderr
+    polled = subprocess.run(["bash", str(SCRIPTS / "rl_remote.sh"), "poll", "20"], env=env,
+                            capture_output=True, text=True, timeout=60)
+    assert (work / "DONE").read_text().strip() == "3"
+    assert "stub ran: CONFIG=medium" in (work / "rl.log").read_text()
+    assert "train/sft_stub.sh ended with status 3" in polled.stdout

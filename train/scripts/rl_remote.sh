@@ -13,9 +13,13 @@
 #   STAGES=eval bash train/scripts/rl_remote.sh again  # rl_ablation.sh once more on what is there (refused
 #                                                # while it still runs)
 #   mkdir -p /tmp/state && cp .wp/state/* /tmp/state/   # the next host: the parts, carried in calls of their own
+#   SCRIPT=train/scripts/ablation_small.sh RUN=runs/medium CONFIG=medium NPROC=2 STAGES="synth sft" \
+#     bash train/scripts/rl_remote.sh start      # another script detached the same way (an SFT base: poll
+#                                                # until it ends; pack then carries $RUN's files outside
+#                                                # checkpoint-* folders: the final model, its logs)
 #
-# `start` passes the environment on to rl_ablation.sh (BASE, STAGES, VARIANTS, SEEDS, STEPS, PER_GPU,
-# STOP_IN, ...; RUN is runs/rl); it unpacks the parts STATE names (default /tmp/state/rl_state.tar.xz.*)
+# `start` passes the environment on to SCRIPT (default rl_ablation.sh: BASE, STAGES, VARIANTS, SEEDS, RUNS,
+# STEPS, PER_GPU, STOP_IN, ...; RUN, default runs/rl, is the folder pack carries); it unpacks the parts STATE names (default /tmp/state/rl_state.tar.xz.*)
 # into /tmp/run, and takes BASE from the tree (carry artifacts/small-sft). The state: the anchors, every
 # run's newest complete checkpoint whole (the Trainer resumes from it), its earlier checkpoints without
 # optimizer, scheduler and RNG state (the evaluation's curve points), the final adapters, logs, and the
@@ -27,7 +31,8 @@ set -uo pipefail
 here=$(cd "$(dirname "$0")" && pwd)
 src=$(cd "$here/../.." && pwd)
 work=${WORK:-/tmp/run}
-RUN=runs/rl
+RUN=${RUN:-runs/rl}                 # what pack carries (the run folder of SCRIPT)
+SCRIPT=${SCRIPT:-train/scripts/rl_ablation.sh}  # what start runs detached
 log=$work/rl.log
 stamp() { echo "[$(date +%T)] $*"; }
 
@@ -93,13 +98,13 @@ EOF
   done
 }
 
-launch() {  # rl_ablation.sh detached in $work, with this environment; DONE holds its exit status
+launch() {  # $SCRIPT detached in $work, with this environment; DONE holds its exit status
   if [ -f "$work/PID" ] && kill -0 "$(cat "$work/PID")" 2> /dev/null; then
-    echo "rl_remote: rl_ablation.sh is still running (pid $(cat "$work/PID")): poll until it ends" >&2
+    echo "rl_remote: $SCRIPT is still running (pid $(cat "$work/PID")): poll until it ends" >&2
     return 1
   fi
   rm -f "$work/DONE"
-  RUN=$RUN setsid nohup bash -c 'bash train/scripts/rl_ablation.sh; echo $? > DONE' >> "$log" 2>&1 < /dev/null &
+  RUN=$RUN SCRIPT=$SCRIPT setsid nohup bash -c 'bash "$SCRIPT"; echo $? > DONE' >> "$log" 2>&1 < /dev/null &
   echo $! > "$work/PID"
   stamp "started: $log"
 }
@@ -124,7 +129,7 @@ case "${1:-}" in
   poll)
     end=$((SECONDS + ${2:-540}))
     while [ $SECONDS -lt $end ] && [ ! -f "$work/DONE" ]; do sleep 10; done
-    [ -f "$work/DONE" ] && stamp "rl_ablation.sh ended with status $(cat "$work/DONE")"
+    [ -f "$work/DONE" ] && stamp "$SCRIPT ended with status $(cat "$work/DONE")"
     tail -n "${TAILN:-15}" "$log"
     progress
     nvidia-smi --query-gpu=utilization.gpu,memory.used --format=csv,noheader 2>/dev/null
