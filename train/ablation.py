@@ -183,7 +183,7 @@ def check_ablation(data: dict, source: str = "ablation.json") -> dict:
             raise ValueError(f"{where} lacks {missing}")
         if row["name"].split("@")[0] not in ROW_NAMES:
             raise ValueError(f"{where}: name must be one of {list(ROW_NAMES)} (@N for a checkpoint)")
-        for key in [k for k in (*_FRACTIONS, "val_scr") if k in row]:  # val_scr: only with validation
+        for key in [k for k in (*_FRACTIONS, "val_scr", "val_parse_rate") if k in row]:  # val_*: validation
             if row[key] is not None and not _is_fraction(row[key]):
                 raise ValueError(f"{where}: {key} must be a fraction in [0, 1] or null, got {row[key]!r}")
         if "chosen" in row and not isinstance(row["chosen"], bool):
@@ -197,18 +197,21 @@ def _is_fraction(x) -> bool:
 
 def mark_chosen(rows: list[dict]) -> list[dict]:
     """``rows`` with ``chosen`` on every row of an RL run that validation scored (``grpo``, ``pada*``,
-    ``pada`` and their ``name@N`` checkpoints, per seed): true on the row with the lowest ``val_scr``,
-    false on the others. The kept checkpoint is thereby picked on the validation draw, never on the
-    test split it is reported on. Ties go to the later step (more training at the same SCR); a row where
-    nothing parsed has no SCR and ranks last."""
+    ``pada`` and their ``name@N`` checkpoints, per seed): true on the row with the most clean validation
+    scenes, false on the others. The kept checkpoint is thereby picked on the validation draw, never on
+    the test split it is reported on. A clean scene parsed and collides nowhere: the share is
+    ``(1 - val_scr) * val_parse_rate``, so a checkpoint cannot be picked for a low SCR over the few
+    layouts it still writes (SCR counts parsed scenes only). Ties go to the later step (more training
+    at the same figure); a row where nothing parsed ranks last."""
     runs: dict[tuple, list[int]] = {}
     for k, row in enumerate(rows):
         if "val_scr" in row and row["name"].split("@")[0] in _RL_ROWS:
             runs.setdefault((row["name"].split("@")[0], row.get("seed")), []).append(k)
 
     def rank(k: int) -> tuple:
-        scr = rows[k]["val_scr"]
-        return scr is None, scr or 0.0, -int(rows[k].get("rl_steps") or 0)
+        scr, parsed = rows[k]["val_scr"], rows[k].get("val_parse_rate", 1.0)
+        clean = 0.0 if scr is None else (1.0 - scr) * parsed
+        return scr is None, -clean, -int(rows[k].get("rl_steps") or 0)
 
     chosen = {min(members, key=rank) for members in runs.values()}
     scored = {k for members in runs.values() for k in members}
@@ -307,11 +310,10 @@ def _model_outputs(cfg: DictConfig, name: str, path: Path, items: list, folder, 
     return earlier if earlier is not None else _decode(cfg, path, items)
 
 
-def _validation_scr(items: list, outputs: list, engine, folder, name: str,
-                    source: dict | None) -> float | None:
-    """SCR of a model's outputs on the validation scenes (null where nothing parsed); with
-    ``ablation.layouts`` they are kept under ``<layouts>/validation/`` (the ids are the test split's
-    too) for a rerun to re-score."""
+def _validation_figures(items: list, outputs: list, engine, folder, name: str, source: dict | None) -> dict:
+    """``val_scr`` (null where nothing parsed) and ``val_parse_rate`` of a model's outputs on the
+    validation scenes; with ``ablation.layouts`` they are kept under ``<layouts>/validation/`` (the ids
+    are the test split's too) for a rerun to re-score."""
     from physcene.eval.harness import make_judge, score_scenes
     from physcene.eval.metrics import summarize
 
@@ -320,7 +322,8 @@ def _validation_scr(items: list, outputs: list, engine, folder, name: str,
     if folder is not None:
         write_layout_records(layout_records(items, outputs), Path(folder) / row_file(name))
         _record_source(folder, name, source)
-    return _figures(summarize(results))["scr"]
+    figures = _figures(summarize(results))
+    return {"val_scr": figures["scr"], "val_parse_rate": figures["parse_rate"]}
 
 
 def _evaluate(cfg: DictConfig, models: dict[str, Path], budget_s: float) -> list[dict]:
@@ -379,8 +382,7 @@ def _evaluate(cfg: DictConfig, models: dict[str, Path], budget_s: float) -> list
                                                 max_length=int(cfg.pada.max_completion_length))["nll"]
         _record_source(layouts, name, source)
         if validation:
-            rows[-1]["val_scr"] = _validation_scr(val_items, val_outputs, engine, val_folder, name,
-                                                  val_source)
+            rows[-1].update(_validation_figures(val_items, val_outputs, engine, val_folder, name, val_source))
         if name == "sft":  # repaired again even from reused outputs: the row reports TTO's own figures
             repaired, extras = repair_outputs(outputs, tto_overrides=list(cfg.anchors.tto), engine=engine,
                                               progress=False)
@@ -569,14 +571,22 @@ def merge_ablations(sources: list[str | Path], out: str | Path, layouts: str | P
     with its ``.md`` and ``.svg``. With ``layouts`` (a folder) every row's layouts file is copied to
     ``<layouts>/s<seed>/`` and the row names the copy, so the table and its layouts travel together
     (``physcene eval --generator file:...`` recomputes a row). Two rows with the same name, seed and
-    steps are an error naming both sources."""
+    steps are an error naming both sources, and so are sources scored on different draws of the test
+    split (``test_split``: their rows would not compare)."""
     import shutil
 
     merged: dict = {"rows": [], "checkpoint_rows": [], "gpu": [], "commands": [], "sources": []}
     seen: dict[tuple, str] = {}
+    split: tuple[dict, str] | None = None  # the first source's test_split, and that source
     for source in map(Path, sources):
         data = check_ablation(json.loads(source.read_text()), str(source))
         merged["sources"].append(str(source))
+        if data.get("test_split") is not None:
+            if split is not None and data["test_split"] != split[0]:
+                raise ValueError(f"{source}: scored on the test split {data['test_split']}, {split[1]} on "
+                                 f"{split[0]}: rows of different draws do not stand in one table")
+            split = split or (data["test_split"], str(source))
+            merged["test_split"] = data["test_split"]
         for key in ("gpu", "commands"):
             for value in data[key] if isinstance(data[key], list) else [data[key]]:
                 if value not in merged[key]:

@@ -155,6 +155,14 @@ def test_each_rl_run_keeps_its_row_of_lowest_validation_scr():
                                                        for r in rows]))
 
 
+def test_a_checkpoint_that_parses_little_is_not_chosen_for_its_low_scr():
+    """SCR counts parsed scenes only: a checkpoint whose few parsed layouts are clean (val_scr 0.1 at
+    parse rate 0.2: 18 % of scenes clean) loses to one at val_scr 0.5 that parses everything (50 %)."""
+    rows = [{**_row("pada@2", 0.1, 2), "val_parse_rate": 0.2},
+            {**_row("pada", 0.5, 4), "val_parse_rate": 1.0}]
+    assert [r["chosen"] for r in mark_chosen(rows)] == [False, True]
+
+
 def test_the_table_has_a_validation_column_and_marks_the_chosen_row():
     rows = mark_chosen([_row("sft", 0.5, 0), _row("pada*@2", 0.25, 2), _row("pada*", 0.5, 4),
                         {"name": "grpo", "skipped": "no anchors"}])

@@ -128,3 +128,20 @@ def test_seeds_merge_into_one_table_with_their_layouts(table, tmp_path):
     assert out.with_suffix(".md").is_file() and out.with_suffix(".svg").is_file()
     assert main(["train", "ablation-merge", "--config", "tiny", f"ablation.output={out}",
                  "--sources", str(tmp_path / "s0.json"), str(tmp_path / "s0.json")]) != 0
+
+
+def test_tables_of_different_test_draws_are_not_merged(table, tmp_path):
+    """Two seeds' tables scored on different draws of the test split (``test_split``) are refused with
+    one error naming both draws; the same draw merges and the merged table records it."""
+    from physcene.train.ablation import merge_ablations
+
+    _, data = table
+    split = {"name": "test", "seed": 0, "n": 4}
+    seed1 = {**data, "rows": [{**r, "seed": 1} for r in data["rows"]]}
+    (tmp_path / "s0.json").write_text(json.dumps({**data, "test_split": split}))
+    (tmp_path / "s1.json").write_text(json.dumps({**seed1, "test_split": {**split, "seed": 1}}))
+    with pytest.raises(ValueError, match="different draws"):
+        merge_ablations([tmp_path / "s0.json", tmp_path / "s1.json"], tmp_path / "bad.json")
+    (tmp_path / "s1.json").write_text(json.dumps({**seed1, "test_split": split}))
+    merged = merge_ablations([tmp_path / "s0.json", tmp_path / "s1.json"], tmp_path / "ok.json")
+    assert merged["test_split"] == split
