@@ -132,7 +132,7 @@ def test_pack_carries_the_newest_complete_checkpoint_whole_and_leaves_incomplete
     (rl / "s0" / "eval.lock").write_text("")
 
     dest = tmp_path / "dest"
-    env = {**os.environ, "WORK": str(work), "PACK": str(tmp_path / "pack")}
+    env = {**os.environ, "WORK": str(work), "PACK": str(tmp_path / "pack"), "RUN": "runs/rl"}
     done = subprocess.run(["bash", str(SCRIPTS / "rl_remote.sh"), "pack", str(dest)], env=env,
                           capture_output=True, text=True, timeout=60)
     assert done.returncode == 0, done.stdout + done.stderr

@@ -19,10 +19,11 @@
 #                                                # checkpoint-* folders: the final model, its logs)
 #
 # `start` passes the environment on to SCRIPT (default rl_ablation.sh: BASE, STAGES, VARIANTS, SEEDS, RUNS,
-# STEPS, PER_GPU, STOP_IN, ...; RUN, default runs/rl, is the folder pack carries); it unpacks the parts STATE names (default /tmp/state/rl_state.tar.xz.*)
-# into /tmp/run, and takes BASE from the tree (carry artifacts/small-sft). The state: the anchors, every
-# run's newest complete checkpoint whole (the Trainer resumes from it), its earlier checkpoints without
-# optimizer, scheduler and RNG state (the evaluation's curve points), the final adapters, logs, and the
+# STEPS, PER_GPU, STOP_IN, ...; RUN, default runs/rl, is the folder pack carries); it unpacks the parts
+# STATE names (default /tmp/state/rl_state.tar.xz.*) into /tmp/run, and takes BASE from the tree (carry
+# artifacts/small-sft). The state: the anchors, every run's newest complete checkpoint whole (the Trainer
+# resumes from it), its earlier complete checkpoints without optimizer, scheduler and RNG state (the
+# evaluation's curve points; a checkpoint being written is left out), the final adapters, logs, and the
 # evaluation's tables and layouts, as rl_state.tar.xz.* parts under 16 MiB, kept in /tmp/run/pack until
 # the next pack (PACK: elsewhere). The kept artifacts restored into runs/rl (docs/training.md, "GPU runs")
 # and packed here (WORK=. PACK=/tmp/pack SEND=99 bash train/scripts/rl_remote.sh pack .wp/state) are the
