@@ -10,8 +10,8 @@ tables (all levels; SCR / ACR per level) and the learning curves (:mod:`physcene
 ``ablation.variants`` picks the RL rows; ``ablation.checkpoints`` adds a row per kept intermediate
 checkpoint of them (``"pada@12"``, under ``checkpoint_rows``, ``rl_steps`` 12: the metrics against RL
 steps); ``ablation.validation`` (N scenes of another draw of the split, ``ablation.validation_seed``)
-gives every model row its ``val_scr`` and marks the row of each RL run with the lowest one ``chosen``,
-so the kept checkpoint is picked without reading the test split;
+gives every model row its ``val_scr`` and ``val_parse_rate`` and marks the row of each RL run with the
+most clean validation scenes ``chosen``, so the kept checkpoint is picked without reading the test split;
 ``ablation.layouts`` keeps every row's layouts as ``<layouts>/<row>.jsonl.gz`` (one ``{"id", "layout"}``
 record per scene, ``layout`` null and ``parse_error`` set where the output did not parse), which
 ``physcene check`` and ``physcene eval --generator file:...`` read to recompute the row
@@ -61,8 +61,8 @@ ROW_NAMES = ("reference", "sft", "sft+tto", "grpo", "pada*", "pada")
 ROW_KEYS = ("name", "seed", "rl_steps", "scr", "acr", "qpr7", "qpr8", "qpr9", "judge_avg", "parse_rate",
             "floating", "shrunk", "out_of_zone", "layouts")
 _FRACTIONS = ("scr", "acr", "qpr7", "qpr8", "qpr9", "parse_rate", "floating", "shrunk", "out_of_zone")
-_RL_ROWS = ("grpo", "pada*", "pada")
 _VARIANTS = {"grpo": "grpo", "pada_star": "pada*", "pada": "pada"}  # ablation.variants -> row name
+_RL_ROWS = tuple(_VARIANTS.values())
 DEFAULT_SHARES = {"sft": 0.45, "anchors": 0.10, "grpo": 0.10, "pada_star": 0.10, "pada": 0.10, "eval": 0.15}
 
 
