@@ -1,5 +1,6 @@
-"""Fixtures of the training tests: one torch thread, 8 synthesised records and a tokenizer trained on
-them, a tiny random Qwen3-VL saved as a local checkpoint."""
+"""Fixtures of the training tests: one torch thread, the tiny Qwen3 architecture of the generation
+tests, 8 synthesised records and a tokenizer trained on them, a tiny random Qwen3-VL saved as a local
+checkpoint."""
 
 from __future__ import annotations
 
@@ -16,6 +17,14 @@ def one_thread():
     torch.set_num_threads(1)  # two busy shared cores
     yield
     torch.set_num_threads(old)
+
+
+@pytest.fixture(scope="session")
+def tiny_arch() -> dict:
+    """The tiny from-scratch Qwen3 of the generation tests: hidden 48, 2 layers, 4 heads / 2 KV heads,
+    head 12, MLP 96 (a fresh dict per test module is not needed: callers copy it, ``{**tiny_arch}``)."""
+    return dict(hidden_size=48, intermediate_size=96, num_hidden_layers=2, num_attention_heads=4,
+                num_key_value_heads=2, head_dim=12, max_position_embeddings=2048)
 
 
 @pytest.fixture(scope="module")

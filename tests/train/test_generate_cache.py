@@ -20,16 +20,12 @@ from physcene.train.generate import (
 from physcene.train.models import TrainingSetupError, build_scratch_model, count_parameters
 from physcene.train.tokenizer import build_tokenizer
 
-ARCH = dict(hidden_size=48, intermediate_size=96, num_hidden_layers=2, num_attention_heads=4,
-            num_key_value_heads=2, head_dim=12, max_position_embeddings=2048)
-
-
 pytestmark = pytest.mark.usefixtures("one_thread")  # fixtures: tests/train/conftest.py
 
 
 @pytest.fixture(scope="module")
-def model(tokenizer):
-    return build_scratch_model(ARCH, tokenizer, seed=3).eval()
+def model(tokenizer, tiny_arch):
+    return build_scratch_model(tiny_arch, tokenizer, seed=3).eval()
 
 
 def _prompts(records, tokenizer) -> list[str]:
@@ -61,8 +57,8 @@ def test_static_cache_gives_the_dynamic_cache_greedy_ids(model, tokenizer, recor
 
 
 @pytest.mark.cuda  # static_compile: torch.compile takes ~10-20 s per graph on 2 CPU cores; checked on CUDA
-def test_static_compile_gives_the_dynamic_ids_on_cuda(tokenizer, records):
-    model = build_scratch_model(ARCH, tokenizer, seed=3).cuda().eval()
+def test_static_compile_gives_the_dynamic_ids_on_cuda(tokenizer, records, tiny_arch):
+    model = build_scratch_model(tiny_arch, tokenizer, seed=3).cuda().eval()
     prompts = _prompts(records, tokenizer)
     out = {cache: generate_token_ids(model, tokenizer, prompts, max_new_tokens=16, batch_size=2, cache=cache,
                                      min_new_tokens=16) for cache in CACHE_MODES}
@@ -157,7 +153,7 @@ def test_eval_cache_reaches_the_model_generator(monkeypatch):
     assert small.pada.cache == "fast+fused+cudnn"  # sampled groups: the fastest setting
 
 
-def test_pada_cache_reaches_trl_generation_config(tmp_path, tokenizer):
+def test_pada_cache_reaches_trl_generation_config(tmp_path, tokenizer, tiny_arch):
     from physcene.train.pada import PADAConfig, PADATrainer, pada_arguments
 
     cfg = load_config("train_tiny", [f"output_dir={tmp_path}"])
@@ -168,7 +164,7 @@ def test_pada_cache_reaches_trl_generation_config(tmp_path, tokenizer):
         assert args.cache_implementation == "static" and args.generation_compile is compiled
     with pytest.raises(TrainingSetupError, match="'bogus'"):
         pada_arguments(load_config("train_tiny", ["pada.cache=bogus"]), "pada")
-    model = build_scratch_model(ARCH, tokenizer)
+    model = build_scratch_model(tiny_arch, tokenizer)
     args = PADAConfig(output_dir=str(tmp_path), num_generations=2, per_device_train_batch_size=2,
                       max_completion_length=8, use_cpu=True, report_to="none", beta=0.0,
                       cache_implementation="static", generation_compile=True)
@@ -199,7 +195,7 @@ def test_bench_generate_runs_at_tiny_sizes(capsys, tmp_path):
     assert "--batch 0" in capsys.readouterr().err
 
 
-def test_bench_generate_times_a_trained_checkpoint(capsys, tmp_path):
+def test_bench_generate_times_a_trained_checkpoint(capsys, tmp_path, tiny_arch):
     """``--model``: the checkpoint's own weights and tokenizer (not random ones of --config); the fast
     decoder's greedy ids equal HF's on it; a missing folder is one error naming it."""
     from physcene.cli import main
@@ -207,13 +203,13 @@ def test_bench_generate_times_a_trained_checkpoint(capsys, tmp_path):
 
     records = list(synthesize("train", n=8, seed=4))
     tokenizer = build_tokenizer([t for r in records for t in (r["prompt"], r["completion"])], vocab_size=400)
-    build_scratch_model(ARCH, tokenizer, seed=5).save_pretrained(tmp_path / "ckpt")
+    build_scratch_model(tiny_arch, tokenizer, seed=5).save_pretrained(tmp_path / "ckpt")
     tokenizer.save_pretrained(tmp_path / "ckpt")
     assert main(["bench", "generate", "--model", str(tmp_path / "ckpt"), "--batch", "2", "--tokens", "6",
                  "--repeat", "1", "--variants", "static", "fast", "--json"]) == 0
     r = json.loads(capsys.readouterr().out)
     assert r["model"] == str(tmp_path / "ckpt") and r["parameters"] == count_parameters(
-        build_scratch_model(ARCH, tokenizer, seed=5))
+        build_scratch_model(tiny_arch, tokenizer, seed=5))
     assert r["variants"]["fast"]["equal"] and r["variants"]["fast"]["path"] == "eager"
     missing = str(tmp_path / "nowhere")
     assert main(["bench", "generate", "--model", missing, "--batch", "2", "--tokens", "2"]) != 0

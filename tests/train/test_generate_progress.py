@@ -11,9 +11,6 @@ from transformers.utils import logging as transformers_logging
 import physcene.train.generate as train_generate
 from physcene.train.models import build_scratch_model
 
-ARCH = dict(hidden_size=48, intermediate_size=96, num_hidden_layers=2, num_attention_heads=4,
-            num_key_value_heads=2, head_dim=12, max_position_embeddings=2048)
-
 pytestmark = pytest.mark.usefixtures("one_thread")  # fixtures: tests/train/conftest.py
 
 
@@ -44,10 +41,10 @@ def bars(monkeypatch):
 
 
 @pytest.fixture(scope="module")
-def checkpoint(tmp_path_factory, tokenizer):
+def checkpoint(tmp_path_factory, tokenizer, tiny_arch):
     """The tiny scratch model of the generation tests, saved as a plain checkpoint folder."""
     folder = tmp_path_factory.mktemp("progress") / "ckpt"
-    build_scratch_model(ARCH, tokenizer, seed=3).save_pretrained(folder)
+    build_scratch_model(tiny_arch, tokenizer, seed=3).save_pretrained(folder)
     tokenizer.save_pretrained(folder)
     return folder
 
