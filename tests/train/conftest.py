@@ -22,7 +22,8 @@ def one_thread():
 @pytest.fixture(scope="session")
 def tiny_arch() -> dict:
     """The tiny from-scratch Qwen3 of the generation tests: hidden 48, 2 layers, 4 heads / 2 KV heads,
-    head 12, MLP 96 (a fresh dict per test module is not needed: callers copy it, ``{**tiny_arch}``)."""
+    head 12, MLP 96 (``build_scratch_model`` copies it; a test that changes a size passes
+    ``{**tiny_arch, ...}``)."""
     return dict(hidden_size=48, intermediate_size=96, num_hidden_layers=2, num_attention_heads=4,
                 num_key_value_heads=2, head_dim=12, max_position_embeddings=2048)
 
