@@ -51,6 +51,8 @@ SFT_EXTRA=${SFT_EXTRA:-}            # overrides for the SFT stage only (e.g. mod
 N_TRAIN=${N_TRAIN-40000}            # synthetic training scenes (the train split: 9,429; the artifact small-sft: 40,000)
 DECIMALS=${DECIMALS-2}              # digits after the point in the synthesised completions and the anchors
                                     # ("": physcene.ctrc.DECIMALS = 5; 1 pushes resting contacts into each other)
+PLAN_BATCH=${PLAN_BATCH:-128}       # plan: scenes decoded at once (512 fits the small and medium configs on an H100)
+PLAN_ROWS=${PLAN_ROWS:-"sft sft+plan"}  # plan: the rows decoded (sft+plan: the ablation's decoding)
 STOP_IN=${STOP_IN:-}                # seconds: SFT and PADA stop (and save) this long after the script started, so
                                     # a job's time limit (a scheduler's, a remote command's) does not kill them mid-step;
                                     # unlike SFT_MIN / PADA_MIN it counts synthesis, tokenising and loading
@@ -131,6 +133,6 @@ fi
 if want plan; then
   stamp "plan following ($N_TEST test scenes, the SFT model, first GPU)"
   python3 -m physcene.train.analysis.plan_following "$RUN/sft" --n "$N_TEST" --device cuda --cache fast \
-    --max-new-tokens "$MAX_TOKENS" --batch-size 128 --out "$RUN/plan_following.json"
+    --max-new-tokens "$MAX_TOKENS" --batch-size "$PLAN_BATCH" --rows $PLAN_ROWS --out "$RUN/plan_following.json"
 fi
 stamp done
