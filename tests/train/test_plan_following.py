@@ -3,7 +3,10 @@ parents free and taken from its plan, and measures how each row's layouts relate
 
 from __future__ import annotations
 
+import gzip
 import json
+import os
+import subprocess
 import sys
 
 import pytest
@@ -101,3 +104,77 @@ def test_the_study_decodes_only_the_rows_asked_for(tmp_path, monkeypatch):
     assert [r["name"] for r in json.loads(out.read_text())["rows"]] == ["reference", "sft+plan"]
     with pytest.raises(ValueError, match="plan_free"):
         study.run(str(tmp_path / "ckpt"), n=2, out=tmp_path / "x.json", rows=("plan_free",))
+
+
+def _stub_decode(monkeypatch, items):
+    """The decoding stubbed as in the test above: free, two table-level entries swapped; planned, the
+    reference."""
+    references = {it.prompt: completion_text(it.reference) for it in items}
+
+    def decode(model, tokenizer, prompts, **kw):
+        texts = [references[p] for p in prompts]
+        return texts if kw["follow_plan"] else [_swap_first_two_table_entries(t) for t in texts]
+
+    monkeypatch.setattr(study, "generate_with", decode)
+
+
+def _main(monkeypatch, *argv):
+    monkeypatch.setattr(sys, "argv", ["plan_following", *map(str, argv)])
+    study.main()
+
+
+def test_a_decode_on_one_machine_is_scored_on_another_as_one_run_scores_it(tmp_path, monkeypatch, capsys):
+    """--decode-only writes each row's completions and the decoding's settings and scores nothing;
+    --completions scores them into the rows one run gives; a decode of other scenes is refused by name."""
+    _tiny_checkpoint(tmp_path / "ckpt")
+    _stub_decode(monkeypatch, load_benchmark("test", n=3, progress=False))
+    _main(monkeypatch, tmp_path / "ckpt", "--n", 3, "--out", tmp_path / "one.json")
+    _main(monkeypatch, tmp_path / "ckpt", "--n", 3, "--decode-only", "--device", "cpu",
+          "--out", tmp_path / "decoded.json")
+    decoded = tmp_path / "decoded"
+    assert not (tmp_path / "decoded.json").exists()
+    assert sorted(p.name for p in decoded.iterdir()) == ["decoding.json", "sft.completions.jsonl.gz",
+                                                         "sft_plan.completions.jsonl.gz"]
+    assert json.loads((decoded / "decoding.json").read_text())["rows"] == ["sft", "sft+plan"]
+    _main(monkeypatch, "--completions", decoded, "--n", 3, "--out", tmp_path / "two.json")
+
+    def rows(name):
+        return [{k: v for k, v in r.items() if k != "layouts"}
+                for r in json.loads((tmp_path / name).read_text())["rows"]]
+
+    assert rows("two.json") == rows("one.json") and len(rows("one.json")) == 3
+    two = json.loads((tmp_path / "two.json").read_text())
+    assert len(two["commands"]) == 2 and "--decode-only" in two["commands"][0]
+    _main(monkeypatch, "--completions", decoded, "--n", 3, "--rows", "sft", "--out", tmp_path / "sft.json")
+    alone = json.loads((tmp_path / "sft.json").read_text())["rows"]
+    assert [r["name"] for r in alone] == ["reference", "sft"]
+    for argv, message in ((("--n", 4), "no completion for scene"), (("--n", 3, "--seed", 1), "seed 1")):
+        capsys.readouterr()
+        with pytest.raises(SystemExit):
+            _main(monkeypatch, "--completions", decoded, *argv, "--out", tmp_path / "x.json")
+        assert message in capsys.readouterr().err
+    (decoded / "sft.completions.jsonl.gz").unlink()
+    with pytest.raises(SystemExit):
+        _main(monkeypatch, "--completions", decoded, "--n", 3, "--out", tmp_path / "x.json")
+    assert "no sft.completions.jsonl.gz" in capsys.readouterr().err
+    with pytest.raises(SystemExit):  # a model and a decode's completions at once
+        _main(monkeypatch, tmp_path / "ckpt", "--completions", decoded, "--out", tmp_path / "x.json")
+
+
+def test_a_decode_only_run_needs_no_warp(tmp_path):
+    """A GPU host without Warp decodes: --decode-only on a real (tiny) model in a process where
+    ``import warp`` fails writes the completions."""
+    _tiny_checkpoint(tmp_path / "ckpt")
+    fake = tmp_path / "site" / "warp"
+    fake.mkdir(parents=True)
+    (fake / "__init__.py").write_text("raise ImportError('no Warp on this host')\n")
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [str(tmp_path / "site"),
+                                                                      os.environ.get("PYTHONPATH")]))}
+    cmd = [sys.executable, "-m", "physcene.train.analysis.plan_following", str(tmp_path / "ckpt"), "--n", "2",
+           "--max-new-tokens", "24", "--rows", "sft+plan", "--decode-only", "--out", str(tmp_path / "d.json")]
+    done = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr[-2000:]
+    records = gzip.decompress((tmp_path / "d" / "sft_plan.completions.jsonl.gz").read_bytes()).splitlines()
+    assert len(records) == 2 and all(isinstance(json.loads(r)["completion"], str) for r in records)
+    probe = subprocess.run([sys.executable, "-c", "import warp"], env=env, capture_output=True, text=True)
+    assert probe.returncode != 0 and "no Warp on this host" in probe.stderr

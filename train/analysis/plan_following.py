@@ -14,6 +14,16 @@ layouts kept beside the JSON. Each row also says how its layouts relate to their
 - ``order_kept``: the share of parsed scenes whose layout lists the objects in the plan's order;
 - ``parent_kept``: of the plan steps that name where an object goes (``Place X in|on Y.`` or a
   table-level step), the share whose layout entry has that parent and relation.
+
+Decoding and scoring can run on two machines: ``--decode-only`` writes each row's completions to
+``<out stem>/<row>.completions.jsonl.gz`` with the decoding's settings in ``<out stem>/decoding.json``
+and scores nothing (no Warp needed: a GPU host decodes), and ``--completions DIR`` scores the
+completions a decode wrote (a CPU with Warp scores), on the same split, ``n`` and seed::
+
+    python -m physcene.train.analysis.plan_following runs/medium/sft --n 866 --device cuda --cache fast \
+        --batch-size 512 --rows sft+plan --decode-only --out decoded.json
+    python -m physcene.train.analysis.plan_following --completions decoded --n 866 --rows sft+plan \
+        --out plan_following.json
 """
 
 from __future__ import annotations
@@ -26,12 +36,12 @@ from pathlib import Path
 import torch
 
 from physcene.ctrc import completion_text, parse
+from physcene.layout import layout_record_lines, write_layout_records
 from physcene.scene import TABLE, Scene
-from physcene.train.ablation import table_row
 from physcene.train.constrained.grammar import listed_instance_ids, planned_entries
 from physcene.train.generate import generate_with, load_for_generation, sampling
 
-__all__ = ["ROWS", "plan_agreement", "run"]
+__all__ = ["ROWS", "plan_agreement", "read_completions", "run", "write_completions"]
 
 ROWS = ("sft", "sft+plan")
 """The model's rows: its layouts with the order and parents free, and taken from its own plan."""
@@ -64,29 +74,118 @@ def plan_agreement(prompts: list[str], completions: list[str]) -> dict:
             "parent_kept": share(kept, steps), "scenes_with_plan": scenes}
 
 
-def run(model_path: str, *, n: int, out: Path, split: str = "test", seed: int = 0, temperature: float = 0.0,
-        max_new_tokens: int = 3072, batch_size: int = 32, cache: str = "dynamic", device: str = "cpu",
-        rows: tuple[str, ...] = ROWS, progress: bool = True) -> dict:
+def completions_file(directory: Path, row: str) -> Path:
+    """Where a decode keeps ``row``'s completions: ``sft+plan`` -> ``sft_plan.completions.jsonl.gz``."""
+    return Path(directory) / (row.replace("+", "_") + ".completions.jsonl.gz")
+
+
+def write_completions(directory: Path, items, decoded: dict[str, list[str]], decoding: dict) -> Path:
+    """Each row's completions as ``{"id", "completion"}`` records (``completions_file``) and the
+    decoding's settings as ``decoding.json``, under ``directory``; returns ``directory``."""
+    directory = Path(directory)
+    for row, texts in decoded.items():
+        write_layout_records([{"id": it.id, "completion": t} for it, t in zip(items, texts)],
+                             completions_file(directory, row))
+    (directory / "decoding.json").write_text(json.dumps(decoding, indent=1))
+    return directory
+
+
+def read_completions(directory: Path, items, rows) -> tuple[dict[str, list[str]], dict]:
+    """The completions a decode wrote (:func:`write_completions`) for ``rows``, in ``items``' order, and
+    its ``decoding.json``; a ValueError names a missing file, a record without an id or completion, or
+    the first scene of ``items`` the decode did not write (it decoded another split, ``n`` or seed)."""
+    directory = Path(directory)
+    meta_path = directory / "decoding.json"
+    if not meta_path.is_file():
+        raise ValueError(f"--completions {directory}: no decoding.json (write it with --decode-only)")
+    decoding = json.loads(meta_path.read_text())
+    decoded = {}
+    for row in rows:
+        path = completions_file(directory, row)
+        if not path.is_file():
+            raise ValueError(f"--completions {directory}: no {path.name} (the decode's rows: "
+                             f"{decoding.get('rows')})")
+        try:
+            lines = layout_record_lines(path)
+        except (OSError, EOFError) as exc:  # a bad gzip stream is an OSError
+            raise ValueError(f"{path}: cannot be read ({exc})") from None
+        by_id = {}
+        for number, line in lines:
+            try:
+                record = json.loads(line)
+            except json.JSONDecodeError as exc:
+                raise ValueError(f"{path}:{number}: not JSON ({exc})") from None
+            keyed = isinstance(record, dict) and "id" in record
+            if not keyed or not isinstance(record.get("completion"), str):
+                raise ValueError(f"{path}:{number}: a record needs an 'id' and a 'completion' string")
+            by_id[str(record["id"])] = record["completion"]
+        missing = [it.id for it in items if it.id not in by_id]
+        if missing:
+            raise ValueError(f"{path}: no completion for scene {missing[0]!r} ({len(missing)} of "
+                             f"{len(items)} missing; the decode: split {decoding.get('split')}, "
+                             f"n {decoding.get('n')}, seed {decoding.get('seed')})")
+        decoded[row] = [by_id[it.id] for it in items]
+    return decoded, decoding
+
+
+def run(model_path: str | None, *, n: int, out: Path, split: str = "test", seed: int = 0,
+        temperature: float = 0.0, max_new_tokens: int = 3072, batch_size: int = 32, cache: str = "dynamic",
+        device: str = "cpu", rows: tuple[str, ...] = ROWS, progress: bool = True, decode_only: bool = False,
+        completions: Path | None = None) -> dict:
     """The study's JSON (written to ``out``; each row's layouts to ``<out stem>/<row>.jsonl.gz``);
-    ``rows``: the model's rows decoded, of :data:`ROWS` (the reference's row is always there)."""
+    ``rows``: the model's rows decoded, of :data:`ROWS` (the reference's row is always there).
+    ``decode_only``: write the rows' completions (:func:`write_completions`) to ``<out stem>/`` and return
+    the decoding's settings, scoring nothing; ``completions``: score the completions a decode wrote there
+    instead of decoding (``model_path`` is then None)."""
     unknown = sorted(set(rows) - set(ROWS))
     if unknown or not rows:
         raise ValueError(f"rows {list(rows)}: expected one or more of {list(ROWS)}")
-    from physcene.eval.harness import generate, load_benchmark, make_judge, score_scenes
-    from physcene.physics import PhysicsEngine
+    if (model_path is None) == (completions is None) or (decode_only and completions is not None):
+        raise ValueError("give a model to decode, or --completions DIR to score a decode's completions "
+                         "(and --decode-only only with a model)")
+    from physcene.eval.harness import load_benchmark
 
     items = load_benchmark(split, n=n, seed=seed, progress=False)
+    prompts = [it.prompt for it in items]
+    wanted = [r for r in ROWS if r in rows]
+    command = " ".join(["python -m physcene.train.analysis.plan_following", *sys.argv[1:]])
+    if completions is not None:
+        decoded, decoding = read_completions(completions, items, wanted)
+        if (decoding.get("split"), decoding.get("seed")) != (split, seed):
+            raise ValueError(f"--completions {completions}: decoded on split {decoding.get('split')} seed "
+                             f"{decoding.get('seed')}, asked to score split {split} seed {seed}")
+    else:
+        model, tokenizer, info = load_for_generation(model_path, device=device)
+        chat = bool(info.get("chat_format", False))
+        decoded = {name: generate_with(model, tokenizer, prompts, chat_format=chat,
+                                       max_new_tokens=max_new_tokens, batch_size=batch_size, seed=seed,
+                                       **sampling(temperature), cache=cache, constrained=True,
+                                       follow_plan=name == "sft+plan")
+                   for name in wanted}
+        decoding = {"model": str(model_path), "split": split, "n": len(items), "seed": seed, "device": device,
+                    "gpu": torch.cuda.get_device_name(0) if device.startswith("cuda") else "cpu",
+                    "decoding": {"constrained": True, "temperature": temperature, "cache": cache,
+                                 "max_new_tokens": max_new_tokens},
+                    "rows": wanted, "commands": [command]}
+        if decode_only:
+            where = write_completions(out.with_suffix(""), items, decoded, decoding)
+            if progress:
+                print(f"completions of {wanted} for {len(items)} scenes: {where}/", file=sys.stderr)
+            return decoding
+
+    from physcene.eval.harness import generate, make_judge, score_scenes
+    from physcene.physics import PhysicsEngine  # here: a decode alone needs no Warp
+    from physcene.train.ablation import table_row
+
     judge = make_judge("rule", [it.reference for it in items])
     engine = PhysicsEngine(device=device)
     layouts = out.with_suffix("")
-    model, tokenizer, info = load_for_generation(model_path, device=device)
-    prompts = [it.prompt for it in items]
     table = []
 
-    def add_row(name: str, outputs: list, completions: list[str]) -> None:
+    def add_row(name: str, outputs: list, texts: list[str]) -> None:
         results = score_scenes(items, outputs, judge, engine, progress=False)
         row = table_row(name, items, outputs, results, engine, seed=seed, rl_steps=0, layouts=layouts)
-        row.update(plan_agreement(prompts, completions))
+        row.update(plan_agreement(prompts, texts))
         table.append(row)
         if progress:
             keys = ("scr", "parse_rate", "on_table", "order_kept", "parent_kept")
@@ -94,23 +193,14 @@ def run(model_path: str, *, n: int, out: Path, split: str = "test", seed: int = 
 
     references = [it.reference for it in items]
     add_row("reference", references, [completion_text(s) for s in references])
-    for name in (r for r in ROWS if r in rows):
-        follow = name == "sft+plan"
-        completions = generate_with(model, tokenizer, prompts,
-                                    chat_format=bool(info.get("chat_format", False)),
-                                    max_new_tokens=max_new_tokens, batch_size=batch_size,
-                                    seed=seed, **sampling(temperature),
-                                    cache=cache, constrained=True, follow_plan=follow)
+    for name, texts in decoded.items():
         outputs = generate(items, "model:study", progress=False,
-                           generators={"model:study": lambda _items, c=completions: c})
-        add_row(name, outputs, completions)
+                           generators={"model:study": lambda _items, c=texts: c})
+        add_row(name, outputs, texts)
     result = {
         "what": __doc__.splitlines()[0],
-        "model": str(model_path), "split": split, "n": len(items), "seed": seed, "device": device,
-        "gpu": torch.cuda.get_device_name(0) if device.startswith("cuda") else "cpu",
-        "decoding": {"constrained": True, "temperature": temperature, "cache": cache,
-                     "max_new_tokens": max_new_tokens},
-        "commands": [" ".join(["python -m physcene.train.analysis.plan_following", *sys.argv[1:]])],
+        **{k: decoding[k] for k in ("model", "split", "n", "seed", "device", "gpu", "decoding")},
+        "commands": [*decoding["commands"], command] if completions is not None else [command],
         "rows": table,
     }
     out.parent.mkdir(parents=True, exist_ok=True)
@@ -120,7 +210,7 @@ def run(model_path: str, *, n: int, out: Path, split: str = "test", seed: int = 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("model", help="checkpoint directory (SFT or merged RL model)")
+    parser.add_argument("model", nargs="?", help="checkpoint directory (SFT or merged RL model)")
     parser.add_argument("--n", type=int, default=96, help="first N scenes of the split (default 96)")
     parser.add_argument("--split", default="test", choices=["test", "ood", "train"])
     parser.add_argument("--seed", type=int, default=0, help="the split's and the sampling's seed")
@@ -132,12 +222,25 @@ def main() -> None:
     parser.add_argument("--out", type=Path, default=Path("plan_following.json"))
     parser.add_argument("--rows", nargs="+", default=list(ROWS), choices=list(ROWS),
                         help="the model's rows: sft (plan free), sft+plan (default: both)")
+    parser.add_argument("--decode-only", action="store_true",
+                        help="write the rows' completions to <out stem>/ and score nothing (no Warp needed)")
+    parser.add_argument("--completions", type=Path, default=None, metavar="DIR",
+                        help="score the completions --decode-only wrote to DIR instead of decoding")
     args = parser.parse_args()
+    if (args.model is None) == (args.completions is None):
+        parser.error("give a model checkpoint to decode, or --completions DIR (not both)")
+    if args.decode_only and args.completions is not None:
+        parser.error("--decode-only decodes a model; --completions scores a decode: use one")
     if args.n < 1 or args.temperature < 0 or args.max_new_tokens < 1 or args.batch_size < 1:
         parser.error("--n, --max-new-tokens and --batch-size must be >= 1 and --temperature >= 0")
-    run(args.model, n=args.n, out=args.out, split=args.split, seed=args.seed, temperature=args.temperature,
-        max_new_tokens=args.max_new_tokens, batch_size=args.batch_size, cache=args.cache, device=args.device,
-        rows=tuple(args.rows))
+    try:
+        run(args.model, n=args.n, out=args.out, split=args.split, seed=args.seed,
+            temperature=args.temperature, max_new_tokens=args.max_new_tokens, batch_size=args.batch_size,
+            cache=args.cache,
+            device=args.device, rows=tuple(args.rows), decode_only=args.decode_only,
+            completions=args.completions)
+    except ValueError as exc:  # a decode's completions that do not fit the scenes asked for
+        parser.error(str(exc))
 
 
 if __name__ == "__main__":
