@@ -79,9 +79,11 @@ if [ -n "$STOP_IN" ]; then
 fi
 want() { [[ " $STAGES " == *" $1 "* ]]; }
 
-if [ "$NPROC" -ge 1 ] && python3 -c "import torch, sys; sys.exit(not torch.cuda.is_available())"; then
+have_warp() { python3 -c "import warp" > /dev/null 2>&1; }
+if [ "$NPROC" -ge 1 ] && have_warp && python3 -c "import torch, sys; sys.exit(not torch.cuda.is_available())"; then
   # bake every asset's SDF on the GPU first: the cache key does not depend on the device, and a Warp
-  # without its CPU compiler (as on some GPU hosts) cannot bake on the CPU (docs/training.md, "GPU runs")
+  # without its CPU compiler (as on some GPU hosts) cannot bake on the CPU (docs/training.md, "GPU runs");
+  # a host without Warp runs synth, sft and plan (decoding only) all the same
   physcene assets bake --device cuda:0 > /dev/null
 fi
 if want synth && [ ! -s "$DATA" ] && [[ "$DATA" != synth:* ]]; then
@@ -131,8 +133,11 @@ if want eval; then
     ablation.budget_min="$(python3 -c "print(10 * $PADA_MIN)")"
 fi
 if want plan; then
-  stamp "plan following ($N_TEST test scenes, the SFT model, first GPU)"
+  decode_only=$(have_warp || echo --decode-only)  # no Warp: the completions only, to $RUN/plan_following/,
+                                                  # scored elsewhere with --completions (docs/training.md)
+  stamp "plan following ($N_TEST test scenes, the SFT model, first GPU${decode_only:+, decoding only})"
   python3 -m physcene.train.analysis.plan_following "$RUN/sft" --n "$N_TEST" --device cuda --cache fast \
-    --max-new-tokens "$MAX_TOKENS" --batch-size "$PLAN_BATCH" --rows $PLAN_ROWS --out "$RUN/plan_following.json"
+    --max-new-tokens "$MAX_TOKENS" --batch-size "$PLAN_BATCH" --rows $PLAN_ROWS $decode_only \
+    --out "$RUN/plan_following.json"
 fi
 stamp done
