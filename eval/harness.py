@@ -38,7 +38,7 @@ from physcene.eval.metrics import (
 from physcene.eval.render import render_views
 from physcene.eval.report import method_slug, write_report
 from physcene.files import write_atomic
-from physcene.layout import layout_record_lines, load_layout, read_layout, write_layout
+from physcene.layout import load_layout, read_layout, records_by_id, write_layout
 from physcene.scene import Scene, SceneError
 from physcene.tto import TTOConfig, relation_preservation, repair
 
@@ -121,19 +121,7 @@ def _load_records(items: Sequence[BenchmarkItem], path: Path) -> list:
     record whose ``layout`` is null is the completion that did not parse (its ``parse_error``)."""
     if not path.is_file():
         raise EvalError(f"generator file:{path}: no such file")
-    try:
-        lines = layout_record_lines(path)
-    except (OSError, UnicodeDecodeError, EOFError) as exc:
-        raise EvalError(f"generator file:{path}: cannot be read ({exc})") from None
-    by_id = {}
-    for number, line in lines:
-        try:
-            record = json.loads(line)
-        except json.JSONDecodeError as exc:
-            raise EvalError(f"generator file:{path}:{number}: not JSON ({exc})") from None
-        if not isinstance(record, dict) or "id" not in record:
-            raise EvalError(f"generator file:{path}:{number}: a layout record needs an 'id'")
-        by_id[str(record["id"])] = (number, record)
+    by_id = records_by_id(path, error=EvalError, prefix="generator file:")
     out = []
     for it in items:
         if it.id not in by_id:

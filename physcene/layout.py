@@ -39,6 +39,7 @@ __all__ = [
     "dumps_layout",
     "iter_layout_tree",
     "layout_record_lines",
+    "records_by_id",
     "layout_to_dict",
     "load_layout",
     "MAX_COORDINATE_CM",
@@ -393,6 +394,28 @@ def layout_record_lines(path) -> list[tuple[int, str]]:
     opened = gzip.open(path, "rt", encoding="utf-8") if path.suffix == ".gz" else path.open(encoding="utf-8")
     with opened as f:
         return [(number, line) for number, line in enumerate(f, start=1) if line.strip()]
+
+
+def records_by_id(path, *, error: type[ValueError] = ValueError,
+                  prefix: str = "") -> dict[str, tuple[int, dict]]:
+    """Each record of a JSONL file of ``{"id", ...}`` records (gzipped when its name ends in ``.gz``) by
+    its id, with its line number. ``error`` (ValueError or a subclass) names the file, after ``prefix``,
+    and the line of a file that cannot be read, a line that is not JSON or a record without an id."""
+    path = Path(path)
+    try:
+        lines = layout_record_lines(path)
+    except (OSError, UnicodeDecodeError, EOFError) as exc:  # a bad gzip stream is an OSError
+        raise error(f"{prefix}{path}: cannot be read ({exc})") from None
+    by_id = {}
+    for number, line in lines:
+        try:
+            record = json.loads(line)
+        except json.JSONDecodeError as exc:
+            raise error(f"{prefix}{path}:{number}: not JSON ({exc})") from None
+        if not isinstance(record, dict) or "id" not in record:
+            raise error(f"{prefix}{path}:{number}: a record needs an 'id'")
+        by_id[str(record["id"])] = (number, record)
+    return by_id
 
 
 def write_layout_records(records, path) -> Path:

@@ -36,7 +36,7 @@ from pathlib import Path
 import torch
 
 from physcene.ctrc import completion_text, parse
-from physcene.layout import layout_record_lines, write_layout_records
+from physcene.layout import records_by_id, write_layout_records
 from physcene.scene import TABLE, Scene
 from physcene.train.constrained.grammar import listed_instance_ids, planned_entries
 from physcene.train.generate import generate_with, load_for_generation, sampling
@@ -105,20 +105,11 @@ def read_completions(directory: Path, items, rows) -> tuple[dict[str, list[str]]
         if not path.is_file():
             raise ValueError(f"--completions {directory}: no {path.name} (the decode's rows: "
                              f"{decoding.get('rows')})")
-        try:
-            lines = layout_record_lines(path)
-        except (OSError, EOFError) as exc:  # a bad gzip stream is an OSError
-            raise ValueError(f"{path}: cannot be read ({exc})") from None
         by_id = {}
-        for number, line in lines:
-            try:
-                record = json.loads(line)
-            except json.JSONDecodeError as exc:
-                raise ValueError(f"{path}:{number}: not JSON ({exc})") from None
-            keyed = isinstance(record, dict) and "id" in record
-            if not keyed or not isinstance(record.get("completion"), str):
-                raise ValueError(f"{path}:{number}: a record needs an 'id' and a 'completion' string")
-            by_id[str(record["id"])] = record["completion"]
+        for key, (number, record) in records_by_id(path).items():
+            if not isinstance(record.get("completion"), str):
+                raise ValueError(f"{path}:{number}: a record needs a 'completion' string")
+            by_id[key] = record["completion"]
         missing = [it.id for it in items if it.id not in by_id]
         if missing:
             raise ValueError(f"{path}: no completion for scene {missing[0]!r} ({len(missing)} of "
