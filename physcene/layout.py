@@ -38,6 +38,7 @@ __all__ = [
     "category_from_instance",
     "dumps_layout",
     "iter_layout_tree",
+    "json_records",
     "layout_record_lines",
     "records_by_id",
     "layout_to_dict",
@@ -396,22 +397,30 @@ def layout_record_lines(path) -> list[tuple[int, str]]:
         return [(number, line) for number, line in enumerate(f, start=1) if line.strip()]
 
 
-def records_by_id(path, *, error: type[ValueError] = ValueError,
-                  prefix: str = "") -> dict[str, tuple[int, dict]]:
-    """Each record of a JSONL file of ``{"id", ...}`` records (gzipped when its name ends in ``.gz``) by
-    its id, with its line number. ``error`` (ValueError or a subclass) names the file, after ``prefix``,
-    and the line of a file that cannot be read, a line that is not JSON or a record without an id."""
+def json_records(path, *, error: type[ValueError] = ValueError, prefix: str = "") -> list[tuple[int, object]]:
+    """(line number, parsed JSON) of each non-blank line of a JSONL file (gzipped when its name ends in
+    ``.gz``). ``error`` (ValueError or a subclass) names the file, after ``prefix``, and the line of a
+    file that cannot be read or a line that is not JSON."""
     path = Path(path)
     try:
         lines = layout_record_lines(path)
     except (OSError, UnicodeDecodeError, EOFError) as exc:  # a bad gzip stream is an OSError
         raise error(f"{prefix}{path}: cannot be read ({exc})") from None
-    by_id = {}
+    out = []
     for number, line in lines:
         try:
-            record = json.loads(line)
+            out.append((number, json.loads(line)))
         except json.JSONDecodeError as exc:
             raise error(f"{prefix}{path}:{number}: not JSON ({exc})") from None
+    return out
+
+
+def records_by_id(path, *, error: type[ValueError] = ValueError,
+                  prefix: str = "") -> dict[str, tuple[int, dict]]:
+    """Each record of a JSONL file of ``{"id", ...}`` records by its id, with its line number; errors as
+    :func:`json_records`'s, and a record without an id."""
+    by_id = {}
+    for number, record in json_records(path, error=error, prefix=prefix):
         if not isinstance(record, dict) or "id" not in record:
             raise error(f"{prefix}{path}:{number}: a record needs an 'id'")
         by_id[str(record["id"])] = (number, record)

@@ -15,6 +15,8 @@ import sys
 from dataclasses import replace
 from pathlib import Path
 
+from physcene.layout import json_records
+
 NAME = "reward"
 HELP = "Score completions (JSONL of {prompt, completion}) with the paper's physics reward"
 SETTINGS = "configs/reward.yaml (docs/physics.md)"
@@ -32,18 +34,8 @@ def add_arguments(parser) -> None:
 
 def read_records(path: Path) -> tuple[list, list]:
     """(prompts, completions) of a JSONL file; malformed lines raise :class:`RewardInputError`."""
-    try:
-        lines = path.read_text(encoding="utf-8").splitlines()
-    except (OSError, UnicodeDecodeError) as exc:
-        raise RewardInputError(f"cannot read {path}: {exc}") from exc
     prompts, completions = [], []
-    for number, line in enumerate(lines, start=1):
-        if not line.strip():
-            continue
-        try:
-            record = json.loads(line)
-        except json.JSONDecodeError as exc:
-            raise RewardInputError(f"{path}:{number}: not JSON ({exc})") from exc
+    for number, record in json_records(path, error=RewardInputError):
         if not isinstance(record, dict) or "completion" not in record:
             raise RewardInputError(f"{path}:{number}: expected an object with a 'completion' field")
         if not isinstance(record["completion"], (str, list)):
