@@ -118,7 +118,9 @@ class GenerationFailure(ParseError):
 
 def _load_records(items: Sequence[BenchmarkItem], path: Path) -> list:
     """Layouts from a JSONL file (gzipped when it ends in ``.gz``) of ``{"id", "layout"}`` records; a
-    record whose ``layout`` is null is the completion that did not parse (its ``parse_error``)."""
+    record whose ``layout`` is null is the completion that did not parse (its ``parse_error``).
+    A split's ids are positions in its draw, and the draw depends on ``n`` and the seed: a record whose
+    level or layout instruction is not its scene's was written for another draw and is refused."""
     if not path.is_file():
         raise EvalError(f"generator file:{path}: no such file")
     by_id = records_by_id(path, error=EvalError, prefix="generator file:")
@@ -127,6 +129,13 @@ def _load_records(items: Sequence[BenchmarkItem], path: Path) -> list:
         if it.id not in by_id:
             raise EvalError(f"generator file:{path}: no layout for benchmark id {it.id!r}")
         number, record = by_id[it.id]
+        layout = record.get("layout")
+        instruction = layout.get("instruction") if isinstance(layout, dict) else None
+        if record.get("level", it.level) != it.level or (instruction and instruction != it.instruction):
+            raise EvalError(f"generator file:{path}:{number}: the record of {it.id!r} is of another scene "
+                            f"(level {record.get('level')}, instruction {str(instruction)[:50]!r}; the "
+                            f"split's: level {it.level}, {it.instruction[:50]!r}): it was written for "
+                            "another draw of the split (score it with the --n and --seed it was made with)")
         if record.get("layout") is None:
             out.append(ParseError(str(record.get("parse_error") or "no layout in the record")))
             continue

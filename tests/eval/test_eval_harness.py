@@ -158,3 +158,19 @@ def test_score_bar_counts_every_output_parsed_or_not(items, capsys):
     score_scenes(items, outputs, judge, progress=True, desc="scoring")
     err = capsys.readouterr().err
     assert f"{len(items)}/{len(items)}" in err.replace("\r", "\n").splitlines()[-1]
+
+
+def test_a_layout_file_of_another_draw_of_the_split_is_refused(tmp_path):
+    """Ids are positions in a draw that depends on n: records written for the first 8 test scenes,
+    scored as the first 3, are other scenes under the same ids; the file: generator names the record
+    instead of scoring them. The same file read with the n it was written for scores."""
+    from physcene.layout import write_layout_records
+    from physcene.train.ablation import layout_records
+
+    eight = load_benchmark("test", n=8, progress=False)
+    three = load_benchmark("test", n=3, progress=False)
+    assert [a.instruction for a in three] != [b.instruction for b in eight[:3]]  # the premise: other scenes
+    path = write_layout_records(layout_records(eight, [it.reference for it in eight]), tmp_path / "l.jsonl.gz")
+    assert len(generate(eight, f"file:{path}", progress=False)) == 8
+    with pytest.raises(EvalError, match="another draw of the split"):
+        generate(three, f"file:{path}", progress=False)
