@@ -170,7 +170,8 @@ def test_a_layout_file_of_another_draw_of_the_split_is_refused(tmp_path):
     eight = load_benchmark("test", n=8, progress=False)
     three = load_benchmark("test", n=3, progress=False)
     assert [a.instruction for a in three] != [b.instruction for b in eight[:3]]  # the premise: other scenes
-    path = write_layout_records(layout_records(eight, [it.reference for it in eight]), tmp_path / "l.jsonl.gz")
+    records = layout_records(eight, [it.reference for it in eight])
+    path = write_layout_records(records, tmp_path / "l.jsonl.gz")
     assert len(generate(eight, f"file:{path}", progress=False)) == 8
     with pytest.raises(EvalError, match="another draw of the split"):
         generate(three, f"file:{path}", progress=False)
