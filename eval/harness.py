@@ -136,11 +136,11 @@ def _load_records(items: Sequence[BenchmarkItem], path: Path) -> list:
                             f"(level {record.get('level')}, instruction {str(instruction)[:50]!r}; the "
                             f"split's: level {it.level}, {it.instruction[:50]!r}): it was written for "
                             "another draw of the split (score it with the --n and --seed it was made with)")
-        if record.get("layout") is None:
+        if layout is None:
             out.append(ParseError(str(record.get("parse_error") or "no layout in the record")))
             continue
         try:
-            out.append(load_layout(record["layout"], source=f"{path}:{number}"))
+            out.append(load_layout(layout, source=f"{path}:{number}"))
         except (SceneError, TypeError, ValueError) as exc:
             raise EvalError(f"generator file:{path}:{number}: {exc}") from None
     return out

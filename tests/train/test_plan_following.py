@@ -148,7 +148,8 @@ def test_a_decode_on_one_machine_is_scored_on_another_as_one_run_scores_it(tmp_p
     _main(monkeypatch, "--completions", decoded, "--n", 3, "--rows", "sft", "--out", tmp_path / "sft.json")
     alone = json.loads((tmp_path / "sft.json").read_text())["rows"]
     assert [r["name"] for r in alone] == ["reference", "sft"]
-    for argv, message in ((("--n", 4), "no completion for scene"), (("--n", 3, "--seed", 1), "seed 1")):
+    for argv, message in ((("--n", 4), "no completion for scene"), (("--n", 3, "--seed", 1), "seed 1"),
+                          (("--n", 2), "a draw of another n")):
         capsys.readouterr()
         with pytest.raises(SystemExit):
             _main(monkeypatch, "--completions", decoded, *argv, "--out", tmp_path / "x.json")

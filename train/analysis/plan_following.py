@@ -41,7 +41,7 @@ from physcene.scene import TABLE, Scene
 from physcene.train.constrained.grammar import listed_instance_ids, planned_entries
 from physcene.train.generate import generate_with, load_for_generation, sampling
 
-__all__ = ["ROWS", "plan_agreement", "read_completions", "run", "write_completions"]
+__all__ = ["ROWS", "CompletionsError", "plan_agreement", "read_completions", "run", "write_completions"]
 
 ROWS = ("sft", "sft+plan")
 """The model's rows: its layouts with the order and parents free, and taken from its own plan."""
@@ -74,6 +74,11 @@ def plan_agreement(prompts: list[str], completions: list[str]) -> dict:
             "parent_kept": share(kept, steps), "scenes_with_plan": scenes}
 
 
+class CompletionsError(ValueError):
+    """A decode's completions (``--completions DIR``) that do not fit the scenes asked for: a missing file
+    or scene, a malformed record, another split or seed."""
+
+
 def completions_file(directory: Path, row: str) -> Path:
     """Where a decode keeps ``row``'s completions: ``sft+plan`` -> ``sft_plan.completions.jsonl.gz``."""
     return Path(directory) / (row.replace("+", "_") + ".completions.jsonl.gz")
@@ -90,32 +95,40 @@ def write_completions(directory: Path, items, decoded: dict[str, list[str]], dec
     return directory
 
 
-def read_completions(directory: Path, items, rows) -> tuple[dict[str, list[str]], dict]:
-    """The completions a decode wrote (:func:`write_completions`) for ``rows``, in ``items``' order, and
-    its ``decoding.json``; a ValueError names a missing file, a record without an id or completion, or
-    the first scene of ``items`` the decode did not write (it decoded another split, ``n`` or seed)."""
+def read_completions(directory: Path, items, rows, *, split: str,
+                     seed: int) -> tuple[dict[str, list[str]], dict]:
+    """The completions a decode of ``split`` at ``seed`` wrote (:func:`write_completions`) for ``rows``, in
+    ``items``' order, and its ``decoding.json``; a :class:`CompletionsError` names a missing file, a
+    decode of another split or seed, a record without an id or completion, the first scene of ``items``
+    the decode did not write (it decoded fewer scenes), or a decode of more scenes (another draw)."""
     directory = Path(directory)
     meta_path = directory / "decoding.json"
     if not meta_path.is_file():
-        raise ValueError(f"--completions {directory}: no decoding.json (write it with --decode-only)")
+        raise CompletionsError(f"--completions {directory}: no decoding.json (write it with --decode-only)")
     decoding = json.loads(meta_path.read_text())
+    if (decoding.get("split"), decoding.get("seed")) != (split, seed):
+        raise CompletionsError(f"--completions {directory}: decoded on split {decoding.get('split')} seed "
+                               f"{decoding.get('seed')}, asked to score split {split} seed {seed}")
     decoded = {}
     for row in rows:
         path = completions_file(directory, row)
         if not path.is_file():
-            raise ValueError(f"--completions {directory}: no {path.name} (the decode's rows: "
-                             f"{decoding.get('rows')})")
+            raise CompletionsError(f"--completions {directory}: no {path.name} (the decode's rows: "
+                                   f"{decoding.get('rows')})")
         by_id = {}
-        for key, (number, record) in records_by_id(path).items():
+        for key, (number, record) in records_by_id(path, error=CompletionsError).items():
             if not isinstance(record.get("completion"), str):
-                raise ValueError(f"{path}:{number}: a record needs a 'completion' string")
+                raise CompletionsError(f"{path}:{number}: a record needs a 'completion' string")
             by_id[key] = record["completion"]
         missing = [it.id for it in items if it.id not in by_id]
         if missing:
-            raise ValueError(f"{path}: no completion for scene {missing[0]!r} ({len(missing)} of "
-                             f"{len(items)} missing; the decode: split {decoding.get('split')}, "
-                             f"n {decoding.get('n')}, seed {decoding.get('seed')})")
+            raise CompletionsError(f"{path}: no completion for scene {missing[0]!r} ({len(missing)} of "
+                                   f"{len(items)} missing; the decode: split {decoding.get('split')}, "
+                                   f"n {decoding.get('n')}, seed {decoding.get('seed')})")
         decoded[row] = [by_id[it.id] for it in items]
+    if decoding.get("n") != len(items):  # ids are positions in a draw that depends on n: other scenes
+        raise CompletionsError(f"--completions {directory}: decoded {decoding.get('n')} scenes, asked to "
+                               f"score {len(items)}: a draw of another n holds other scenes under its ids")
     return decoded, decoding
 
 
@@ -141,10 +154,7 @@ def run(model_path: str | None, *, n: int, out: Path, split: str = "test", seed:
     wanted = [r for r in ROWS if r in rows]
     command = " ".join(["python -m physcene.train.analysis.plan_following", *sys.argv[1:]])
     if completions is not None:
-        decoded, decoding = read_completions(completions, items, wanted)
-        if (decoding.get("split"), decoding.get("seed")) != (split, seed):
-            raise ValueError(f"--completions {completions}: decoded on split {decoding.get('split')} seed "
-                             f"{decoding.get('seed')}, asked to score split {split} seed {seed}")
+        decoded, decoding = read_completions(completions, items, wanted, split=split, seed=seed)
     else:
         model, tokenizer, info = load_for_generation(model_path, device=device)
         chat = bool(info.get("chat_format", False))
@@ -227,10 +237,9 @@ def main() -> None:
     try:
         run(args.model, n=args.n, out=args.out, split=args.split, seed=args.seed,
             temperature=args.temperature, max_new_tokens=args.max_new_tokens, batch_size=args.batch_size,
-            cache=args.cache,
-            device=args.device, rows=tuple(args.rows), decode_only=args.decode_only,
+            cache=args.cache, device=args.device, rows=tuple(args.rows), decode_only=args.decode_only,
             completions=args.completions)
-    except ValueError as exc:  # a decode's completions that do not fit the scenes asked for
+    except CompletionsError as exc:
         parser.error(str(exc))
 
 
