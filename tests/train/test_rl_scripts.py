@@ -174,3 +174,26 @@ def test_remote_runs_the_script_it_is_given_detached_and_poll_sees_it_end(tmp_pa
     assert (work / "DONE").read_text().strip() == "3"
     assert "stub ran: CONFIG=medium" in (work / "rl.log").read_text()
     assert "train/sft_stub.sh ended with status 3" in polled.stdout
+
+
+def test_poll_on_a_host_where_nothing_was_started_stops_at_once(tmp_path):
+    """A fresh host (the last one given back with its run) has no PID: ``poll`` says so and exits 3 at
+    once instead of waiting its whole time on nothing."""
+    env = {"PATH": os.environ["PATH"], "HOME": str(tmp_path), "WORK": str(tmp_path / "work")}
+    polled = subprocess.run(["bash", str(SCRIPTS / "rl_remote.sh"), "poll", "60"], env=env,
+                            capture_output=True, text=True, timeout=20)
+    assert polled.returncode == 3
+    assert "nothing was started" in polled.stderr
+
+
+def test_poll_stops_when_the_run_is_gone_without_an_exit_status(tmp_path):
+    """A run killed from outside writes no DONE: ``poll`` reports it gone instead of waiting it out."""
+    work = tmp_path / "work"
+    work.mkdir()
+    gone = subprocess.Popen(["true"])
+    gone.wait()
+    (work / "PID").write_text(f"{gone.pid}\n")
+    env = {"PATH": os.environ["PATH"], "HOME": str(tmp_path), "WORK": str(work), "SCRIPT": "train/x.sh"}
+    polled = subprocess.run(["bash", str(SCRIPTS / "rl_remote.sh"), "poll", "60"], env=env,
+                            capture_output=True, text=True, timeout=20)
+    assert "train/x.sh (pid" in polled.stderr and "is gone without an exit status" in polled.stderr

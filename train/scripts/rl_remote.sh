@@ -8,6 +8,8 @@
 #   bash train/scripts/rl_remote.sh start        # copy the tree, unpack the carried state, start rl_ablation.sh
 #   bash train/scripts/rl_remote.sh poll 540     # wait up to 540 s or until the study ends, print the runs'
 #                                                # steps, pack the state, send its first parts to $OUT
+#                                                # (exit 3 at once on a host where nothing was started:
+#                                                # a host left idle is given back with the run)
 #   bash train/scripts/rl_remote.sh send 4       # the pack's parts from the 5th on (a command brings back
 #                                                # ~64 MB: SEND=4 parts of 15 MiB at a time)
 #   STAGES=eval bash train/scripts/rl_remote.sh again  # rl_ablation.sh once more on what is there (refused
@@ -128,8 +130,19 @@ case "${1:-}" in
     launch
     ;;
   poll)
+    if [ ! -f "$work/PID" ]; then  # a fresh host: the last one's run and files went with it
+      echo "rl_remote: nothing was started in $work on this host (a host given back keeps no run): start again" >&2
+      exit 3
+    fi
     end=$((SECONDS + ${2:-540}))
-    while [ $SECONDS -lt $end ] && [ ! -f "$work/DONE" ]; do sleep 10; done
+    while [ $SECONDS -lt $end ] && [ ! -f "$work/DONE" ]; do
+      if ! kill -0 "$(cat "$work/PID")" 2> /dev/null; then
+        sleep 1  # DONE is written just after the script ends
+        [ -f "$work/DONE" ] || echo "rl_remote: $SCRIPT (pid $(cat "$work/PID")) is gone without an exit status (killed?)" >&2
+        break
+      fi
+      sleep 5
+    done
     [ -f "$work/DONE" ] && stamp "$SCRIPT ended with status $(cat "$work/DONE")"
     tail -n "${TAILN:-15}" "$log"
     progress
