@@ -50,6 +50,7 @@ __all__ = [
     "quaternion_to_yaw",
     "read_layout",
     "records_by_id",
+    "row_file",
     "write_layout",
     "write_layout_records",
     "yaw_to_quaternion",
@@ -425,6 +426,14 @@ def records_by_id(path, *, error: type[ValueError] = ValueError,
             raise error(f"{prefix}{path}:{number}: a record needs an 'id'")
         by_id[str(record["id"])] = (number, record)
     return by_id
+
+
+def row_file(name: str, suffix: str = ".jsonl.gz") -> str:
+    """The file name of a table row's layouts (or, with ``suffix``, of another file of that row):
+    ``pada*`` -> ``pada_star.jsonl.gz``, ``sft+tto`` -> ``sft_tto.jsonl.gz``, ``pada@12`` ->
+    ``pada-12.jsonl.gz``; ``row_file("sft+plan", ".completions.jsonl.gz")`` ->
+    ``sft_plan.completions.jsonl.gz``."""
+    return name.replace("*", "_star").replace("+", "_").replace("@", "-") + suffix
 
 
 def write_layout_records(records, path) -> Path:

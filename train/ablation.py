@@ -39,7 +39,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from physcene.artifacts import ArtifactError, checkpoint_digest, repo_root
 from physcene.files import write_atomic
-from physcene.layout import layout_to_dict, write_layout_records
+from physcene.layout import layout_to_dict, row_file, write_layout_records
 from physcene.reward import RewardConfig, band_low_ratio
 from physcene.scene import Scene
 from physcene.train.ablation_plot import write_learning_curves
@@ -135,12 +135,6 @@ def layout_records(items, outputs) -> list[dict]:
             record.update(layout=None, parse_error=str(o))
         out.append(record)
     return out
-
-
-def row_file(name: str) -> str:
-    """The file name of a row's layouts: ``pada*`` -> ``pada_star.jsonl.gz``, ``sft+tto`` ->
-    ``sft_tto.jsonl.gz``, ``pada@12`` -> ``pada-12.jsonl.gz``."""
-    return name.replace("*", "_star").replace("+", "_").replace("@", "-") + ".jsonl.gz"
 
 
 def _repository_path(path: Path) -> str:
@@ -395,7 +389,7 @@ def _evaluate(cfg: DictConfig, models: dict[str, Path], budget_s: float) -> list
 
 
 def _source_file(layouts, name: str) -> Path:
-    return Path(str(layouts)) / row_file(name).replace(".jsonl.gz", ".source.json")
+    return Path(str(layouts)) / row_file(name, ".source.json")
 
 
 def _record_source(layouts, name: str, source: dict) -> None:

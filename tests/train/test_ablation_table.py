@@ -56,6 +56,7 @@ def test_rows_have_the_schema_and_name_their_layouts(table):
         unnamed = {k: v for k, v in pada.items() if k != "layouts"} | {"name": "sft"}
         check_ablation({**data, "rows": [unnamed]})
     assert row_file("pada*") == "pada_star.jsonl.gz" and row_file("sft+tto") == "sft_tto.jsonl.gz"
+    assert row_file("pada@12", ".source.json") == "pada-12.source.json"
 
 
 def test_eval_and_check_read_the_gzipped_layouts_and_recompute_the_row(table, tmp_path, capsys):

@@ -36,7 +36,7 @@ from pathlib import Path
 import torch
 
 from physcene.ctrc import completion_text, parse
-from physcene.layout import records_by_id, write_layout_records
+from physcene.layout import records_by_id, row_file, write_layout_records
 from physcene.scene import TABLE, Scene
 from physcene.train.constrained.grammar import listed_instance_ids, planned_entries
 from physcene.train.generate import generate_with, load_for_generation, sampling
@@ -81,7 +81,7 @@ class CompletionsError(ValueError):
 
 def completions_file(directory: Path, row: str) -> Path:
     """Where a decode keeps ``row``'s completions: ``sft+plan`` -> ``sft_plan.completions.jsonl.gz``."""
-    return Path(directory) / (row.replace("+", "_") + ".completions.jsonl.gz")
+    return Path(directory) / row_file(row, ".completions.jsonl.gz")
 
 
 def write_completions(directory: Path, items, decoded: dict[str, list[str]], decoding: dict) -> Path:
