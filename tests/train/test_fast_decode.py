@@ -76,6 +76,31 @@ def test_rows_stop_at_eos_as_in_hf_generate(model):
     assert any(len(row) < 30 for row in result.tokens)
 
 
+def test_a_dropped_decoder_frees_its_cache_without_a_collector_pass(model):
+    """A decoder nobody holds (one whose cache is over the size ``decoder_for`` keeps: each batch of a
+    larger model's CPU decode makes one) frees its KV buffers when dropped, not at the garbage
+    collector's next full pass: no reference cycle holds them (the cache's eager ``update`` once did,
+    and a CPU decode grew by one cache per batch)."""
+    import gc
+    import weakref
+
+    from physcene.train.decode import FastDecoder
+
+    ids, mask = _left_padded([[5, 6, 7], [8, 9]], 0)
+    decoder = FastDecoder(model, batch=2, length=16)
+    decoder.generate(ids, mask, max_new_tokens=4, eos=[1], pad=0)
+    buffers = [weakref.ref(t) for t in decoder.cache.keys + decoder.cache.values]
+    cache = weakref.ref(decoder.cache)
+    enabled = gc.isenabled()
+    gc.disable()
+    try:
+        del decoder
+        assert cache() is None and all(ref() is None for ref in buffers)
+    finally:
+        if enabled:
+            gc.enable()
+
+
 def _plan_prefixed(records, tokenizer, rows: int):
     """``rows`` copies of one record's prompt (different lengths: real left padding) followed by its
     reference plan, which the constraint has seen as completion: from there the layout is left to

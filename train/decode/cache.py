@@ -38,8 +38,13 @@ class StaticKV:
         self.length = length
         self.read_length = length
         self.seen = 0  # columns filled by the prompt pass (host-side, for get_seq_length)
-        # outside fused layers' compiled graphs (train/decode/fuse.py): a step reads the host's read_length
-        self.update = EAGER(self._update)
+        if "update" not in StaticKV.__dict__:
+            # outside fused layers' compiled graphs (train/decode/fuse.py): a step reads the host's
+            # read_length. Set on the class on first use (the wrapper imports torch._dynamo), not on the
+            # instance: a bound method kept on the instance is a reference cycle, which held every
+            # dropped decoder's buffers until the garbage collector's next full pass (a CPU decode of
+            # batches whose caches are not kept grew by one cache per batch)
+            StaticKV.update = EAGER(StaticKV._update)
 
     def _update(self, key: torch.Tensor, value: torch.Tensor, layer_idx: int, *args, **kwargs):
         k, v = self.keys[layer_idx], self.values[layer_idx]
@@ -65,3 +70,4 @@ class StaticKV:
         """KV bytes of one column (one token of one row) over all layers."""
         size = self.keys[0].element_size() if self.keys[0] is not None else self.kv_dtype.itemsize
         return 2 * len(self.keys) * self.shape[1] * self.shape[3] * size
+
