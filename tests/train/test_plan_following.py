@@ -158,8 +158,11 @@ def test_a_decode_on_one_machine_is_scored_on_another_as_one_run_scores_it(tmp_p
     with pytest.raises(SystemExit):
         _main(monkeypatch, "--completions", decoded, "--n", 3, "--out", tmp_path / "x.json")
     assert "no sft.completions.jsonl.gz" in capsys.readouterr().err
-    with pytest.raises(SystemExit):  # a model and a decode's completions at once
-        _main(monkeypatch, tmp_path / "ckpt", "--completions", decoded, "--out", tmp_path / "x.json")
+    both = (tmp_path / "ckpt", "--completions", decoded)
+    for argv in (both, ("--completions", decoded, "--decode-only"), ()):
+        with pytest.raises(SystemExit):  # a model and a decode's completions at once, or neither
+            _main(monkeypatch, *argv, "--out", tmp_path / "x.json")
+        assert "give a model checkpoint to decode, or --completions DIR" in capsys.readouterr().err
 
 
 def test_a_decode_only_run_needs_no_warp(tmp_path):

@@ -76,7 +76,7 @@ def plan_agreement(prompts: list[str], completions: list[str]) -> dict:
 
 class CompletionsError(ValueError):
     """A decode's completions (``--completions DIR``) that do not fit the scenes asked for: a missing file
-    or scene, a malformed record, another split or seed."""
+    or scene, a malformed record, another split, seed or n; or asked for with a model or --decode-only."""
 
 
 def completions_file(directory: Path, row: str) -> Path:
@@ -145,8 +145,8 @@ def run(model_path: str | None, *, n: int, out: Path, split: str = "test", seed:
     if unknown or not rows:
         raise ValueError(f"rows {list(rows)}: expected one or more of {list(ROWS)}")
     if (model_path is None) == (completions is None) or (decode_only and completions is not None):
-        raise ValueError("give a model to decode, or --completions DIR to score a decode's completions "
-                         "(and --decode-only only with a model)")
+        raise CompletionsError("give a model checkpoint to decode, or --completions DIR to score a decode's "
+                               "completions (not both; --decode-only only with a model)")
     from physcene.eval.harness import load_benchmark
 
     items = load_benchmark(split, n=n, seed=seed, progress=False)
@@ -228,10 +228,6 @@ def main() -> None:
     parser.add_argument("--completions", type=Path, default=None, metavar="DIR",
                         help="score the completions --decode-only wrote to DIR instead of decoding")
     args = parser.parse_args()
-    if (args.model is None) == (args.completions is None):
-        parser.error("give a model checkpoint to decode, or --completions DIR (not both)")
-    if args.decode_only and args.completions is not None:
-        parser.error("--decode-only decodes a model; --completions scores a decode: use one")
     if args.n < 1 or args.temperature < 0 or args.max_new_tokens < 1 or args.batch_size < 1:
         parser.error("--n, --max-new-tokens and --batch-size must be >= 1 and --temperature >= 0")
     try:
