@@ -70,4 +70,3 @@ class StaticKV:
         """KV bytes of one column (one token of one row) over all layers."""
         size = self.keys[0].element_size() if self.keys[0] is not None else self.kv_dtype.itemsize
         return 2 * len(self.keys) * self.shape[1] * self.shape[3] * size
-

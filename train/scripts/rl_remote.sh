@@ -101,8 +101,12 @@ EOF
   done
 }
 
+running() {  # whether the script launch started in $work still runs
+  [ -f "$work/PID" ] && kill -0 "$(cat "$work/PID")" 2> /dev/null
+}
+
 launch() {  # $SCRIPT detached in $work, with this environment; DONE holds its exit status
-  if [ -f "$work/PID" ] && kill -0 "$(cat "$work/PID")" 2> /dev/null; then
+  if running; then
     echo "rl_remote: $SCRIPT is still running (pid $(cat "$work/PID")): poll until it ends" >&2
     return 1
   fi
@@ -136,7 +140,7 @@ case "${1:-}" in
     fi
     end=$((SECONDS + ${2:-540}))
     while [ $SECONDS -lt $end ] && [ ! -f "$work/DONE" ]; do
-      if ! kill -0 "$(cat "$work/PID")" 2> /dev/null; then
+      if ! running; then
         sleep 1  # DONE is written just after the script ends
         [ -f "$work/DONE" ] || echo "rl_remote: $SCRIPT (pid $(cat "$work/PID")) is gone without an exit status (killed?)" >&2
         break
