@@ -165,7 +165,7 @@ def _main(argv: list[str]) -> int:
         return 2
     try:
         return int(args._run(args) or 0)
-    except _INPUT_ERRORS as exc:
+    except (*_INPUT_ERRORS, ModuleNotFoundError) as exc:  # a missing dependency (Warp, MuJoCo): one line
         print(f"physcene {args.command}: error: {exc}", file=sys.stderr)
         return 2
 

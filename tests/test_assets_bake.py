@@ -2,12 +2,18 @@
 
 from __future__ import annotations
 
+import sys
+
 import numpy as np
 import pytest
 import trimesh
 
+import physcene.kernels
+from physcene import cli
 from physcene.assets import (
     CATEGORY_PRIORS,
+    BakeCache,
+    BakeUnavailableError,
     bake_mesh_asset,
     normalise_mesh,
     primitive_asset,
@@ -98,6 +104,37 @@ def test_open_bowl_gets_a_consistent_inside():
     assert np.any(reference[far] < 0) and np.any(reference[far] > 0)
     assert np.all(np.sign(grid[far]) == np.sign(reference[far]))
     assert sample_sdf(grid, np.array([0.0, 0.0, 0.3])) > 0  # the cavity
+
+
+def _without_warp(monkeypatch):
+    """Import physcene.kernels.sdf_bake fails from here on, as on a machine without Warp."""
+    monkeypatch.delattr(physcene.kernels, "sdf_bake", raising=False)
+    monkeypatch.setitem(sys.modules, "physcene.kernels.sdf_bake", None)
+
+
+def test_without_warp_a_cached_asset_loads_and_one_to_bake_is_one_error_naming_it(tmp_path, monkeypatch):
+    box = trimesh.creation.box((1.0, 2.0, 0.5))
+    bake = dict(category="cup", source="test", resolution=16, n_points=64, cache=BakeCache(tmp_path))
+    baked = bake_mesh_asset(box, asset_id="cup_01", **bake)
+    _without_warp(monkeypatch)
+    again = bake_mesh_asset(box, asset_id="cup_01", **bake)  # a cache hit needs no Warp
+    np.testing.assert_array_equal(again.sdf, baked.sdf)
+    sphere = trimesh.creation.icosphere(subdivisions=2)  # another shape (every box normalises to one)
+    message = r"asset 'cup_02': baking its SDF \(not in .*\) needs Warp"
+    with pytest.raises(BakeUnavailableError, match=message) as err:
+        bake_mesh_asset(sphere, asset_id="cup_02", **bake)
+    assert str(tmp_path) in str(err.value) and "PHYSCENE_CACHE" in str(err.value)
+    with pytest.raises(BakeUnavailableError, match=r"asset 'bowl_01': classifying its open mesh needs Warp"):
+        bake_mesh_asset(_open_bowl()[1], asset_id="bowl_01", **bake)
+
+
+def test_the_cli_reports_a_bake_without_warp_as_one_line(tmp_path, monkeypatch, capsys):
+    _without_warp(monkeypatch)
+    monkeypatch.setenv("PHYSCENE_CACHE", str(tmp_path))
+    assert cli.main(["assets", "bake", "--device", "cpu"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("physcene assets: error: asset ") and "needs Warp" in err
+    assert len(err.strip().splitlines()) == 1
 
 
 def _sheet_bowl():

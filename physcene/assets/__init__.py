@@ -6,7 +6,7 @@ Public API: :class:`Asset`, :func:`primitive_asset`, :class:`AssetLibrary` (``re
 """
 
 from physcene.assets.asset import Asset, grid_coordinates
-from physcene.assets.bake import bake_mesh_asset, normalise_mesh, sign_method_for
+from physcene.assets.bake import BakeUnavailableError, bake_mesh_asset, normalise_mesh, sign_method_for
 from physcene.assets.cache import BakeCache, default_cache_dir
 from physcene.assets.categories import (
     CATEGORY_ALIASES,
@@ -27,7 +27,7 @@ from physcene.assets.surface import sample_sdf, surface_points
 __all__ = [
     "CATEGORY_ALIASES", "CATEGORY_PRIORS", "IID_SCENE_TYPES", "OOD_SCENE_TYPES", "PRIMITIVES",
     "PROCEDURAL_BUILDERS", "SIZE_SIGMA_FLOOR", "Asset", "AssetEntry", "AssetFileError", "AssetLibrary",
-    "BakeCache", "Retrieval", "SizePrior", "bake_mesh_asset", "canonical_category",
+    "BakeCache", "BakeUnavailableError", "Retrieval", "SizePrior", "bake_mesh_asset", "canonical_category",
     "categories_for_scene_type", "default_cache_dir", "default_library", "grid_coordinates",
     "load_mesh_file", "normalise_category", "normalise_mesh", "primitive_asset", "procedural_mesh",
     "sample_sdf", "scan_mesh_folder", "sign_method_for", "surface_points",

@@ -16,9 +16,28 @@ from physcene.assets.asset import Asset
 from physcene.assets.cache import BakeCache
 from physcene.assets.surface import surface_points
 
-__all__ = ["bake_mesh_asset", "normalise_mesh", "sign_method_for"]
+__all__ = ["BakeUnavailableError", "bake_mesh_asset", "normalise_mesh", "sign_method_for"]
 
 _FLAT = 1e-6  # relative extent below which an axis cannot be stretched to fill [-1, 1]
+
+
+class BakeUnavailableError(ModuleNotFoundError):
+    """An asset that must be baked (it is not in the bake cache, or its open mesh must be classified)
+    on a machine without Warp, which bakes. Synthesising a split, building the benchmark's scenes and
+    scoring all read the assets' SDFs, so such a machine needs a cache baked where Warp runs."""
+
+
+def _sdf_bake(asset_id: str, what: str):
+    """:mod:`physcene.kernels.sdf_bake`, or a :class:`BakeUnavailableError` naming the asset and the fix."""
+    try:
+        from physcene.kernels import sdf_bake  # Warp loads only when something must be baked
+    except ImportError as exc:
+        raise BakeUnavailableError(
+            f"asset {asset_id!r}: {what} needs Warp (pip install warp-lang), which this Python lacks "
+            f"({exc}); bake the assets where Warp runs (physcene assets bake) and point PHYSCENE_CACHE "
+            f"at a copy of that cache (it is keyed by content, so any machine's bake serves)", name="warp"
+        ) from exc
+    return sdf_bake
 
 
 def normalise_mesh(mesh: trimesh.Trimesh, *, name: str = "mesh") -> tuple[trimesh.Trimesh, np.ndarray]:
@@ -41,20 +60,16 @@ SHEET_AMBIGUITY = 0.05
 """Share of probe nodes with a fractional winding number above which an open mesh is a sheet."""
 
 
-def sign_method_for(mesh: trimesh.Trimesh, *, device: str = "cpu") -> str:
+def sign_method_for(mesh: trimesh.Trimesh, *, device: str = "cpu", name: str = "mesh") -> str:
     """``"parity"`` for a watertight, consistently wound mesh; for an open one ``"winding"``,
     or ``"shell"`` when its winding number is fractional over whole regions (a single-layer sheet:
     the winding number would fill a one-layer bowl's cavity).
     """
     if mesh.is_watertight and mesh.is_winding_consistent:
         return "parity"
-    from physcene.kernels.sdf_bake import winding_ambiguity
-
-    return (
-        "shell"
-        if winding_ambiguity(mesh.vertices, mesh.faces, device=device) > SHEET_AMBIGUITY
-        else "winding"
-    )
+    ambiguity = _sdf_bake(name, "classifying its open mesh").winding_ambiguity(mesh.vertices, mesh.faces,
+                                                                              device=device)
+    return "shell" if ambiguity > SHEET_AMBIGUITY else "winding"
 
 
 def bake_mesh_asset(
@@ -78,7 +93,7 @@ def bake_mesh_asset(
     """
     normalised, extents = normalise_mesh(mesh, name=asset_id)
     extents_cm = tuple(float(e) for e in extents * unit_cm)
-    method = sign_method_for(normalised, device=device)
+    method = sign_method_for(normalised, device=device, name=asset_id)
     key = BakeCache.key(
         normalised.vertices,
         normalised.faces,
@@ -89,9 +104,9 @@ def bake_mesh_asset(
     )
     entry = cache.load(key, resolution, n_points) if cache is not None else None
     if entry is None:
-        from physcene.kernels.sdf_bake import bake_sdf  # Warp loads only when something must be baked
-
-        sdf = bake_sdf(normalised.vertices, normalised.faces, resolution, sign_method=method, device=device)
+        where = cache.root if cache is not None else "no bake cache"
+        sdf = _sdf_bake(asset_id, f"baking its SDF (not in {where})").bake_sdf(
+            normalised.vertices, normalised.faces, resolution, sign_method=method, device=device)
         points = surface_points(normalised, n_points, seed, scale=extents / 2, edge_angle_deg=edge_angle_deg)
         if cache is not None:
             cache.store(key, sdf, points)
