@@ -17,7 +17,8 @@ layouts kept beside the JSON. Each row also says how its layouts relate to their
 
 Decoding and scoring can run on two machines: ``--decode-only`` writes each row's completions to
 ``<out stem>/<row>.completions.jsonl.gz`` with the decoding's settings in ``<out stem>/decoding.json``
-and scores nothing (no Warp needed: a GPU host decodes), and ``--completions DIR`` scores the
+and scores nothing (no Warp imported: a GPU host decodes, given the assets' bake cache or Warp to bake
+them, since the split's scenes are built from them), and ``--completions DIR`` scores the
 completions a decode wrote (a CPU with Warp scores), on the same split, ``n`` and seed::
 
     python -m physcene.train.analysis.plan_following runs/medium/sft --n 866 --device cuda --cache fast \
@@ -224,7 +225,7 @@ def main() -> None:
     parser.add_argument("--rows", nargs="+", default=list(ROWS), choices=list(ROWS),
                         help="the model's rows: sft (plan free), sft+plan (default: both)")
     parser.add_argument("--decode-only", action="store_true",
-                        help="write the rows' completions to <out stem>/ and score nothing (no Warp needed)")
+                        help="write the rows' completions to <out stem>/ and score nothing (no Warp imported)")
     parser.add_argument("--completions", type=Path, default=None, metavar="DIR",
                         help="score the completions --decode-only wrote to DIR instead of decoding")
     args = parser.parse_args()

@@ -83,7 +83,8 @@ have_warp() { python3 -c "import warp" > /dev/null 2>&1; }
 if [ "$NPROC" -ge 1 ] && have_warp && python3 -c "import torch, sys; sys.exit(not torch.cuda.is_available())"; then
   # bake every asset's SDF on the GPU first: the cache key does not depend on the device, and a Warp
   # without its CPU compiler (as on some GPU hosts) cannot bake on the CPU (docs/training.md, "GPU runs");
-  # a host without Warp runs synth, sft and plan (decoding only) all the same
+  # a host without Warp runs sft, and synth and plan (decoding only) from a carried bake cache
+  # (PHYSCENE_CACHE; docs/training.md, "GPU runs")
   physcene assets bake --device cuda:0 > /dev/null
 fi
 if want synth && [ ! -s "$DATA" ] && [[ "$DATA" != synth:* ]]; then
