@@ -68,15 +68,19 @@ def level_rows(scenes: list[tuple[int, Scene]]) -> dict:
     return rows
 
 
-def generated_layouts(path: Path, level_of: dict[str, int]) -> list[tuple[int, Scene]]:
-    """(level, scene) of each layout in ``path`` whose record id is in ``level_of``: a folder of
-    ``<id>.json`` files, or a JSONL (``.gz``) of ``{"id", "layout"}`` records (a null layout, one that
-    did not parse, is left out)."""
+def layouts_by_id(path: Path, wanted) -> dict[str, Scene]:
+    """Each layout in ``path`` whose record id is in ``wanted``: a folder of ``<id>.json`` files, or a
+    JSONL (``.gz``) of ``{"id", "layout"}`` records (a null layout, one that did not parse, is left out)."""
     if path.name.endswith((".jsonl", ".jsonl.gz")):
         records = (json.loads(line) for _, line in layout_record_lines(path))
-        return [(level_of[str(r["id"])], load_layout(r["layout"], source=str(path))) for r in records
-                if str(r.get("id")) in level_of and r.get("layout") is not None]
-    return [(level_of[p.stem], read_layout(p)) for p in sorted(path.glob("*.json")) if p.stem in level_of]
+        return {str(r["id"]): load_layout(r["layout"], source=str(path)) for r in records
+                if str(r.get("id")) in wanted and r.get("layout") is not None}
+    return {p.stem: read_layout(p) for p in sorted(path.glob("*.json")) if p.stem in wanted}
+
+
+def generated_layouts(path: Path, level_of: dict[str, int]) -> list[tuple[int, Scene]]:
+    """(level, scene) of each layout in ``path`` whose id is in ``level_of`` (:func:`layouts_by_id`)."""
+    return [(level_of[rid], scene) for rid, scene in layouts_by_id(path, level_of).items()]
 
 
 def main() -> None:
