@@ -25,9 +25,9 @@ from physcene.relations import relation_preservation
 from physcene.scene import ZONE_TOLERANCE_CM, Scene, zone_overshoot
 
 __all__ = ["CRITERIA", "DIFFICULTY_LEVELS", "THRESHOLDS_CM", "ScenePhysics", "SceneResult", "breakdown",
-           "collision_rates", "diversity", "floating_rate", "level_of", "measure_reference", "out_of_zone",
-           "out_of_zone_rate", "parse_error_kinds", "physics_from_score", "qpr", "relation_preservation_rate",
-           "summarize"]
+           "collision_rates", "deepest_pairs", "diversity", "floating_rate", "level_of",
+           "measure_reference", "out_of_zone", "out_of_zone_rate", "parse_error_kinds",
+           "physics_from_score", "qpr", "relation_preservation_rate", "summarize"]
 
 # The paper's GPT-score criteria, in table order.
 CRITERIA = ("CwT", "OSR", "PPI", "LCR", "OV")
@@ -245,6 +245,17 @@ def breakdown(results: Sequence[SceneResult], key: Callable[[SceneResult], objec
     for r in results:
         groups[get(r)].append(r)
     return {k: summarize(v) for k, v in sorted(groups.items(), key=lambda kv: str(kv[0]))}
+
+
+def deepest_pairs(scenes: list[Scene], engine, batch_size: int = 32) -> list[float]:
+    """Each scene's deepest penetrating pair (cm; 0.0 when it has none: collision-free at 0 cm), scored
+    with ``engine`` in batches of ``batch_size``."""
+    depths = []
+    for start in range(0, len(scenes), batch_size):
+        chunk = scenes[start:start + batch_size]
+        depths += [max((d for _, _, d in ph.pair_depths), default=0.0)
+                   for ph in physics_from_score(chunk, engine.score(chunk))]
+    return depths
 
 
 def measure_reference(scenes: list[Scene], engine=None) -> dict:

@@ -32,7 +32,7 @@ from physcene.ctrc import ParseError, completion_text, parse
 from physcene.files import write_atomic
 from physcene.layout import load_layout
 from physcene.scene import SceneError
-from physcene.train.generate import generate_token_ids, load_for_generation, render_prompt
+from physcene.train.generate import generate_token_ids, input_format, load_for_generation, render_prompt
 from physcene.train.models import load_tokenizer
 from physcene.train.records import load_records, prompt_pool, write_records
 from physcene.train.targets import teacher_forced_nll, tokenize_anchor
@@ -175,7 +175,7 @@ def run_anchors(cfg: DictConfig) -> Path:
     with state.split_between_processes(indices) as shard:
         model, tokenizer, info = load_for_generation(a.model, device=device)
         ids = generate_token_ids(model, tokenizer, [records[i]["prompt"] for i in shard],
-                                 chat_format=bool(info.get("chat_format", False)),
+                                 **input_format(info),
                                  max_new_tokens=int(a.max_new_tokens), batch_size=int(a.batch_size),
                                  cache=str(a.get("cache", "dynamic")),
                                  constrained=bool(a.get("constrained", False)))
@@ -206,12 +206,12 @@ def anchor_nll(model_path: str | Path, records: list[dict], *, column: str = "an
     the measure of what PADA claims: the policy kept close to the repaired layouts of prompts it did
     not train on. Returns ``{"nll", "tokens", "n"}`` (records without an anchor are left out)."""
     model, tokenizer, info = load_for_generation(model_path, device=device)
-    chat = bool(info.get("chat_format", False))
+    fmt = input_format(info)
     rows = []
     for r in records:
         target, mask = tokenize_anchor(tokenizer, r.get(column) or "", max_length=max_length)
         if target:
-            text = render_prompt(tokenizer, r["prompt"], chat)
+            text = render_prompt(tokenizer, r["prompt"], fmt["chat_format"], fmt["physics"])
             rows.append((tokenizer(text, add_special_tokens=False)["input_ids"], target, mask))
     rows.sort(key=lambda row: len(row[0]) + len(row[1]))  # batches of similar length: little padding
     total, tokens = 0.0, 0

@@ -39,12 +39,14 @@ from tqdm.auto import tqdm
 from transformers import CompileConfig, LogitsProcessorList, PreTrainedModel, PreTrainedTokenizerBase
 from transformers.utils import logging as transformers_logging
 
+from physcene.ctrc.prompts import with_physics
 from physcene.train.constrained import CTRCConstraint, sampling_warpers
 from physcene.train.decode import FAST_CACHES
 from physcene.train.models import TrainingSetupError, load_model, load_tokenizer, read_run_info, torch_dtype
 
 __all__ = ["CACHE_MODES", "cache_generate_kwargs", "check_cache", "generate", "generate_token_ids",
-           "generate_with", "load_for_generation", "longest_prompt_tokens", "render_prompt", "sampling",
+           "generate_with", "input_format", "load_for_generation", "longest_prompt_tokens", "render_prompt",
+           "sampling",
            "set_trainer_cache"]
 
 CACHE_MODES = ("dynamic", "static", "static_compile", *FAST_CACHES)
@@ -139,8 +141,18 @@ def load_for_generation(model_path: str | Path, device: str | torch.device | Non
     return model, load_tokenizer(path), info
 
 
-def render_prompt(tokenizer: PreTrainedTokenizerBase, prompt: str, chat_format: bool) -> str:
-    """The prompt as the model reads it: the text itself, or the chat template's user turn."""
+def input_format(info: dict) -> dict:
+    """``chat_format`` and ``physics`` (:func:`render_prompt`) of a checkpoint, from its run info."""
+    return {"chat_format": bool(info.get("chat_format", False)),
+            "physics": bool(info.get("physics_conditioned", False))}
+
+
+def render_prompt(tokenizer: PreTrainedTokenizerBase, prompt: str, chat_format: bool,
+                  physics: bool = False) -> str:
+    """The prompt as the model reads it: the text itself, or the chat template's user turn; ``physics``:
+    a physics-conditioned model's, asking for a collision-free layout (:func:`physcene.ctrc.with_physics`)."""
+    if physics:
+        prompt = with_physics(prompt)
     if not chat_format:
         return prompt
     return tokenizer.apply_chat_template([{"role": "user", "content": prompt}], tokenize=False,
@@ -149,13 +161,14 @@ def render_prompt(tokenizer: PreTrainedTokenizerBase, prompt: str, chat_format: 
 
 @torch.no_grad()
 def generate_token_ids(model: PreTrainedModel, tokenizer: PreTrainedTokenizerBase, prompts: Sequence[str], *,
-                       chat_format: bool = False, max_new_tokens: int = 1024, batch_size: int = 16,
-                       do_sample: bool = False, temperature: float = 1.0, seed: int = 0,
+                       chat_format: bool = False, physics: bool = False, max_new_tokens: int = 1024,
+                       batch_size: int = 16, do_sample: bool = False, temperature: float = 1.0, seed: int = 0,
                        cache: str = "dynamic", min_new_tokens: int | None = None,
                        constrained: bool = False, follow_plan: bool = True,
                        report: list | None = None, progress: bool = False) -> list[list[int]]:
     """Completion token ids of ``prompts`` (prompt and left padding cut off; each row is
-    ``max_new_tokens`` long or ends in EOS + pad), in input order.
+    ``max_new_tokens`` long or ends in EOS + pad), in input order. ``chat_format``, ``physics``: how the
+    model reads its prompts (:func:`render_prompt`; its run info says: :func:`input_format`).
 
     ``cache``: one of :data:`CACHE_MODES`. ``min_new_tokens`` forbids EOS before that many tokens
     (benchmarks force equal lengths with it). ``constrained``: decode under
@@ -169,7 +182,7 @@ def generate_token_ids(model: PreTrainedModel, tokenizer: PreTrainedTokenizerBas
         raise ValueError(f"batch_size and max_new_tokens must be >= 1, got {batch_size}, {max_new_tokens}")
     check_cache(cache)
     torch.manual_seed(seed)
-    texts = [render_prompt(tokenizer, p, chat_format) for p in prompts]
+    texts = [render_prompt(tokenizer, p, chat_format, physics) for p in prompts]
     order = sorted(range(len(texts)), key=lambda i: len(texts[i]))
     tokenizer.padding_side = "left"
     encoded = [tokenizer([texts[i] for i in order[start:start + batch_size]], return_tensors="pt",
@@ -256,8 +269,8 @@ def _fast_token_ids(model, tokenizer, prompts, order, encoded, bar, *, batch_siz
 
 
 def generate_with(model: PreTrainedModel, tokenizer: PreTrainedTokenizerBase, prompts: Sequence[str], *,
-                  chat_format: bool = False, max_new_tokens: int = 1024, batch_size: int = 16,
-                  do_sample: bool = False, temperature: float = 1.0, seed: int = 0,
+                  chat_format: bool = False, physics: bool = False, max_new_tokens: int = 1024,
+                  batch_size: int = 16, do_sample: bool = False, temperature: float = 1.0, seed: int = 0,
                   cache: str = "dynamic", constrained: bool = False, follow_plan: bool = True,
                   progress: bool = False) -> list[str]:
     """Completions (decoded, special tokens dropped) of ``prompts`` with a loaded model, in input order.
@@ -266,7 +279,7 @@ def generate_with(model: PreTrainedModel, tokenizer: PreTrainedTokenizerBase, pr
     constrained decoding (:mod:`physcene.train.constrained`), whose layout follows the completion's
     plan unless ``follow_plan`` is False. ``progress``: a bar on stderr over the prompts.
     """
-    ids = generate_token_ids(model, tokenizer, prompts, chat_format=chat_format,
+    ids = generate_token_ids(model, tokenizer, prompts, chat_format=chat_format, physics=physics,
                              max_new_tokens=max_new_tokens, batch_size=batch_size, do_sample=do_sample,
                              temperature=temperature, seed=seed, cache=cache, constrained=constrained,
                              follow_plan=follow_plan, progress=progress)
@@ -281,8 +294,9 @@ def generate(model_path: str | Path, prompts: Sequence[str], *, max_new_tokens: 
     """Completions of ``prompts`` by the checkpoint at ``model_path`` (greedy unless ``do_sample``).
 
     ``prompts`` are CTRC prompt strings (``physcene.ctrc.build_prompt``); chat-format checkpoints get
-    them wrapped in a user turn. ``batch_size`` defaults to the checkpoint's ``eval_batch_size``
-    (its training config's ``eval.batch_size``; 16 for foreign checkpoints). Returns one completion
+    them wrapped in a user turn, physics-conditioned ones ask for a collision-free layout
+    (:func:`input_format`). ``batch_size`` defaults to the checkpoint's ``eval_batch_size`` (its
+    training config's ``eval.batch_size``; 16 for foreign checkpoints). Returns one completion
     string per prompt, in order. ``cache``: the KV cache, one of :data:`CACHE_MODES`;
     ``constrained``: CTRC-constrained decoding (:mod:`physcene.train.constrained`; ``follow_plan``: its
     layout follows the completion's own plan). ``progress``: a bar on stderr over the prompts,
@@ -294,10 +308,9 @@ def generate(model_path: str | Path, prompts: Sequence[str], *, max_new_tokens: 
     with _loading_bar(progress):
         model, tokenizer, info = load_for_generation(model_path, device=device, dtype=dtype)
     batch_size = batch_size or int(info.get("eval_batch_size", 16))
-    return generate_with(model, tokenizer, prompts, chat_format=bool(info.get("chat_format", False)),
-                         max_new_tokens=max_new_tokens, batch_size=batch_size, do_sample=do_sample,
-                         temperature=temperature, seed=seed, cache=cache, constrained=constrained,
-                         follow_plan=follow_plan, progress=progress)
+    return generate_with(model, tokenizer, prompts, **input_format(info), max_new_tokens=max_new_tokens,
+                         batch_size=batch_size, do_sample=do_sample, temperature=temperature, seed=seed,
+                         cache=cache, constrained=constrained, follow_plan=follow_plan, progress=progress)
 
 
 @contextmanager

@@ -336,9 +336,11 @@ def run_pada(cfg, variant: str | None = None, reward=None, callbacks=()) -> Path
     model_dir = Path(str(cfg.pada.model))
     info = read_run_info(model_dir)
     chat = bool(info.get("chat_format", cfg.model.chat_format))
+    physics = bool(info.get("physics_conditioned", False))  # rollouts: asked for collision-free layouts
     state = PartialState()
     # refuse to resume an adapter on a base other than the one it was trained from (its weights' sha256)
     base_sha256 = base_checked(args.output_dir, model_dir, stage="pada", variant=variant, chat_format=chat,
+                               physics_conditioned=physics,
                                base_model=str(model_dir.resolve())) if state.is_main_process else None
     records = load_records(str(cfg.pada.anchors), max_level=cfg.pada.get("max_level"))
     if not records:
@@ -346,7 +348,8 @@ def run_pada(cfg, variant: str | None = None, reward=None, callbacks=()) -> Path
     if args.anchor_alpha > 0 and not any(r.get(args.anchor_column) for r in records):
         raise NoAnchorsError(f"{cfg.pada.anchors}: no record has a non-empty {args.anchor_column!r} "
                          f"(variant {variant})")
-    dataset = training_dataset(records, chat_format=chat, columns=("anchor", "anchor_raw"))
+    dataset = training_dataset(records, chat_format=chat, columns=("anchor", "anchor_raw"),
+                               physics="requested" if physics else None)
     dtype = str(cfg.model.dtype) if torch.cuda.is_available() else "float32"
     # Absolute path: PEFT records it as the adapter's base model, read back by generate().
     set_attention_kernels(cfg.model)  # cuDNN attention's backward NaNs on left-padded rows (torch 2.11)
@@ -373,7 +376,8 @@ def run_pada(cfg, variant: str | None = None, reward=None, callbacks=()) -> Path
     if trainer.is_world_process_zero():
         tokenizer.save_pretrained(str(out))
         save_train_log(trainer, out)
-        write_run_info(out, stage="pada", variant=variant, chat_format=chat, alpha=args.anchor_alpha,
+        write_run_info(out, stage="pada", variant=variant, chat_format=chat, physics_conditioned=physics,
+                       alpha=args.anchor_alpha,
                        eval_batch_size=int(cfg.eval.batch_size), steps=trainer.state.global_step,
                        stopped_by_budget=any(getattr(c, "stopped_early", False)
                                              for c in trainer.callback_handler.callbacks),

@@ -14,9 +14,11 @@ from pathlib import Path
 
 from datasets import Dataset
 
+from physcene.ctrc.prompts import with_physics
 from physcene.files import open_atomic
 
-__all__ = ["LEVELS", "load_records", "prompt_pool", "to_chat", "training_dataset", "write_records"]
+__all__ = ["LEVELS", "PHYSICS_PROMPTS", "load_records", "model_prompt", "prompt_pool",
+           "reference_collision_free", "to_chat", "training_dataset", "write_records"]
 
 # The difficulty levels of physcene.data (1: 1-4 objects ... 5: the most crowded tables).
 LEVELS = (1, 2, 3, 4, 5)
@@ -108,15 +110,41 @@ def to_chat(prompt: str) -> list[dict]:
     return [{"role": "user", "content": prompt}]
 
 
-def training_dataset(records: list[dict], *, chat_format: bool,
-                     columns: tuple[str, ...] = ("completion",)) -> Dataset:
-    """A TRL prompt/completion dataset (string or conversational), with extra string ``columns`` kept.
+PHYSICS_PROMPTS = (None, "reference", "requested")
+"""How a physics-conditioned model's prompts end (:func:`physcene.ctrc.with_physics`): not at all (None),
+with the training layout's measured state (``reference``: SFT), or asking for a collision-free one
+(``requested``: generation, RL)."""
+
+
+def reference_collision_free(record: dict) -> bool:
+    """Whether ``record``'s layout is collision-free, as ``physcene data measure`` wrote it."""
+    physics = record.get("reference_physics")
+    if not isinstance(physics, dict) or not isinstance(physics.get("collision_free"), bool):
+        raise ValueError(f"record {record.get('id', '?')!r} has no reference_physics.collision_free, which a "
+                         "physics-conditioned SFT reads: add it with `physcene data measure FILE --out FILE`")
+    return physics["collision_free"]
+
+
+def model_prompt(record: dict, physics: str | None) -> str:
+    """The prompt text of ``record`` as a model reads it, per :data:`PHYSICS_PROMPTS`."""
+    if physics not in PHYSICS_PROMPTS:
+        raise ValueError(f"physics {physics!r}: expected one of {list(PHYSICS_PROMPTS)}")
+    if physics is None:
+        return record["prompt"]
+    return with_physics(record["prompt"], physics == "requested" or reference_collision_free(record))
+
+
+def training_dataset(records: list[dict], *, chat_format: bool, columns: tuple[str, ...] = ("completion",),
+                     physics: str | None = None) -> Dataset:
+    """A TRL prompt/completion dataset (string or conversational), with extra string ``columns`` kept;
+    ``physics``: how the prompts end (:data:`PHYSICS_PROMPTS`).
 
     Only strings go into Arrow: nested layouts differ per record and would not share one schema.
     """
     rows = []
     for r in records:
-        row = {"prompt": to_chat(r["prompt"]) if chat_format else r["prompt"], "id": str(r.get("id", ""))}
+        prompt = model_prompt(r, physics)
+        row = {"prompt": to_chat(prompt) if chat_format else prompt, "id": str(r.get("id", ""))}
         for c in columns:
             value = r.get(c) or ""
             chat_turn = c == "completion" and chat_format

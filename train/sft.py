@@ -35,7 +35,7 @@ from physcene.train.models import (
     torch_dtype,
     write_run_info,
 )
-from physcene.train.records import load_records, training_dataset
+from physcene.train.records import load_records, model_prompt, training_dataset
 
 __all__ = ["SHARD_BYTES", "SkipNonFiniteSteps", "accumulation_steps", "lora_config", "run_sft",
            "shard_weights", "skipped_steps"]
@@ -252,14 +252,15 @@ def run_sft(cfg: DictConfig, callbacks=()) -> Path:
     if not records:
         raise TrainingSetupError(f"no training records in {cfg.data.train!r} "
                                  f"(max_level={cfg.data.get('max_level')})")
-    texts = [t for r in records for t in (r["prompt"], r["completion"])]
+    physics = "reference" if cfg.model.get("physics_conditioned", False) else None
+    texts = [t for r in records for t in (model_prompt(r, physics), r["completion"])]
     set_attention_kernels(cfg.model)
     model, tokenizer = prepare_model_and_tokenizer(cfg, texts=texts, out_dir=out)
     chat = bool(cfg.model.chat_format)
     trainer = SFTTrainer(
         model=model,
         args=sft_arguments(cfg),
-        train_dataset=training_dataset(records, chat_format=chat),
+        train_dataset=training_dataset(records, chat_format=chat, physics=physics),
         processing_class=tokenizer,
         peft_config=lora_config(cfg.sft.lora),
         callbacks=[*callbacks, *time_budget_callbacks(cfg.sft), SkipNonFiniteSteps()],
@@ -277,7 +278,8 @@ def run_sft(cfg: DictConfig, callbacks=()) -> Path:
             shard_weights(trainer.model, out)  # medium: 118 MiB -> 3 shards (a pretrained model keeps HF's)
         tokenizer.save_pretrained(str(out))
         save_train_log(trainer, out)
-        write_run_info(out, stage="sft", chat_format=chat, config=str(cfg.name), n_records=len(records),
+        write_run_info(out, stage="sft", chat_format=chat, physics_conditioned=physics is not None,
+                       config=str(cfg.name), n_records=len(records),
                        eval_batch_size=int(cfg.eval.batch_size), steps=trainer.state.global_step,
                        stopped_by_budget=any(getattr(c, "stopped_early", False)
                                              for c in trainer.callback_handler.callbacks),

@@ -25,22 +25,12 @@ from pathlib import Path
 from physcene.data.benchmark import DataConfig, build_scenes
 from physcene.data.splits import plan_split
 from physcene.eval.analysis.crowding import layouts_by_id
-from physcene.eval.metrics import physics_from_score
+from physcene.eval.metrics import deepest_pairs
 from physcene.files import write_atomic
 
-__all__ = ["annotation_rows", "deepest_pairs"]
+__all__ = ["annotation_rows"]
 
 GROUPS = ("careful", "careless")
-
-
-def deepest_pairs(scenes: list, engine, batch_size: int = 32) -> list[float]:
-    """Each scene's deepest penetrating pair (cm; 0 when it has none)."""
-    depths = []
-    for start in range(0, len(scenes), batch_size):
-        chunk = scenes[start:start + batch_size]
-        for ph in physics_from_score(chunk, engine.score(chunk)):
-            depths.append(max((d for _, _, d in ph.pair_depths), default=0.0))
-    return depths
 
 
 def _summary(entries: list[tuple[int, bool, float]]) -> dict:

@@ -28,7 +28,7 @@ from physcene.ctrc.grammar import (
     PLAN_HEADER,
     TOP_KEYS,
 )
-from physcene.ctrc.prompts import build_prompt, zero_shot_prompt
+from physcene.ctrc.prompts import build_prompt, with_physics, zero_shot_prompt
 from physcene.ctrc.reader import ParseError, decode, parse
 from physcene.ctrc.writer import (
     coarse_location,
@@ -64,5 +64,6 @@ __all__ = [
     "parse",
     "sub_instructions",
     "usual_decimals",
+    "with_physics",
     "zero_shot_prompt",
 ]

@@ -9,12 +9,26 @@ from physcene.ctrc.writer import json_line
 from physcene.layout import category_from_instance
 from physcene.scene import SceneObject, Zone
 
-__all__ = ["OBJECT_LIST_LABEL", "ZONE_LABEL", "build_prompt", "zero_shot_prompt"]
+__all__ = ["OBJECT_LIST_LABEL", "PHYSICS_LABEL", "ZONE_LABEL", "build_prompt", "with_physics",
+           "zero_shot_prompt"]
 
 # Labels of the prompt lines a constraint reads back: "**Object List**: mug (2), pen (1)" and
 # "**item_placement_zone**: [0.0, 120.0, 0.0, 60.0] (cm; ...)".
 OBJECT_LIST_LABEL = "**Object List**: "
 ZONE_LABEL = "**item_placement_zone**: "
+
+
+PHYSICS_LABEL = "**Layout physics**: "
+"""The line a physics-conditioned model (``model.physics_conditioned``) reads after its prompt."""
+
+
+def with_physics(prompt: str, collision_free: bool = True) -> str:
+    """``prompt`` with the line a physics-conditioned model reads: whether the layout is collision-free.
+
+    Its SFT states each training layout's measured state (``reference_physics``, written by ``physcene data
+    measure``), so the model learns the careful and the careless layouts of its data apart; generation
+    always asks for a collision-free one."""
+    return f"{prompt}\n{PHYSICS_LABEL}{'collision-free' if collision_free else 'colliding'}"
 
 
 def _object_list(objects) -> str:

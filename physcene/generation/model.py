@@ -40,10 +40,12 @@ def model_completions(path, prompts: Sequence[str], *, max_new_tokens: int = 409
     except (OSError, ValueError) as exc:
         raise GenerationError(f"generator model:{path}: cannot load the checkpoint ({exc})") from None
     chat = bool(info.get("chat_format", not info and tokenizer.chat_template is not None))
+    physics = bool(info.get("physics_conditioned", False))
     sample = len(prompts) > 1
     out = []
     for k, prompt in enumerate(tqdm(prompts, desc="model", unit="scene", disable=not progress)):
-        out += generate_with(model, tokenizer, [prompt], chat_format=chat, max_new_tokens=max_new_tokens,
+        out += generate_with(model, tokenizer, [prompt], chat_format=chat, physics=physics,
+                             max_new_tokens=max_new_tokens,
                              batch_size=1, do_sample=sample, temperature=temperature, seed=seed + k,
                              constrained=True)
     return out

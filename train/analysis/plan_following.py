@@ -40,7 +40,7 @@ from physcene.ctrc import completion_text, parse
 from physcene.layout import records_by_id, row_file, write_layout_records
 from physcene.scene import TABLE, Scene
 from physcene.train.constrained.grammar import listed_instance_ids, planned_entries
-from physcene.train.generate import generate_with, load_for_generation, sampling
+from physcene.train.generate import generate_with, input_format, load_for_generation, sampling
 
 __all__ = ["ROWS", "CompletionsError", "plan_agreement", "read_completions", "run", "write_completions"]
 
@@ -158,8 +158,7 @@ def run(model_path: str | None, *, n: int, out: Path, split: str = "test", seed:
         decoded, decoding = read_completions(completions, items, wanted, split=split, seed=seed)
     else:
         model, tokenizer, info = load_for_generation(model_path, device=device)
-        chat = bool(info.get("chat_format", False))
-        decoded = {name: generate_with(model, tokenizer, prompts, chat_format=chat,
+        decoded = {name: generate_with(model, tokenizer, prompts, **input_format(info),
                                        max_new_tokens=max_new_tokens, batch_size=batch_size, seed=seed,
                                        **sampling(temperature), cache=cache, constrained=True,
                                        follow_plan=name == "sft+plan")
@@ -225,7 +224,7 @@ def main() -> None:
     parser.add_argument("--rows", nargs="+", default=list(ROWS), choices=list(ROWS),
                         help="the model's rows: sft (plan free), sft+plan (default: both)")
     parser.add_argument("--decode-only", action="store_true",
-                        help="write the rows' completions to <out stem>/ and score nothing (no Warp imported)")
+                        help="write the rows' completions to <out stem>/ and score nothing (imports no Warp)")
     parser.add_argument("--completions", type=Path, default=None, metavar="DIR",
                         help="score the completions --decode-only wrote to DIR instead of decoding")
     args = parser.parse_args()
