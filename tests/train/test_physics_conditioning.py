@@ -68,6 +68,11 @@ def test_a_conditioned_sft_checkpoint_asks_for_collision_free_layouts_when_it_ge
     asked = generate_with(model, tokenizer, [with_physics(p) for p in prompts], max_new_tokens=6,
                           batch_size=2, constrained=True)
     assert got == asked
+    from physcene.generation.model import model_completions  # the `model:` generator, one at a time
+
+    one = [with_physics(prompts[0])]
+    assert model_completions(out, prompts[:1], max_new_tokens=6, device="cpu", progress=False) == \
+        generate_with(model, tokenizer, one, max_new_tokens=6, batch_size=1, constrained=True)
     plain = run_sft(load_config("train_tiny", [*overrides, f"output_dir={tmp_path / 'plain'}"]))
     assert read_run_info(plain)["physics_conditioned"] is False
 
