@@ -247,11 +247,14 @@ def breakdown(results: Sequence[SceneResult], key: Callable[[SceneResult], objec
     return {k: summarize(v) for k, v in sorted(groups.items(), key=lambda kv: str(kv[0]))}
 
 
-def deepest_pairs(scenes: list[Scene], engine, batch_size: int = 32) -> list[float]:
+def deepest_pairs(scenes: list[Scene], engine, batch_size: int = 32, *,
+                  progress: bool = False) -> list[float]:
     """Each scene's deepest penetrating pair (cm; 0.0 when it has none: collision-free at 0 cm), scored
-    with ``engine`` in batches of ``batch_size``."""
+    with ``engine`` in batches of ``batch_size``; ``progress``: a bar on stderr over the batches."""
+    from tqdm.auto import tqdm
+
     depths = []
-    for start in range(0, len(scenes), batch_size):
+    for start in tqdm(range(0, len(scenes), batch_size), desc="measure", disable=not progress):
         chunk = scenes[start:start + batch_size]
         depths += [max((d for _, _, d in ph.pair_depths), default=0.0)
                    for ph in physics_from_score(chunk, engine.score(chunk))]

@@ -16,8 +16,6 @@ pair, 0 when collision-free), what a physics-conditioned SFT (``model.physics_co
 
 from __future__ import annotations
 
-import gzip
-import json
 import sys
 from dataclasses import replace
 from pathlib import Path
@@ -31,7 +29,7 @@ from physcene.data.instructions import EndpointInstructor
 from physcene.data.mesatask_ctrc import dumps_record, import_layout_tree
 from physcene.data.splits import select_test
 from physcene.eval.metrics import measure_reference
-from physcene.files import write_atomic, write_atomic_many
+from physcene.files import write_atomic_many
 
 NAME = "data"
 HELP = "Build benchmark data: synthetic MesaTask-style splits or MesaTask-CTRC from real layouts"
@@ -72,15 +70,15 @@ def add_arguments(parser) -> None:
         help="Scenes held out as test, stratified like Table 5 where the data allows (0: none)",
     )
     imp.add_argument("--skip-errors", action="store_true", help="Skip unreadable layout files")
+    imp.add_argument("--measure", action="store_true", help="Measure the reference SCR/ACR with the engine")
+    add_quiet(imp)
+    add_json(imp, "the files written")
     meas = sub.add_parser("measure", help="Records again with their measured physics (reference_physics)")
     meas.add_argument("records", help="A JSONL (.gz) of records with a 'layout' (synth, import-mesatask)")
     meas.add_argument("--out", required=True, help="The records again, with reference_physics (.gz: gzipped)")
     meas.add_argument("--device", default=None, help="The engine's device (default: cuda when there is one)")
     meas.add_argument("--batch-size", type=int, default=256, help="Scenes scored at once (default: 256)")
     add_quiet(meas)
-    imp.add_argument("--measure", action="store_true", help="Measure the reference SCR/ACR with the engine")
-    add_quiet(imp)
-    add_json(imp, "the files written")
 
 
 def _config(args):
@@ -176,7 +174,7 @@ def _run_import(args) -> int:
 
 def _run_measure(args) -> int:
     from physcene.eval.metrics import deepest_pairs
-    from physcene.layout import json_records, load_layout
+    from physcene.layout import json_records, load_layout, write_layout_records
     from physcene.physics import PhysicsEngine  # here: Warp loads after the arguments are checked
 
     src, out = Path(args.records), Path(args.out)
@@ -191,13 +189,10 @@ def _run_measure(args) -> int:
         scenes.append(load_layout(rec["layout"], source=f"{src}:{number}"))
         records.append(rec)
     engine = PhysicsEngine(**({"device": args.device} if args.device else {}))
-    depths = []
-    for start in tqdm(range(0, len(scenes), args.batch_size), desc="measure", disable=args.quiet):
-        depths += deepest_pairs(scenes[start:start + args.batch_size], engine, batch_size=args.batch_size)
+    depths = deepest_pairs(scenes, engine, batch_size=args.batch_size, progress=not args.quiet)
     for rec, depth in zip(records, depths):
         rec["reference_physics"] = {"collision_free": depth == 0.0, "deepest_cm": round(float(depth), 4)}
-    text = "".join(json.dumps(rec, separators=(",", ":")) + "\n" for rec in records)
-    write_atomic(out, gzip.compress(text.encode(), mtime=0) if out.name.endswith(".gz") else text)
+    write_layout_records(records, out)
     free = sum(d == 0.0 for d in depths)
     print(f"wrote {out}: {len(records)} records, {free} collision-free "
           f"({100 * free / max(len(records), 1):.1f} %)")
