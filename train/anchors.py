@@ -211,7 +211,7 @@ def anchor_nll(model_path: str | Path, records: list[dict], *, column: str = "an
     for r in records:
         target, mask = tokenize_anchor(tokenizer, r.get(column) or "", max_length=max_length)
         if target:
-            text = render_prompt(tokenizer, r["prompt"], fmt["chat_format"], fmt["physics"])
+            text = render_prompt(tokenizer, r["prompt"], **fmt)
             rows.append((tokenizer(text, add_special_tokens=False)["input_ids"], target, mask))
     rows.sort(key=lambda row: len(row[0]) + len(row[1]))  # batches of similar length: little padding
     total, tokens = 0.0, 0
