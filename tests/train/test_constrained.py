@@ -584,3 +584,47 @@ def test_the_trie_scan_allows_exactly_what_checking_every_token_does(kind):
                     break
                 rule = proc.advance_row(0, [rng.choice(allowed_ids)])
     assert len(checked) > 300 and min(checked) <= 2 and max(checked) > vocab // 2
+
+
+def test_a_token_inside_its_rule_takes_the_short_step_to_the_same_rule(records, tokenizer):
+    """``advance_within_rule`` (the fast decoder's step for a row under a rule) against the general
+    step (``allowed_tokens`` + ``advance_row``), side by side on two constraints: along real completions
+    and along noisy ones (a random token offered before every tenth true one), it gives the same rule
+    and text wherever it takes the step, declines every token the rule refuses and every token that may
+    end an anchor, and takes most of the ruled steps."""
+    gen = random.Random(7)
+    vocab = len(tokenizer)
+    taken = declined = refused = 0
+    for r in records[:3]:
+        ids = tokenizer(r["completion"], add_special_tokens=False)["input_ids"]
+        for noisy in (False, True):
+            short, general = (CTRCConstraint(tokenizer, [r["prompt"]]) for _ in range(2))
+            rule = general.advance_row(0, [])
+            assert short.advance_row(0, []) == rule
+            for k, true in enumerate(ids):
+                offered = [gen.randrange(vocab), true] if noisy and k % 10 == 9 else [true]
+                for t in offered:  # the first token the general step admits is the row's
+                    if rule is None:  # free text: advance_free_text's step, not this one
+                        rule = general.advance_row(0, [t])
+                        short.advance_row(0, [t])
+                        break
+                    stepped = short.advance_within_rule(0, rule, t)
+                    admitted = bool(general.allowed_tokens(0, rule, [t]))
+                    if stepped is False:
+                        declined += 1
+                        may_end = may_end_anchor(general.texts[0], general.token_text[t])
+                        assert not admitted or may_end or t == tokenizer.eos_token_id
+                        if not admitted:
+                            refused += 1
+                            continue
+                        rule = general.advance_row(0, [t])
+                        short.advance_row(0, [t])
+                        break
+                    taken += 1
+                    assert admitted, (general.texts[0][-60:], general.token_text[t])
+                    rule = general.advance_row(0, [t])
+                    assert stepped == rule and short.texts == general.texts
+                    break
+                assert short.texts == general.texts
+    # declined though admitted: only the tokens that may end an anchor (the general step looks for it)
+    assert taken > 5 * (declined - refused) and refused > 10

@@ -76,6 +76,7 @@ _ARRAY_LENGTH = {RELATIVE_BBOX: BOX_LENGTH, ZONE_BBOX: BOX_LENGTH, ZONE: ZONE_LE
 # (min, max) index pairs of an array whose max must exceed its min (physcene.ctrc refuses a
 # non-positive extent); the root's "bbox" is the zone with a zero height, so it has none.
 _ORDERED = {RELATIVE_BBOX: BOX_EXTENTS, ZONE: BOX_EXTENTS[:2]}
+_ARRAY_START = re.compile(r"\s*\[([^\]]*)(\]?)")  # a JSON number array's values so far, its "]"
 # The keys whose value a rule steers (the others follow from their predecessor's rule).
 _CONSTRAINED_KEYS = (INSTANCE_ID, CATEGORY, PARENT_ID, RELATION_TYPE, RELATIVE_BBOX, ZONE_BBOX, ZONE,
                      RELATIVE_ROTATION, ZONE_ROTATION)
@@ -167,7 +168,7 @@ class _Core(NamedTuple):
     def prefix_rule(self, partial: str) -> Rule:
         """The :class:`Rule` of this core after ``partial``: its pattern, then anything (the next
         anchor's rule takes over) unless the completion ends with it."""
-        pattern = self.pattern if self.then_eos else self.pattern + _ANY
+        pattern = self.pattern if self.then_eos else _then_anything(self.pattern)
         return Rule(partial, pattern, self.ordered, self.choices, closed=self.then_eos)
 
     def complete(self, partial: str) -> int | None:
@@ -191,7 +192,7 @@ def _literal(*strings: str, then_eos: bool = False) -> _Core:
 def _extents_possible(text: str, pairs) -> bool:
     """Whether the JSON number array that ``text`` starts (`` [1.5, 2``) can still end with every
     max above its min: a finished max must exceed its min, a max being written must be able to."""
-    m = re.match(r"\s*\[([^\]]*)(\]?)", text)
+    m = _ARRAY_START.match(text)
     if m is None:
         return True
     values = [v.strip() for v in m.group(1).split(",")]
@@ -371,18 +372,12 @@ def _core(text: str, anchor, listed: Sequence[str] | None, zone: Sequence[float]
             return _literal(VALUE_SPACE + _json_numbers([*zone, 0.0, 0.0]) + key_text(next_key(key)))
         return _literal(VALUE_SPACE + _json_numbers(zone) + LAYOUT_CLOSE, then_eos=True)
     if key in _ARRAY_LENGTH:
-        n = _ARRAY_LENGTH[key]
-        core = (regex.escape(VALUE_SPACE + "[") + NUMBER_PATTERN
-                + f"(?:{regex.escape(ITEM_SEPARATOR)}{NUMBER_PATTERN}){{{n - 1}}}" + regex.escape("]"))
-        if key == ZONE:  # the layout's last value: its brace, then EOS
-            return _Core(core + regex.escape(LAYOUT_CLOSE), _ORDERED[key], then_eos=True)
-        return _Core(core + _key(next_key(key)), _ORDERED.get(key, ()))
+        return _array_core(key)
     if key in (RELATIVE_ROTATION, ZONE_ROTATION):
-        core = regex.escape(VALUE_SPACE) + NUMBER_PATTERN + regex.escape("}")
-        if listed is not None:
-            placed = set(_INSTANCE_IDS.findall(text))
-            core += _NEXT_ENTRY if any(i not in placed for i in listed) else _END_OF_OBJECTS
-        return _Core(core)
+        if listed is None:
+            return _rotation_core(None)
+        placed = set(_INSTANCE_IDS.findall(text))
+        return _rotation_core(any(i not in placed for i in listed))
     ids = _INSTANCE_IDS.findall(text)
     follow = key_text(next_key(key))
     plan = planned_entries(text, listed) if follow_plan else None
@@ -412,11 +407,38 @@ def _core(text: str, anchor, listed: Sequence[str] | None, zone: Sequence[float]
         step = planned.get(ids[-1]) if ids else None
         if step is not None and step.parent == parents[-1] and step.relation in allowed:
             allowed = [step.relation]
-        return _Core(regex.escape(VALUE_SPACE) + '"' + _alternatives(allowed) + '"' + regex.escape(follow)
-                     + _DESCRIPTION + _key(next_key(DESCRIPTION)))
+        return _relation_core(tuple(allowed), follow)
     if not allowed:
         return None
     return _literal(*(VALUE_SPACE + f'"{i}"' + follow for i in allowed))
+
+
+@functools.lru_cache(maxsize=None)
+def _array_core(key: str) -> _Core:
+    """The rule after a number array's key (a function of the key alone: built once)."""
+    n = _ARRAY_LENGTH[key]
+    core = (regex.escape(VALUE_SPACE + "[") + NUMBER_PATTERN
+            + f"(?:{regex.escape(ITEM_SEPARATOR)}{NUMBER_PATTERN}){{{n - 1}}}" + regex.escape("]"))
+    if key == ZONE:  # the layout's last value: its brace, then EOS
+        return _Core(core + regex.escape(LAYOUT_CLOSE), _ORDERED[key], then_eos=True)
+    return _Core(core + _key(next_key(key)), _ORDERED.get(key, ()))
+
+
+@functools.lru_cache(maxsize=None)
+def _rotation_core(ids_left: bool | None) -> _Core:
+    """The rule after a rotation's key: the number and the entry's brace, then the next entry while ids
+    are left (``ids_left``), else the end of the objects array; None: the prompt lists no ids."""
+    core = regex.escape(VALUE_SPACE) + NUMBER_PATTERN + regex.escape("}")
+    if ids_left is None:
+        return _Core(core)
+    return _Core(core + (_NEXT_ENTRY if ids_left else _END_OF_OBJECTS))
+
+
+@functools.lru_cache(maxsize=None)
+def _relation_core(allowed: tuple[str, ...], follow: str) -> _Core:
+    """The rule after ``relation_type``'s key: one of ``allowed``, the description, its next key."""
+    return _Core(regex.escape(VALUE_SPACE) + '"' + _alternatives(allowed) + '"' + regex.escape(follow)
+                 + _DESCRIPTION + _key(next_key(DESCRIPTION)))
 
 
 def _json_numbers(values: Sequence[float]) -> str:
@@ -424,6 +446,7 @@ def _json_numbers(values: Sequence[float]) -> str:
     return json_line([float(v) + 0.0 for v in values])
 
 
+@functools.lru_cache(maxsize=None)
 def _key(name: str) -> str:
     """The regex of :func:`physcene.ctrc.grammar.key_text`: one key of an entry, after the previous value."""
     return regex.escape(key_text(name))
@@ -432,6 +455,13 @@ def _key(name: str) -> str:
 @functools.lru_cache(maxsize=4096)
 def _compiled(pattern: str):
     return regex.compile(pattern)
+
+
+@functools.lru_cache(maxsize=4096)
+def _then_anything(pattern: str) -> str:
+    """``pattern`` then anything: one string per pattern, so the rule of every step under it looks its
+    compiled regex up by a string whose hash is already known."""
+    return pattern + _ANY
 
 
 def may_end_anchor(text: str, added: str) -> bool:

@@ -226,6 +226,26 @@ class CTRCConstraint(LogitsProcessor):
             self.ahead[b] = {}
         return True
 
+    def advance_within_rule(self, b: int, rule: Rule, token: int) -> Rule | None | bool:
+        """The common step of a row under a rule: when ``rule`` admits ``token`` and the token cannot
+        end an anchor, it is appended here and the rule then in force returned (None: the rule's text
+        is complete, free text follows), at one partial match instead of :meth:`allowed_tokens` +
+        :meth:`advance_row`, which come to the same rule; else False (nothing changed: the caller takes
+        the general path, which also counts and repairs a refusal)."""
+        added = self.token_text[token]
+        if rule.pattern is None or not added or token == self.eos:
+            return False
+        text = self.texts[b]
+        if may_end_anchor(text, added) or not rule.admits(added):
+            return False
+        self.texts[b] = text + added
+        if self.admitted[b]:
+            self.admitted[b] = set()
+        if self.ahead[b]:
+            self.ahead[b] = {}
+        # the rule's partial is the text since its anchor (advance_row made it so): no slice of the text
+        return active_rule(rule.partial + added, self.anchors[b][1], within=True)
+
     def advance_row(self, b: int, ids: Sequence[int]) -> Rule | None:
         """Append row ``b``'s new token ``ids`` to its text; the rule then in force (None: free text, or
         the row has just finished: ``finished[b]``). The fast decoder

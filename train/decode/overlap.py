@@ -54,13 +54,23 @@ class OverlappedConstraint:
         start = time.perf_counter()
         stats = self.constraint.stats
         corrections: dict[int, int] = {}
-        free_text = self.constraint.advance_free_text
+        free_text, within_rule = self.constraint.advance_free_text, self.constraint.advance_within_rule
+        rules, accepted = self.rules, self.accepted
         for b, token in enumerate(tokens):
             if self.finished[b] or b in skip:
                 continue
-            if self.rules[b] is None and free_text(b, token):  # most rows: free text, no anchor ends
-                self.accepted[b].append(token)
-                if len(self.accepted[b]) >= self.max_new_tokens:
+            rule = rules[b]
+            # most rows: free text, or a token inside the rule in force; neither ends an anchor
+            if rule is None:
+                kept = free_text(b, token)
+            else:
+                ruled = within_rule(b, rule, token)
+                kept = ruled is not False
+                if kept:
+                    rules[b] = ruled
+            if kept:
+                accepted[b].append(token)
+                if len(accepted[b]) >= self.max_new_tokens:
                     self._finish(b)
                 continue
             chosen = self._choose(b, token, [t for t in candidates[b] if t >= 0], logits_row)

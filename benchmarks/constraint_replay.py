@@ -1,0 +1,226 @@
+"""The CTRC constraint's host work in PADA's rollouts, recorded once and replayed: old against new.
+
+    python benchmarks/constraint_replay.py record --model small-sft-physics \
+        --records artifacts/rl-anchors/anchors.jsonl.gz --n 128 --max-new-tokens 2304 --out trace.pt
+    python benchmarks/constraint_replay.py replay trace.pt --against 21621c8 --rounds 5 --json out.json
+
+Under the constraint the fast decoder's host checks step t's tokens while the GPU runs step t + 1
+(:class:`~physcene.train.decode.OverlappedConstraint`); when the check takes longer than a step, it is
+the rollout's critical path (the RL study's rounds: ``time/decode_host_check_s`` 3.9 of 4.8 s of
+generation). ``record`` samples a round as PADA does (the fast decoder, temperature 1, one row per
+prompt, the checkpoint's prompt format) and keeps every call of the check: the step's tokens, the
+candidates copied with them, the rows skipped, the random state, the logits of each row the check
+read, and what it returned. ``replay`` feeds those calls to a fresh constraint and times the checks
+alone; each call must return what it returned when recorded, and the round must end with the same
+tokens and counters, so a faster check is also an equal one. ``--against REV`` replays the same
+trace with the code of each git revision (a worktree of its own, in a subprocess), round by round
+interleaved with the working tree's, so load that changes during the run hits every version alike.
+The trace depends on the tokenizer and prompts only (no model is loaded by ``replay``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import torch
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def record(args: argparse.Namespace) -> None:
+    from physcene.artifacts import resolve_model
+    from physcene.train import decode
+    from physcene.train.generate import generate_token_ids, input_format, load_for_generation, render_prompt
+    from physcene.train.records import load_records
+
+    model_path = resolve_model(args.model)
+    records = [r for r in load_records(args.records) if not args.levels or r.get("level") in args.levels]
+    prompts = [r["prompt"] for r in records[:args.n]]
+    if len(prompts) < args.n:
+        raise SystemExit(f"record: {args.records} has {len(prompts)} prompts of levels {args.levels}, "
+                         f"{args.n} asked for")
+    model, tokenizer, info = load_for_generation(model_path, device=args.device)
+    # in the order generate_token_ids batches them (by rendered length; a stable sort): the constraint's rows
+    rendered = {p: len(render_prompt(tokenizer, p, **input_format(info))) for p in prompts}
+    prompts.sort(key=rendered.__getitem__)
+    calls: list[dict] = []
+
+    class Recording(decode.OverlappedConstraint):
+        def check(self, tokens, candidates, skip, logits_row):
+            read: dict[int, torch.Tensor] = {}
+
+            def reading(b: int) -> torch.Tensor:
+                read[b] = logits_row(b).float().cpu().clone()
+                return logits_row(b)
+
+            rng = torch.get_rng_state()
+            corrections = super().check(tokens, candidates, skip, reading)
+            calls.append({"tokens": list(tokens), "candidates": [list(c) for c in candidates],
+                          "skip": sorted(skip), "rng": rng, "logits": read, "corrections": dict(corrections)})
+            return corrections
+
+    decode.OverlappedConstraint = Recording  # fast_generate builds its check from the package
+    report: list = []
+    start = time.perf_counter()
+    generate_token_ids(model, tokenizer, prompts, **input_format(info), max_new_tokens=args.max_new_tokens,
+                       batch_size=len(prompts), do_sample=True, temperature=args.temperature, seed=args.seed,
+                       cache=args.cache, constrained=True, report=report)
+    result = report[0]
+    trace = {"model": str(model_path), "prompts": prompts, "max_new_tokens": args.max_new_tokens,
+             "temperature": args.temperature, "eos": [tokenizer.eos_token_id], "calls": calls,
+             "tokens": result.tokens, "steps": result.steps, "repairs": result.repairs,
+             "host_check_s": result.seconds["host_check"], "device": str(model.device),
+             "command": " ".join(sys.argv)}
+    torch.save(trace, args.out)
+    print(f"recorded {len(prompts)} rows x {result.steps} steps ({result.repairs} repairs) in "
+          f"{time.perf_counter() - start:.1f} s; host check {result.seconds['host_check']:.2f} s "
+          f"-> {args.out}")
+
+
+def replay_once(trace: dict, tokenizer) -> dict:
+    """One round: a fresh constraint fed the recorded calls; the seconds in its checks, and whether each
+    call and the round's end agree with the recording."""
+    from transformers import LogitsProcessorList
+
+    from physcene.train.constrained import CTRCConstraint
+    from physcene.train.decode import OverlappedConstraint
+
+    warpers = LogitsProcessorList()  # temperature 1: what sampling_warpers gives (no warper)
+    if trace["temperature"] != 1.0:
+        from transformers import TemperatureLogitsWarper
+        warpers.append(TemperatureLogitsWarper(trace["temperature"]))
+    constraint = CTRCConstraint(tokenizer, trace["prompts"], greedy=False, warpers=warpers)
+    check = OverlappedConstraint(constraint, max_new_tokens=trace["max_new_tokens"], eos=trace["eos"],
+                                 warpers=warpers)
+    seconds, differing, unread = 0.0, 0, 0
+    for call in trace["calls"]:
+
+        def logits_row(b: int, logits: dict = call["logits"]) -> torch.Tensor:
+            nonlocal unread
+            if b not in logits:  # the check reads a row it did not read when recorded: counted, unequal
+                unread += 1
+                return torch.full((len(tokenizer),), float("-inf"))
+            return logits[b]
+
+        torch.set_rng_state(call["rng"])
+        start = time.perf_counter()
+        corrections = check.check(call["tokens"], call["candidates"], set(call["skip"]), logits_row)
+        seconds += time.perf_counter() - start
+        differing += corrections != call["corrections"]
+    return {"seconds": seconds, "calls": len(trace["calls"]), "differing_calls": differing,
+            "logits_not_recorded": unread, "same_tokens": check.tokens() == trace["tokens"]}
+
+
+def replay_rounds(trace_path: str, rounds: int) -> list[dict]:
+    """``rounds`` replays after one untimed (the rule patterns compiled, the vocabulary's index built:
+    what a PADA run has from its second round on)."""
+    from physcene.train.models import load_tokenizer
+
+    trace = torch.load(trace_path, weights_only=False)
+    tokenizer = load_tokenizer(trace["model"])
+    replay_once(trace, tokenizer)
+    return [replay_once(trace, tokenizer) for _ in range(rounds)]
+
+
+def worktree(rev: str, folder: Path) -> Path:
+    """A checkout of ``rev`` (detached) under ``folder``."""
+    path = folder / rev
+    subprocess.run(["git", "worktree", "add", "--detach", "-f", str(path), rev], cwd=ROOT, check=True,
+                   capture_output=True)
+    return path
+
+
+def rounds_at(checkout: Path, trace: str, rounds: int) -> list[dict]:
+    """``rounds`` replays with the code of ``checkout`` (its physcene first on the path)."""
+    env = dict(os.environ, PYTHONPATH=str(checkout))
+    code = (f"import json, sys; sys.path.insert(0, {str(ROOT / 'benchmarks')!r}); "
+            "import constraint_replay as c; "
+            f"print(json.dumps(c.replay_rounds({trace!r}, {rounds})))")
+    out = subprocess.run([sys.executable, "-c", code], cwd=checkout, env=env, capture_output=True, text=True)
+    if out.returncode != 0:
+        raise SystemExit(f"replay with the code of {checkout} failed:\n{out.stderr[-3000:]}")
+    return json.loads(out.stdout.strip().splitlines()[-1])
+
+
+def replay(args: argparse.Namespace) -> None:
+    args.trace = str(Path(args.trace).resolve())
+    trace = torch.load(args.trace, weights_only=False)
+    steps, rows = len(trace["calls"]), len(trace["prompts"])
+    versions = {"working tree": ROOT}
+    with tempfile.TemporaryDirectory() as folder:
+        try:
+            for rev in args.against:
+                versions[rev] = worktree(rev, Path(folder))
+            results: dict[str, list[dict]] = {name: [] for name in versions}
+            for _ in range(args.rounds):  # interleaved: one round of each version in turn
+                for name, checkout in versions.items():
+                    results[name] += rounds_at(checkout, args.trace, 1)
+        finally:
+            for rev in args.against:
+                subprocess.run(["git", "worktree", "remove", "--force", str(Path(folder) / rev)], cwd=ROOT,
+                               capture_output=True)
+    summary = {"trace": args.trace, "rows": rows, "steps": steps, "recorded_on": trace["device"],
+               "recorded_host_check_s": trace["host_check_s"], "record_command": trace["command"],
+               "rounds": args.rounds, "cpu": _cpu_name(), "versions": {}}
+    for name, runs in results.items():
+        times = [r["seconds"] for r in runs]
+        equal = all(r["differing_calls"] == 0 and r["same_tokens"] and not r["logits_not_recorded"]
+                    for r in runs)
+        summary["versions"][name] = {"median_s": statistics.median(times), "min_s": min(times),
+                                     "ms_per_step": 1e3 * statistics.median(times) / steps,
+                                     "us_per_row_step": 1e6 * statistics.median(times) / steps / rows,
+                                     "equal_to_recording": equal, "rounds": runs}
+        print(f"{name:>14}: {1e3 * statistics.median(times) / steps:6.3f} ms per step of {rows} rows "
+              f"(median of {len(times)}; min {min(times):.3f} s, median {statistics.median(times):.3f} s "
+              f"for {steps} steps); equal to the recording: {equal}")
+    base = summary["versions"]["working tree"]["median_s"]
+    for name in args.against:
+        print(f"working tree / {name}: {base / summary['versions'][name]['median_s']:.3f} of the time")
+    if args.json:
+        Path(args.json).write_text(json.dumps(summary, indent=1) + "\n")
+
+
+def _cpu_name() -> str:
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip() + f" ({os.cpu_count()} logical CPUs)"
+    except OSError:
+        pass
+    return f"{os.cpu_count()} logical CPUs"
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    sub = parser.add_subparsers(dest="command", required=True)
+    rec = sub.add_parser("record", help="sample one round under the constraint and keep its checks")
+    rec.add_argument("--model", required=True, help="a checkpoint folder or an artifact name")
+    rec.add_argument("--records", required=True, help="JSONL (.gz ok) with a prompt column (and level)")
+    rec.add_argument("--levels", type=int, nargs="*", default=[], help="only prompts of these levels")
+    rec.add_argument("--n", type=int, default=128, help="rows (PADA: the global batch of completions)")
+    rec.add_argument("--max-new-tokens", type=int, default=2304)
+    rec.add_argument("--temperature", type=float, default=1.0)
+    rec.add_argument("--seed", type=int, default=0)
+    rec.add_argument("--cache", default="fast", help="a fast decoder setting (train.decode.FAST_CACHES)")
+    rec.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
+    rec.add_argument("--out", required=True)
+    rep = sub.add_parser("replay", help="time the recorded checks, with this tree and --against revisions")
+    rep.add_argument("trace")
+    rep.add_argument("--against", nargs="*", default=[],
+                     help="git revisions replayed beside the working tree")
+    rep.add_argument("--rounds", type=int, default=5)
+    rep.add_argument("--json", help="write the figures here")
+    args = parser.parse_args()
+    record(args) if args.command == "record" else replay(args)
+
+
+if __name__ == "__main__":
+    main()
