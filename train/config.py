@@ -60,6 +60,12 @@ class PADAConfig(GRPOConfig):
         default=None, metadata={"help": "Generate the groups with the fast decoder at this setting "
                                         "(physcene.train.decode.FAST_CACHES: fast, fast+fused, ...: "
                                         "pada.cache; not with vLLM); None: HF generate."})
+    merge_adapters: bool = field(
+        default=False, metadata={"help": "Decode the groups (fast_decode) with each LoRA adapter merged "
+                                         "into a copy of its projection's weight: one matmul per "
+                                         "projection instead of three (physcene.train.decode.merge); the "
+                                         "trained weights are not touched; not bitwise the unmerged "
+                                         "policy."})
     constrained_decoding: bool = field(
         default=False, metadata={"help": "Sample the groups under the CTRC constraint, passed to generate "
                                          "as a logits processor (physcene.train.constrained_rollouts; HF "
@@ -137,6 +143,9 @@ class PADAConfig(GRPOConfig):
         if decimals is not None and not (whole and 0 <= decimals <= MAX_DECIMALS):
             raise ValueError(f"pada.denoise_decimals must be null or an integer from 0 to {MAX_DECIMALS}, "
                              f"got {decimals!r}")
+        if self.merge_adapters and self.fast_decode is None:
+            raise ValueError("pada.merge_adapters merges the adapters for the fast decoder: set pada.cache "
+                             f"to one of {sorted(FAST_CACHES)}, or pada.merge_adapters to false")
         if self.nonfinite_probe < 0:
             raise ValueError(f"pada.nonfinite_probe must be >= 0, got {self.nonfinite_probe}")
         for key, check in (("object_credit_scope", object_credit_scope_checked),
@@ -190,6 +199,7 @@ def pada_arguments(cfg, variant: str) -> PADAConfig:
         cache_implementation=None if cache == "dynamic" or cache in FAST_CACHES else "static",
         generation_compile=cache == "static_compile",
         fast_decode=cache if cache in FAST_CACHES else None,
+        merge_adapters=bool(p.get("merge_adapters", False)),
         length_grouping=bool(p.get("length_grouping", True)),
         constrained_decoding=bool(p.get("constrained", False)),
         mask_overruled=bool(p.get("mask_overruled", True)),

@@ -373,18 +373,21 @@ def test_bench_pada_times_whole_steps(capsys, tmp_path):
     from physcene.cli import main
 
     assert main(["bench", "pada", "--config", "tiny", "--tokens", "8", "--steps", "1", "--caches", "fast",
-                 "dynamic", "--json", "--profile", str(tmp_path), "--set", "pada.global_batch_size=4",
-                 "pada.per_device_batch_size=2", "pada.num_generations=2"]) == 0
+                 "dynamic", "--merge-adapters", "off", "on", "--json", "--profile", str(tmp_path), "--set",
+                 "pada.global_batch_size=4", "pada.per_device_batch_size=2", "pada.num_generations=2"]) == 0
     r = json.loads(capsys.readouterr().out)
     assert r["target"] == "pada" and r["global_batch"] == 4 and r["num_generations"] == 2
-    for cache, path in (("fast", "eager"), ("dynamic", "hf_generate")):
+    assert set(r["caches"]) == {"fast", "fast merged", "dynamic"}  # HF generate has nothing to merge
+    for cache, path in (("fast", "eager"), ("fast merged", "eager"), ("dynamic", "hf_generate")):
         v = r["caches"][cache]
         assert v["path"] == path and v["steps_timed"] == 1 and v["seconds_per_step"] > 0
+        assert (v["merged_projections"] > 0) is (cache == "fast merged")  # every adapted projection
         assert v["generate_s"] > 0 and v["update_s"] == pytest.approx(
             v["seconds_per_step"] - v["generate_s"] - v["reward_s"])
         parts = v["profile"]["parts"]
         assert {"training_step", "backward", "_generate_and_score_completions"} <= set(parts)
-        assert "Operators by cpu self time" in (tmp_path / f"pada_{cache}.txt").read_text()
+        name = "pada_" + cache.replace(" ", "_")
+        assert "Operators by cpu self time" in (tmp_path / f"{name}.txt").read_text()
         # the step's figures were written before the (slow) tables
-        figures = json.loads((tmp_path / f"pada_{cache}.json").read_text())
+        figures = json.loads((tmp_path / f"{name}.json").read_text())
         assert figures["seconds_per_step"] == v["seconds_per_step"]

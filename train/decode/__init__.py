@@ -11,7 +11,9 @@ tested against. What the fast path changes, each part in its own module:
 - :mod:`~physcene.train.decode.overlap`: the CTRC constraint checked on the host while the GPU runs
   the next step, a refused row repaired by standing still for one step;
 - :mod:`~physcene.train.decode.fuse`: each decoder layer's norms, projections, rotary embedding and
-  MLP compiled into a few fused kernels around the cache write and the attention.
+  MLP compiled into a few fused kernels around the cache write and the attention;
+- :mod:`~physcene.train.decode.merge`: a LoRA policy's adapters merged into a decoding copy of each
+  projection's weight (one matmul per projection; PADA's ``pada.merge_adapters``).
 
 The generation ``cache`` settings that select it (:data:`FAST_CACHES`): ``fast`` plus ``+fused``
 and/or ``+cudnn`` / ``+matmul`` / ``+flex``, e.g. ``cache: fast+fused+cudnn``.
@@ -40,12 +42,13 @@ from physcene.train.decode.attention import (
 from physcene.train.decode.cache import StaticKV
 from physcene.train.decode.fuse import fused_layers
 from physcene.train.decode.loop import DecodeResult, FastDecoder, cut_at_eos, text_model
+from physcene.train.decode.merge import lora_projections, merged_lora
 from physcene.train.decode.overlap import OverlappedConstraint
 
 __all__ = ["ATTENTIONS", "FAST_CACHES", "FOLDED_ATTENTION", "DecodeResult", "FastDecoder", "cut_at_eos",
            "OverlappedConstraint", "StaticKV", "decoder_for", "fast_generate", "flex_decode_attention",
            "folded_cudnn_attention", "folded_gqa_attention", "folded_matmul_attention", "fused_layers",
-           "register_folded_attention", "sampling_mode", "text_model"]
+           "lora_projections", "merged_lora", "register_folded_attention", "sampling_mode", "text_model"]
 
 logger = logging.getLogger(__name__)
 
@@ -86,12 +89,13 @@ def sampling_mode(model: torch.nn.Module, attention: str = "sdpa"):
 
 
 def decoder_for(model: torch.nn.Module, batch: int, length: int, graphs: bool = True,
-                attention: str = "sdpa", fuse: bool = False) -> FastDecoder:
+                attention: str = "sdpa", fuse: bool = False, merge: bool = False) -> FastDecoder:
     """The model's :class:`FastDecoder` for ``batch`` rows x ``length`` columns (made once, kept while
     the model lives unless its cache takes over a quarter of the GPU's memory (4 GiB on CPU): training
-    needs it back; another shape replaces it)."""
+    needs it back; another shape replaces it). ``merge``: its calls run under :func:`merged_lora`."""
     kept = _DECODERS.setdefault(model, {})
-    key = (int(batch), int(length), bool(graphs), attention, bool(fuse))  # a graph bakes these in
+    # a graph bakes these in
+    key = (int(batch), int(length), bool(graphs), attention, bool(fuse), bool(merge))
     decoder = kept.get(key)
     if decoder is None:
         kept.clear()  # one shape at a time: PADA's rounds and eval's batches keep theirs
@@ -109,7 +113,8 @@ def decoder_for(model: torch.nn.Module, batch: int, length: int, graphs: bool = 
 def fast_generate(model: torch.nn.Module, input_ids: torch.Tensor, attention_mask: torch.Tensor, *,
                   max_new_tokens: int, eos: list[int], pad: int, min_new_tokens: int = 0,
                   warpers=None, sampling: bool = False, constraint=None, length: int | None = None,
-                  graphs: bool = True, attention: str = "sdpa", fuse: bool = False) -> DecodeResult:
+                  graphs: bool = True, attention: str = "sdpa", fuse: bool = False,
+                  merge_lora: bool = False) -> DecodeResult:
     """Completions of left-padded prompts with the fast decoder.
 
     ``sampling`` with ``warpers`` (temperature/top-k/top-p as transformers' warpers,
@@ -121,18 +126,22 @@ def fast_generate(model: torch.nn.Module, input_ids: torch.Tensor, attention_mas
     :func:`~physcene.train.decode.attention.folded_matmul_attention`) or ``flex`` (torch's FlexAttention,
     a split-KV kernel on a GPU: :func:`~physcene.train.decode.attention.flex_decode_attention`).
     ``fuse``: the decoder layers compiled (:func:`~physcene.train.decode.fuse.fused_layers`; not bitwise
-    eager).
+    eager). ``merge_lora``: a LoRA model decodes with its adapters merged into a copy of each projection's
+    weight (:func:`~physcene.train.decode.merge.merged_lora`; not bitwise the unmerged model).
     """
     batch, prompt = input_ids.shape
     length = max(int(length or 0), prompt + int(max_new_tokens))
     if attention not in ATTENTIONS:
         raise ValueError(f"fast decoding attention {attention!r}: expected one of {', '.join(ATTENTIONS)}")
-    decoder = decoder_for(model, batch, length, graphs, attention, fuse)
+    decoder = decoder_for(model, batch, length, graphs, attention, fuse, merge_lora)
     overlapped = None
     if constraint is not None:
         overlapped = OverlappedConstraint(constraint, max_new_tokens=max_new_tokens, eos=eos,
                                           warpers=warpers if sampling else None)
-    with sampling_mode(model, attention):
-        return decoder.generate(input_ids, attention_mask, max_new_tokens=max_new_tokens, eos=eos, pad=pad,
-                                min_new_tokens=min_new_tokens, sampling=sampling, warpers=warpers,
-                                constraint=overlapped)
+    merging = merged_lora(model) if merge_lora else contextlib.nullcontext(0)
+    with sampling_mode(model, attention), merging as merged:
+        result = decoder.generate(input_ids, attention_mask, max_new_tokens=max_new_tokens, eos=eos, pad=pad,
+                                  min_new_tokens=min_new_tokens, sampling=sampling, warpers=warpers,
+                                  constraint=overlapped)
+    result.merged_projections = merged
+    return result

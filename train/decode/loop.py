@@ -53,6 +53,8 @@ class DecodeResult:
     """Wall time by part: prefill, decode, host_check (the constraint's host work), capture."""
     kv_bytes_read: int = 0
     """KV-cache bytes the decoding steps read (bucketed read lengths x rows x column bytes)."""
+    merged_projections: int = 0
+    """LoRA projections decoded with their adapters merged (:mod:`~physcene.train.decode.merge`)."""
 
 
 def text_model(model: torch.nn.Module) -> torch.nn.Module:

@@ -3,6 +3,7 @@ trainer, on a randomly initialised model of a training config.
 
     physcene bench pada --device cuda --config small --tokens 2304 --steps 3 --json
     physcene bench pada --device cuda --config small --caches fast dynamic --constrained
+    physcene bench pada --device cuda --config small --caches fast+fused+cudnn --merge-adapters off on
     physcene bench pada --device cpu --config tiny --tokens 16 --set pada.global_batch_size=4 \\
         pada.per_device_batch_size=2 pada.num_generations=2
 
@@ -12,7 +13,9 @@ rollout forced to that length (``min_new_tokens``: a random model would stop any
 are the synthetic records' reference completions. Each ``--caches`` entry trains ``1 + --steps``
 optimiser steps (the first, which captures graphs and allocates, is not counted) and reports the
 median seconds per step split into generation (``time/generate_s``), reward (the reward function's
-calls) and the rest (log-probabilities, loss, backward, optimiser: ``update``).
+calls) and the rest (log-probabilities, loss, backward, optimiser: ``update``). ``--merge-adapters off
+on`` times each fast cache also with the LoRA adapters merged for decoding (``pada.merge_adapters``;
+row ``<cache> merged``), one after the other in the same process.
 """
 
 from __future__ import annotations
@@ -47,6 +50,10 @@ def add_arguments(parser) -> None:
                         help="pada.cache values timed one after the other (dynamic, static, static_compile, "
                              "fast, fast+fused, fast+fused+flex, ...: physcene.train.generate.CACHE_MODES)")
     parser.add_argument("--constrained", action="store_true", help="sample under the CTRC constraint")
+    parser.add_argument("--merge-adapters", nargs="+", choices=["off", "on"], default=["off"],
+                        help="decode each fast cache's groups with the LoRA adapters as they are (off) "
+                             "and/or merged into a copy of the weights (on: pada.merge_adapters, row "
+                             "'<cache> merged')")
     parser.add_argument("--variant", default="pada", choices=["pada", "pada_star", "grpo"])
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--profile", default=None, metavar="DIR",
@@ -72,13 +79,18 @@ def run(args) -> dict:
     result = {"target": "pada", "device": device_name(device), "config": args.config, "variant": args.variant,
               "model": args.model or "random weights", "tokens": args.tokens,
               "until_eos": bool(args.until_eos), "constrained": bool(args.constrained), "caches": {}}
-    for cache in args.caches:
+    runs = [(cache, merge == "on") for cache in args.caches for merge in dict.fromkeys(args.merge_adapters)
+            if merge == "off" or cache.startswith("fast")]
+    if not runs:
+        raise ValueError("--merge-adapters on merges for the fast decoder: give a fast cache in --caches")
+    for cache, merge in runs:
         with tempfile.TemporaryDirectory() as tmp:
             cfg = load_config(f"train_{args.config}", [
                 f"output_dir={tmp}", f"pada.max_completion_length={args.tokens}", f"pada.cache={cache}",
                 f"pada.constrained={str(bool(args.constrained)).lower()}", "pada.save_steps=1000000",
+                f"pada.merge_adapters={str(merge).lower()}",
                 "pada.logging_steps=1", *args.config_set, *getattr(args, "overrides", [])])
-            row = result["caches"][cache] = _time_steps(cfg, args, device)
+            row = result["caches"][f"{cache} merged" if merge else cache] = _time_steps(cfg, args, device)
         result.update({k: row.pop(k) for k in ("global_batch", "num_generations", "parameters")})
     return result
 
@@ -159,6 +171,7 @@ def _time_steps(cfg, args, device: torch.device) -> dict:
     lengths = [(h["completions/mean_length"], h["completions/max_length"]) for h in history
                if "completions/mean_length" in h]
     graphs = [h["time/decode_graphs"] for h in history if "time/decode_graphs" in h]
+    merged = [h["time/decode_merged_projections"] for h in history if "time/decode_merged_projections" in h]
     rounds = max(len(reward_seconds) // max(len(step_seconds), 1), 1)  # reward calls per step
     per_step_reward = [sum(reward_seconds[i * rounds:(i + 1) * rounds]) for i in range(len(step_seconds))]
     timed = slice(1, None)  # the first step captures graphs and allocates
@@ -170,6 +183,7 @@ def _time_steps(cfg, args, device: torch.device) -> dict:
            "first_step_s": step_seconds[0], "all_steps_s": step_seconds,
            "completion_tokens_mean": statistics.mean(m for m, _ in lengths) if lengths else None,
            "completion_tokens_max": max(x for _, x in lengths) if lengths else None,
+           "merged_projections": int(max(merged, default=0)),
            "path": ("cuda_graphs" if graphs and min(graphs) == 1.0 else "eager") if graphs else "hf_generate",
            "global_batch": pada_args.per_device_train_batch_size * pada_args.gradient_accumulation_steps,
            "num_generations": pada_args.num_generations, "parameters": count_parameters(model)}
@@ -179,10 +193,11 @@ def _time_steps(cfg, args, device: torch.device) -> dict:
     if profiler is not None:
         # the timings first: reading a long step's events back takes minutes, and a command's time
         # limit that cuts it still leaves the step's figures
-        timing = Path(args.profile) / f"pada_{cfg.pada.cache}.json"
+        name = f"pada_{cfg.pada.cache}{'_merged' if cfg.pada.get('merge_adapters') else ''}"
+        timing = Path(args.profile) / f"{name}.json"
         timing.parent.mkdir(parents=True, exist_ok=True)
         timing.write_text(json.dumps(row, indent=1) + "\n")
-        row["profile"] = _write_profile(profiler, Path(args.profile) / f"pada_{cfg.pada.cache}.txt", device)
+        row["profile"] = _write_profile(profiler, Path(args.profile) / f"{name}.txt", device)
     return row
 
 
@@ -241,7 +256,7 @@ def summary(r: dict) -> str:
         mean = v.get("completion_tokens_mean")
         lengths = ("" if mean is None
                    else f"; rollouts {mean:.0f} tokens mean, {v['completion_tokens_max']:.0f} max")
-        lines.append(f"{cache:15s} {v['seconds_per_step']:7.2f} s/step (generation {gen} s, reward "
+        lines.append(f"{cache:22s} {v['seconds_per_step']:7.2f} s/step (generation {gen} s, reward "
                      f"{v['reward_s']:.2f} s, update {v['update_s']:.2f} s; median of {v['steps_timed']}; "
                      f"first step {v['first_step_s']:.1f} s{lengths}) [{v['path']}]")
     return "\n".join(lines)
