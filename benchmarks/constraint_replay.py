@@ -52,6 +52,7 @@ def record(args: argparse.Namespace) -> None:
     rendered = {p: len(render_prompt(tokenizer, p, **input_format(info))) for p in prompts}
     prompts.sort(key=rendered.__getitem__)
     calls: list[dict] = []
+    seeds: list = []
 
     class Recording(decode.OverlappedConstraint):
         def check(self, tokens, candidates, skip, logits_row):
@@ -62,6 +63,7 @@ def record(args: argparse.Namespace) -> None:
                 return logits_row(b)
 
             rng = torch.get_rng_state()
+            seeds.append(getattr(self, "seed", None))
             corrections = super().check(tokens, candidates, skip, reading)
             calls.append({"tokens": list(tokens), "candidates": [list(c) for c in candidates],
                           "skip": sorted(skip), "rng": rng, "logits": read, "corrections": dict(corrections)})
@@ -76,7 +78,8 @@ def record(args: argparse.Namespace) -> None:
     result = report[0]
     trace = {"model": str(model_path), "prompts": prompts, "max_new_tokens": args.max_new_tokens,
              "temperature": args.temperature, "eos": [tokenizer.eos_token_id], "calls": calls,
-             "tokens": result.tokens, "steps": result.steps, "repairs": result.repairs,
+             "tokens": result.tokens, "steps": result.steps, "seed": seeds[0] if seeds else None,
+             "repairs": result.repairs,
              "host_check_s": result.seconds["host_check"], "device": str(model.device),
              "command": " ".join(sys.argv)}
     torch.save(trace, args.out)
@@ -85,9 +88,12 @@ def record(args: argparse.Namespace) -> None:
           f"-> {args.out}")
 
 
-def replay_once(trace: dict, tokenizer) -> dict:
-    """One round: a fresh constraint fed the recorded calls; the seconds in its checks, and whether each
-    call and the round's end agree with the recording."""
+def replay_once(trace: dict, tokenizer, workers: int = 0) -> dict:
+    """One round: a fresh constraint fed the recorded calls (``workers``: checked by that many worker
+    processes); the seconds in its checks, and whether each call and the round's end agree with the
+    recording."""
+    import inspect
+
     from transformers import LogitsProcessorList
 
     from physcene.train.constrained import CTRCConstraint
@@ -98,8 +104,15 @@ def replay_once(trace: dict, tokenizer) -> dict:
         from transformers import TemperatureLogitsWarper
         warpers.append(TemperatureLogitsWarper(trace["temperature"]))
     constraint = CTRCConstraint(tokenizer, trace["prompts"], greedy=False, warpers=warpers)
-    check = OverlappedConstraint(constraint, max_new_tokens=trace["max_new_tokens"], eos=trace["eos"],
-                                 warpers=warpers)
+    kwargs = dict(max_new_tokens=trace["max_new_tokens"], eos=trace["eos"], warpers=warpers)
+    if "seed" in inspect.signature(OverlappedConstraint).parameters:  # a refused draw's seeded redraw
+        kwargs["seed"] = trace.get("seed") or 0
+    if workers:
+        from physcene.train.decode import ShardedConstraint, constraint_pool
+
+        check = ShardedConstraint(constraint, pool=constraint_pool(tokenizer, workers), **kwargs)
+    else:
+        check = OverlappedConstraint(constraint, **kwargs)
     seconds, differing, unread = 0.0, 0, 0
     for call in trace["calls"]:
 
@@ -119,15 +132,15 @@ def replay_once(trace: dict, tokenizer) -> dict:
             "logits_not_recorded": unread, "same_tokens": check.tokens() == trace["tokens"]}
 
 
-def replay_rounds(trace_path: str, rounds: int) -> list[dict]:
+def replay_rounds(trace_path: str, rounds: int, workers: int = 0) -> list[dict]:
     """``rounds`` replays after one untimed (the rule patterns compiled, the vocabulary's index built:
     what a PADA run has from its second round on)."""
     from physcene.train.models import load_tokenizer
 
     trace = torch.load(trace_path, weights_only=False)
     tokenizer = load_tokenizer(trace["model"])
-    replay_once(trace, tokenizer)
-    return [replay_once(trace, tokenizer) for _ in range(rounds)]
+    replay_once(trace, tokenizer, workers)
+    return [replay_once(trace, tokenizer, workers) for _ in range(rounds)]
 
 
 def worktree(rev: str, folder: Path) -> Path:
@@ -138,12 +151,12 @@ def worktree(rev: str, folder: Path) -> Path:
     return path
 
 
-def rounds_at(checkout: Path, trace: str, rounds: int) -> list[dict]:
+def rounds_at(checkout: Path, trace: str, rounds: int, workers: int = 0) -> list[dict]:
     """``rounds`` replays with the code of ``checkout`` (its physcene first on the path)."""
     env = dict(os.environ, PYTHONPATH=str(checkout))
     code = (f"import json, sys; sys.path.insert(0, {str(ROOT / 'benchmarks')!r}); "
             "import constraint_replay as c; "
-            f"print(json.dumps(c.replay_rounds({trace!r}, {rounds})))")
+            f"print(json.dumps(c.replay_rounds({trace!r}, {rounds}, {workers})))")
     out = subprocess.run([sys.executable, "-c", code], cwd=checkout, env=env, capture_output=True, text=True)
     if out.returncode != 0:
         raise SystemExit(f"replay with the code of {checkout} failed:\n{out.stderr[-3000:]}")
@@ -154,15 +167,16 @@ def replay(args: argparse.Namespace) -> None:
     args.trace = str(Path(args.trace).resolve())
     trace = torch.load(args.trace, weights_only=False)
     steps, rows = len(trace["calls"]), len(trace["prompts"])
-    versions = {"working tree": ROOT}
+    versions = {"working tree": (ROOT, 0)}
+    versions.update({f"working tree, {k} workers": (ROOT, k) for k in args.workers})
     with tempfile.TemporaryDirectory() as folder:
         try:
             for rev in args.against:
-                versions[rev] = worktree(rev, Path(folder))
+                versions[rev] = (worktree(rev, Path(folder)), 0)
             results: dict[str, list[dict]] = {name: [] for name in versions}
             for _ in range(args.rounds):  # interleaved: one round of each version in turn
-                for name, checkout in versions.items():
-                    results[name] += rounds_at(checkout, args.trace, 1)
+                for name, (checkout, workers) in versions.items():
+                    results[name] += rounds_at(checkout, args.trace, 1, workers)
         finally:
             for rev in args.against:
                 subprocess.run(["git", "worktree", "remove", "--force", str(Path(folder) / rev)], cwd=ROOT,
@@ -178,12 +192,13 @@ def replay(args: argparse.Namespace) -> None:
                                      "ms_per_step": 1e3 * statistics.median(times) / steps,
                                      "us_per_row_step": 1e6 * statistics.median(times) / steps / rows,
                                      "equal_to_recording": equal, "rounds": runs}
-        print(f"{name:>14}: {1e3 * statistics.median(times) / steps:6.3f} ms per step of {rows} rows "
+        print(f"{name:>26}: {1e3 * statistics.median(times) / steps:6.3f} ms per step of {rows} rows "
               f"(median of {len(times)}; min {min(times):.3f} s, median {statistics.median(times):.3f} s "
               f"for {steps} steps); equal to the recording: {equal}")
     base = summary["versions"]["working tree"]["median_s"]
-    for name in args.against:
-        print(f"working tree / {name}: {base / summary['versions'][name]['median_s']:.3f} of the time")
+    for name in summary["versions"]:
+        if name != "working tree":
+            print(f"{name} / working tree: {summary['versions'][name]['median_s'] / base:.3f} of the time")
     if args.json:
         Path(args.json).write_text(json.dumps(summary, indent=1) + "\n")
 
@@ -216,6 +231,9 @@ def main() -> None:
     rep.add_argument("trace")
     rep.add_argument("--against", nargs="*", default=[],
                      help="git revisions replayed beside the working tree")
+    rep.add_argument("--workers", type=int, nargs="*", default=[],
+                     help="also replay the working tree with the check spread over this many worker "
+                          "processes (physcene.train.decode.shards), e.g. --workers 2 4")
     rep.add_argument("--rounds", type=int, default=5)
     rep.add_argument("--json", help="write the figures here")
     args = parser.parse_args()

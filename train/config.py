@@ -66,6 +66,11 @@ class PADAConfig(GRPOConfig):
                                          "projection instead of three (physcene.train.decode.merge); the "
                                          "trained weights are not touched; not bitwise the unmerged "
                                          "policy."})
+    constraint_workers: int = field(
+        default=0, metadata={"help": "Worker processes that check the CTRC constraint's rows beside the fast "
+                                     "decoder (physcene.train.decode.shards): the host check, not the GPU, "
+                                     "paces a constrained round of 128 rows; the same tokens with any "
+                                     "number; 0 = in the training process."})
     constrained_decoding: bool = field(
         default=False, metadata={"help": "Sample the groups under the CTRC constraint, passed to generate "
                                          "as a logits processor (physcene.train.constrained_rollouts; HF "
@@ -146,6 +151,9 @@ class PADAConfig(GRPOConfig):
         if self.merge_adapters and self.fast_decode is None:
             raise ValueError("pada.merge_adapters merges the adapters for the fast decoder: set pada.cache "
                              f"to one of {sorted(FAST_CACHES)}, or pada.merge_adapters to false")
+        workers = self.constraint_workers
+        if not (isinstance(workers, int) and not isinstance(workers, bool) and workers >= 0):
+            raise ValueError(f"pada.constraint_workers must be an integer >= 0, got {workers!r}")
         if self.nonfinite_probe < 0:
             raise ValueError(f"pada.nonfinite_probe must be >= 0, got {self.nonfinite_probe}")
         for key, check in (("object_credit_scope", object_credit_scope_checked),
@@ -200,6 +208,7 @@ def pada_arguments(cfg, variant: str) -> PADAConfig:
         generation_compile=cache == "static_compile",
         fast_decode=cache if cache in FAST_CACHES else None,
         merge_adapters=bool(p.get("merge_adapters", False)),
+        constraint_workers=int(p.get("constraint_workers", 0) or 0),
         length_grouping=bool(p.get("length_grouping", True)),
         constrained_decoding=bool(p.get("constrained", False)),
         mask_overruled=bool(p.get("mask_overruled", True)),

@@ -160,7 +160,8 @@ def fast_rollouts(trainer: GRPOTrainer, prompt_ids: list[list[int]],
                                min_new_tokens=config.min_new_tokens or 0, eos=list(trainer.eos_token_ids),
                                pad=trainer._tokenizer.pad_token_id, sampling=bool(config.do_sample),
                                warpers=warpers, constraint=constraint, length=length, attention=attention,
-                               fuse=fuse, merge_lora=trainer.args.merge_adapters)
+                               fuse=fuse, merge_lora=trainer.args.merge_adapters,
+                               constraint_workers=trainer.args.constraint_workers)
     trainer.log_value("time/decode_graphs", float(result.graphs))
     trainer.log_value("time/decode_repairs", float(result.repairs))
     trainer.log_value("time/decode_host_check_s", result.seconds.get("host_check", 0.0))

@@ -165,7 +165,8 @@ def generate_token_ids(model: PreTrainedModel, tokenizer: PreTrainedTokenizerBas
                        batch_size: int = 16, do_sample: bool = False, temperature: float = 1.0, seed: int = 0,
                        cache: str = "dynamic", min_new_tokens: int | None = None,
                        constrained: bool = False, follow_plan: bool = True,
-                       report: list | None = None, progress: bool = False) -> list[list[int]]:
+                       report: list | None = None, progress: bool = False,
+                       merge_lora: bool = False) -> list[list[int]]:
     """Completion token ids of ``prompts`` (prompt and left padding cut off; each row is
     ``max_new_tokens`` long or ends in EOS + pad), in input order. ``chat_format``, ``physics``: how the
     model reads its prompts (:func:`render_prompt`; its run info says: :func:`input_format`).
@@ -176,7 +177,8 @@ def generate_token_ids(model: PreTrainedModel, tokenizer: PreTrainedTokenizerBas
     ``follow_plan``: its layout follows the completion's own plan (order, parents, relations).
     ``report``: a list that the fast decoder (``cache="fast"``, ``"fast+fused"``, ...) appends each
     batch's :class:`~physcene.train.decode.DecodeResult` to (graphs used, bytes read, repairs, timings).
-    ``progress``: a bar on stderr over the prompts, advanced as each batch is decoded.
+    ``progress``: a bar on stderr over the prompts, advanced as each batch is decoded. ``merge_lora``
+    (fast caches): a LoRA model decodes with its adapters merged (:mod:`physcene.train.decode.merge`).
     """
     if batch_size < 1 or max_new_tokens < 1:
         raise ValueError(f"batch_size and max_new_tokens must be >= 1, got {batch_size}, {max_new_tokens}")
@@ -195,7 +197,8 @@ def generate_token_ids(model: PreTrainedModel, tokenizer: PreTrainedTokenizerBas
     with tqdm(total=len(prompts), desc="decode", unit="prompt", disable=not progress) as bar:
         if cache in FAST_CACHES:
             return _fast_token_ids(model, tokenizer, prompts, order, encoded, bar, **options,
-                                   min_new_tokens=min_new_tokens or 0, report=report, cache=cache)
+                                   min_new_tokens=min_new_tokens or 0, report=report, cache=cache,
+                                   merge_lora=merge_lora)
         return _hf_token_ids(model, tokenizer, prompts, order, encoded, bar, **options,
                              min_new_tokens=min_new_tokens, cache=cache)
 
@@ -235,7 +238,8 @@ def _hf_token_ids(model, tokenizer, prompts, order, encoded, bar, *, batch_size:
 
 def _fast_token_ids(model, tokenizer, prompts, order, encoded, bar, *, batch_size: int, max_new_tokens: int,
                     min_new_tokens: int, do_sample: bool, temperature: float, constrained: bool,
-                    follow_plan: bool, length: int, report: list | None, cache: str) -> list[list[int]]:
+                    follow_plan: bool, length: int, report: list | None, cache: str,
+                    merge_lora: bool = False) -> list[list[int]]:
     """:func:`generate_token_ids` with :func:`physcene.train.decode.fast_generate`: the same rows (EOS
     then padding up to the batch's longest completion, as HF ``generate`` returns them); ``bar``
     advances by each batch's prompts."""
@@ -258,7 +262,7 @@ def _fast_token_ids(model, tokenizer, prompts, order, encoded, bar, *, batch_siz
                                max_new_tokens=max_new_tokens, min_new_tokens=min_new_tokens,
                                eos=[tokenizer.eos_token_id], pad=tokenizer.pad_token_id, sampling=do_sample,
                                warpers=warpers, constraint=constraint, length=length, attention=attention,
-                               fuse=fuse)
+                               fuse=fuse, merge_lora=merge_lora)
         if report is not None:
             report.append(result)
         width = max((len(row) for row in result.tokens), default=0)

@@ -195,6 +195,21 @@ def test_bench_generate_runs_at_tiny_sizes(capsys, tmp_path):
     assert "--batch 0" in capsys.readouterr().err
 
 
+def test_bench_generate_decodes_through_lora_adapters_merged_or_not(capsys):
+    """``--lora R``: the rows decode through random adapters, a ``@merged`` variant with them merged
+    (every adapted projection), and in float32 both write the unmerged HF reference's ids."""
+    from physcene.cli import main
+
+    assert main(["bench", "generate", "--config", "tiny", "--batch", "2", "--tokens", "8", "--repeat", "1",
+                 "--lora", "4", "--variants", "static", "fast", "fast@merged", "--json"]) == 0
+    r = json.loads(capsys.readouterr().out)
+    assert r["variants"]["fast"]["merged_projections"] == 0
+    assert r["variants"]["fast@merged"]["merged_projections"] == 7 * 2  # 7 projections x 2 layers
+    assert all(v["equal"] for v in r["variants"].values())
+    assert main(["bench", "generate", "--config", "tiny", "--variants", "static@merged"]) == 2
+    assert "@merged" in capsys.readouterr().err
+
+
 def test_bench_generate_times_a_trained_checkpoint(capsys, tmp_path, tiny_arch):
     """``--model``: the checkpoint's own weights and tokenizer (not random ones of --config); the fast
     decoder's greedy ids equal HF's on it; a missing folder is one error naming it."""

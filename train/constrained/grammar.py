@@ -413,7 +413,7 @@ def _core(text: str, anchor, listed: Sequence[str] | None, zone: Sequence[float]
     return _literal(*(VALUE_SPACE + f'"{i}"' + follow for i in allowed))
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _array_core(key: str) -> _Core:
     """The rule after a number array's key (a function of the key alone: built once)."""
     n = _ARRAY_LENGTH[key]
@@ -424,7 +424,7 @@ def _array_core(key: str) -> _Core:
     return _Core(core + _key(next_key(key)), _ORDERED.get(key, ()))
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _rotation_core(ids_left: bool | None) -> _Core:
     """The rule after a rotation's key: the number and the entry's brace, then the next entry while ids
     are left (``ids_left``), else the end of the objects array; None: the prompt lists no ids."""
@@ -434,7 +434,7 @@ def _rotation_core(ids_left: bool | None) -> _Core:
     return _Core(core + (_NEXT_ENTRY if ids_left else _END_OF_OBJECTS))
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _relation_core(allowed: tuple[str, ...], follow: str) -> _Core:
     """The rule after ``relation_type``'s key: one of ``allowed``, the description, its next key."""
     return _Core(regex.escape(VALUE_SPACE) + '"' + _alternatives(allowed) + '"' + regex.escape(follow)
@@ -446,7 +446,7 @@ def _json_numbers(values: Sequence[float]) -> str:
     return json_line([float(v) + 0.0 for v in values])
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _key(name: str) -> str:
     """The regex of :func:`physcene.ctrc.grammar.key_text`: one key of an entry, after the previous value."""
     return regex.escape(key_text(name))

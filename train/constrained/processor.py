@@ -80,6 +80,8 @@ class CTRCConstraint(LogitsProcessor):
     def __init__(self, tokenizer: PreTrainedTokenizerBase, prompts: Sequence[str], *, top_k: int = 32,
                  greedy: bool = True, margin: float = 12.0, warpers: LogitsProcessorList | None = None,
                  redraws: int = 8, follow_plan: bool = True):
+        self.tokenizer = tokenizer
+        self.prompts = list(prompts)
         self.token_index = vocabulary(tokenizer)
         self.token_text = self.token_index.texts
         self.eos = tokenizer.eos_token_id
@@ -105,6 +107,12 @@ class CTRCConstraint(LogitsProcessor):
         self.warpers = None if greedy else warpers
         self.redraws = int(redraws)
         self.stats = ConstraintStats(overruled=[[] for _ in prompts])
+
+    def settings(self) -> dict:
+        """The keyword arguments that build a constraint of the same rules for other prompts (a worker
+        process's share of the rows: :mod:`physcene.train.decode.shards`)."""
+        return {"top_k": self.top_k, "greedy": self.greedy, "margin": self.margin, "warpers": self.warpers,
+                "redraws": self.redraws, "follow_plan": self.follow_plan}
 
     def allowed_tokens(self, row: int, rule: Rule | None, candidates) -> list[int]:
         """The ``candidates`` that keep ``row`` inside its ``rule`` (None: free text) and inside the

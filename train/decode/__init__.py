@@ -14,6 +14,8 @@ tested against. What the fast path changes, each part in its own module:
   MLP compiled into a few fused kernels around the cache write and the attention;
 - :mod:`~physcene.train.decode.merge`: a LoRA policy's adapters merged into a decoding copy of each
   projection's weight (one matmul per projection; PADA's ``pada.merge_adapters``).
+- :mod:`~physcene.train.decode.shards`: the constraint's host check spread over worker processes
+  (PADA's ``pada.constraint_workers``).
 
 The generation ``cache`` settings that select it (:data:`FAST_CACHES`): ``fast`` plus ``+fused``
 and/or ``+cudnn`` / ``+matmul`` / ``+flex``, e.g. ``cache: fast+fused+cudnn``.
@@ -44,11 +46,13 @@ from physcene.train.decode.fuse import fused_layers
 from physcene.train.decode.loop import DecodeResult, FastDecoder, cut_at_eos, text_model
 from physcene.train.decode.merge import lora_projections, merged_lora
 from physcene.train.decode.overlap import OverlappedConstraint
+from physcene.train.decode.shards import ShardedConstraint, constraint_pool
 
-__all__ = ["ATTENTIONS", "FAST_CACHES", "FOLDED_ATTENTION", "DecodeResult", "FastDecoder", "cut_at_eos",
-           "OverlappedConstraint", "StaticKV", "decoder_for", "fast_generate", "flex_decode_attention",
-           "folded_cudnn_attention", "folded_gqa_attention", "folded_matmul_attention", "fused_layers",
-           "lora_projections", "merged_lora", "register_folded_attention", "sampling_mode", "text_model"]
+__all__ = ["ATTENTIONS", "FAST_CACHES", "FOLDED_ATTENTION", "DecodeResult", "FastDecoder",
+           "OverlappedConstraint", "ShardedConstraint", "StaticKV", "constraint_pool", "cut_at_eos",
+           "decoder_for", "fast_generate", "flex_decode_attention", "folded_cudnn_attention",
+           "folded_gqa_attention", "folded_matmul_attention", "fused_layers", "lora_projections",
+           "merged_lora", "register_folded_attention", "sampling_mode", "text_model"]
 
 logger = logging.getLogger(__name__)
 
@@ -114,7 +118,7 @@ def fast_generate(model: torch.nn.Module, input_ids: torch.Tensor, attention_mas
                   max_new_tokens: int, eos: list[int], pad: int, min_new_tokens: int = 0,
                   warpers=None, sampling: bool = False, constraint=None, length: int | None = None,
                   graphs: bool = True, attention: str = "sdpa", fuse: bool = False,
-                  merge_lora: bool = False) -> DecodeResult:
+                  merge_lora: bool = False, constraint_workers: int = 0) -> DecodeResult:
     """Completions of left-padded prompts with the fast decoder.
 
     ``sampling`` with ``warpers`` (temperature/top-k/top-p as transformers' warpers,
@@ -128,6 +132,8 @@ def fast_generate(model: torch.nn.Module, input_ids: torch.Tensor, attention_mas
     ``fuse``: the decoder layers compiled (:func:`~physcene.train.decode.fuse.fused_layers`; not bitwise
     eager). ``merge_lora``: a LoRA model decodes with its adapters merged into a copy of each projection's
     weight (:func:`~physcene.train.decode.merge.merged_lora`; not bitwise the unmerged model).
+    ``constraint_workers``: the constraint's host check spread over that many worker processes
+    (:mod:`~physcene.train.decode.shards`; 0: in this process). The same tokens either way.
     """
     batch, prompt = input_ids.shape
     length = max(int(length or 0), prompt + int(max_new_tokens))
@@ -136,8 +142,15 @@ def fast_generate(model: torch.nn.Module, input_ids: torch.Tensor, attention_mas
     decoder = decoder_for(model, batch, length, graphs, attention, fuse, merge_lora)
     overlapped = None
     if constraint is not None:
-        overlapped = OverlappedConstraint(constraint, max_new_tokens=max_new_tokens, eos=eos,
-                                          warpers=warpers if sampling else None)
+        # a refused draw's redraw is seeded per (call, row, position): any number of workers, one result
+        seed = int(torch.randint(0, 2**62, (1,)).item()) if sampling else 0
+        kwargs = dict(max_new_tokens=max_new_tokens, eos=eos, warpers=warpers if sampling else None,
+                      seed=seed)
+        if constraint_workers > 0:
+            pool = constraint_pool(constraint.tokenizer, int(constraint_workers))
+            overlapped = ShardedConstraint(constraint, pool=pool, **kwargs)
+        else:
+            overlapped = OverlappedConstraint(constraint, **kwargs)
     merging = merged_lora(model) if merge_lora else contextlib.nullcontext(0)
     with sampling_mode(model, attention), merging as merged:
         result = decoder.generate(input_ids, attention_mask, max_new_tokens=max_new_tokens, eos=eos, pad=pad,

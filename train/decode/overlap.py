@@ -26,8 +26,12 @@ class OverlappedConstraint:
     a row is done at its EOS or after ``max_new_tokens`` tokens. ``warpers``: the sampling warpers
     (None: greedy)."""
 
-    def __init__(self, constraint: CTRCConstraint, *, max_new_tokens: int, eos: list[int], warpers=None):
+    def __init__(self, constraint: CTRCConstraint, *, max_new_tokens: int, eos: list[int], warpers=None,
+                 seed: int = 0, rows: list[int] | None = None):
         self.constraint = constraint
+        self.seed = int(seed)
+        # each row's index in the whole batch (a worker's share of the rows: physcene.train.decode.shards)
+        self.row_ids = list(range(len(constraint.texts))) if rows is None else list(rows)
         self.max_new_tokens = int(max_new_tokens)
         self.eos = set(eos) | {constraint.eos}
         self.warpers = warpers
@@ -133,5 +137,7 @@ class OverlappedConstraint:
         restricted = torch.full_like(row, float("-inf"))
         index = torch.tensor(allowed, device=row.device)
         restricted[index] = row[index]
-        probs = self.warpers(None, restricted[None]).softmax(dim=-1)
-        return int(torch.multinomial(probs, 1).item())
+        probs = self.warpers(None, restricted[None]).softmax(dim=-1).cpu()
+        # a draw of its own per (call, row, position): the same token however the rows are shared out
+        generator = torch.Generator().manual_seed(hash((self.seed, self.row_ids[b], position)) & (2**63 - 1))
+        return int(torch.multinomial(probs, 1, generator=generator).item())

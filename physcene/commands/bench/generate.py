@@ -5,6 +5,8 @@ the fast decoder, against the KV-cache-read limit.
     physcene bench generate --device cuda --config small --batch 512 --tokens 2048 --constrained
     physcene bench generate --device cpu --config tiny --batch 2 --tokens 8
     physcene bench generate --device cuda --variants static static_compile fast fast+fused fast+fused+flex
+    physcene bench generate --device cuda --batch 128 --lora 16 --variants fast+fused+cudnn \
+        fast+fused+cudnn@merged
 
 A randomly initialised model of ``configs/train_<config>.yaml`` (speed does not depend on the
 weights) and a tokenizer trained the way the train code does (:mod:`physcene.train.tokenizer`, on 32
@@ -28,6 +30,10 @@ The limit: a decoding step must read every row's KV cache up to its current leng
 :data:`BANDWIDTH_TB_S` by the GPU's name, else measured with a large device copy: ``bandwidth_source``
 says which); ``floor_ratio`` = floor / measured time (1.0 = at the limit). The fast decoder reads
 the cache up to a bucketed length (``kv_bytes_read``: what it actually read).
+
+``--lora R``: the model decodes through random LoRA adapters of rank R on the config's ``pada.lora``
+projections (what PADA's rollouts decode through; B drawn, not PEFT's zeros); a fast variant written
+``<cache>@merged`` decodes with them merged (``pada.merge_adapters``: one matmul per projection).
 """
 
 from __future__ import annotations
@@ -45,6 +51,7 @@ __all__ = ["BANDWIDTH_TB_S", "TARGET", "VARIANT_ALIASES", "memory_bandwidth", "r
 # a variant is a generation cache setting (physcene.train.generate.CACHE_MODES: HF generate's caches and
 # the fast decoder's settings, physcene.train.decode.FAST_CACHES); older spellings kept
 VARIANT_ALIASES = {"static+compile": "static_compile"}
+MERGED = "@merged"  # a fast variant decoding a --lora model with its adapters merged
 
 # peak memory bandwidth, TB/s, by a substring of torch.cuda.get_device_name (the first match wins)
 BANDWIDTH_TB_S = {"H200": 4.8, "H100 PCIe": 2.0, "H100 NVL": 3.9, "H100": 3.35, "A100-SXM4-80GB": 2.039,
@@ -76,6 +83,9 @@ def add_arguments(parser) -> None:
     parser.add_argument("--cudnn-attention", action="store_true",
                         help="allow torch's cuDNN attention (off by default, as in training: "
                              "physcene.train.models.set_attention_kernels)")
+    parser.add_argument("--lora", type=int, default=0, metavar="R",
+                        help="decode through random LoRA adapters of rank R on the config's pada.lora "
+                             "projections, as PADA's rollouts do; a variant <cache>@merged merges them")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--out", default=None,
                         help="also write the figures to this JSON file after each variant (a run stopped "
@@ -145,7 +155,12 @@ def run(args) -> dict:
 
     if args.batch < 1 or args.tokens < 1:
         raise ValueError(f"--batch {args.batch} --tokens {args.tokens}: both must be >= 1")
-    caches = {name: check_cache(VARIANT_ALIASES.get(name, name)) for name in args.variants}
+    caches = {name: check_cache(VARIANT_ALIASES.get(name, name).removesuffix(MERGED))
+              for name in args.variants}
+    if any(name.endswith(MERGED) and not caches[name].startswith("fast") for name in args.variants):
+        raise ValueError(f"a variant ending {MERGED} merges adapters for the fast decoder: use a fast cache")
+    if args.lora < 0:
+        raise ValueError(f"--lora {args.lora}: a rank >= 1, or 0 for none")
     device = torch.device(args.device)
     if device.type == "cuda":
         torch.backends.cuda.enable_cudnn_sdp(bool(args.cudnn_attention))
@@ -157,6 +172,9 @@ def run(args) -> dict:
         cfg = load_config(f"train_{args.config}", list(getattr(args, "overrides", [])))
         model, tokenizer = random_weight_model(cfg, records, seed=args.seed, dtype=dtype)
         model = model.to(device).eval()
+    if args.lora:
+        config = load_config(f"train_{args.config}", list(getattr(args, "overrides", [])))
+        model = _with_random_adapters(model, config, args.lora, args.seed)
     prompts = [r["prompt"] for r in records[:args.batch]]
     prompt_tokens = [len(tokenizer(p, add_special_tokens=False)["input_ids"]) for p in prompts]
     bandwidth, source = memory_bandwidth(device)
@@ -176,15 +194,15 @@ def run(args) -> dict:
     }
     reference = None
     for name in args.variants:
-        cache = caches[name]
+        cache, merge = caches[name], name.endswith(MERGED)
         report: list = []
 
-        def call(tokens: int, cache=cache, report=report):
+        def call(tokens: int, cache=cache, report=report, merge=merge):
             report.clear()
             return generate_token_ids(model, tokenizer, prompts, max_new_tokens=tokens,
                                       min_new_tokens=None if args.until_eos else tokens,
                                       batch_size=args.batch, cache=cache, constrained=args.constrained,
-                                      report=report)
+                                      report=report, merge_lora=merge)
 
         try:
             start = time.perf_counter()
@@ -223,13 +241,32 @@ def run(args) -> dict:
     return result
 
 
+def _with_random_adapters(model, cfg, rank: int, seed: int):
+    """``model`` with LoRA adapters of ``rank`` on ``cfg.pada.lora``'s projections, B drawn at the scale
+    of A (PEFT starts B at zero: the adapters would be a no-op a merge could not be told from)."""
+    from peft import get_peft_model
+
+    from physcene.train.sft import lora_config
+
+    lora = lora_config(cfg.pada.lora)
+    lora.r, lora.lora_alpha = int(rank), 2 * int(rank)
+    model = get_peft_model(model, lora)
+    generator = torch.Generator().manual_seed(seed)
+    with torch.no_grad():
+        for name, param in model.named_parameters():
+            if "lora_B" in name:
+                param.copy_((torch.randn(param.shape, generator=generator) * 0.02).to(param.dtype))
+    return model.eval()
+
+
 def _fast_details(report: list) -> dict:
     """The fast decoder's own figures of the last timed call (empty for HF variants)."""
     if not report:
         return {}
     r = report[-1]
     return {"path": "cuda_graphs" if r.graphs else "eager", "fallback_reason": r.fallback_reason,
-            "decode_steps": r.steps, "repairs": r.repairs, "kv_bytes_read": r.kv_bytes_read,
+            "decode_steps": r.steps, "repairs": r.repairs, "merged_projections": r.merged_projections,
+            "kv_bytes_read": r.kv_bytes_read,
             "host_check_seconds": r.seconds.get("host_check", 0.0),
             "decode_seconds": r.seconds.get("decode", 0.0),
             "fast_prefill_seconds": r.seconds.get("prefill", 0.0)}

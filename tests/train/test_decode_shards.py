@@ -1,0 +1,123 @@
+"""The constraint's host check over worker processes (physcene.train.decode.shards,
+``pada.constraint_workers``): the same tokens and counters as the check in the decoding process,
+greedy and sampled, for any number of workers; a worker's failure is one error naming it."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+from transformers import GenerationConfig
+
+from physcene.train.constrained import CTRCConstraint, sampling_warpers
+from physcene.train.decode import ShardedConstraint, constraint_pool, fast_generate
+from physcene.train.decode.shards import ConstraintWorkerError
+from physcene.train.models import build_scratch_model
+
+pytestmark = pytest.mark.usefixtures("one_thread")  # fixtures: tests/train/conftest.py
+
+
+@pytest.fixture(scope="module")
+def model(tokenizer, tiny_arch):
+    return build_scratch_model(tiny_arch, tokenizer, seed=5).eval()
+
+
+def _rows(records, tokenizer, n: int):
+    """``n`` rows of prompts of different lengths, each followed by a record's reference plan, which
+    the constraint has seen as completion: the layout is left to a model of random weights, and the
+    constraint writes most of it."""
+    prompts, rows, plans = [], [], []
+    for k in range(n):
+        r = records[k % 3]
+        plan_text = r["completion"].split("**Scene Layout:**")[0]
+        plan = tokenizer(plan_text, add_special_tokens=False)["input_ids"]
+        prompts.append(("Note. " * k) + r["prompt"])
+        rows.append(tokenizer(prompts[-1], add_special_tokens=False)["input_ids"] + plan)
+        plans.append(plan)
+    width = max(map(len, rows))
+    ids = torch.full((n, width), tokenizer.pad_token_id)
+    mask = torch.zeros((n, width), dtype=torch.long)
+    for b, row in enumerate(rows):
+        ids[b, width - len(row):], mask[b, width - len(row):] = torch.tensor(row), 1
+    return prompts, plans, ids, mask
+
+
+def _decode(model, tokenizer, rows, *, workers: int, sampling: bool, seed: int = 0):
+    prompts, plans, ids, mask = rows
+    warpers = sampling_warpers(GenerationConfig(do_sample=True, temperature=1.5)) if sampling else None
+    constraint = CTRCConstraint(tokenizer, prompts, greedy=not sampling, warpers=warpers)
+    for b, plan in enumerate(plans):
+        constraint.advance_row(b, plan)
+    torch.manual_seed(seed)
+    result = fast_generate(model, ids, mask, max_new_tokens=96, eos=[tokenizer.eos_token_id],
+                           pad=tokenizer.pad_token_id, sampling=sampling, warpers=warpers,
+                           constraint=constraint, constraint_workers=workers)
+    return result, constraint.stats
+
+
+@pytest.mark.parametrize("sampling", [False, True])
+def test_workers_write_the_tokens_of_the_single_process_check(records, tokenizer, model, sampling):
+    """Five rows (uneven shares), a random model whose draws the constraint often refuses: the tokens,
+    the repairs, each row's overruled positions and the counters are the same with 0, 2 and 3
+    workers."""
+    rows = _rows(records, tokenizer, 5)
+    reference, stats = _decode(model, tokenizer, rows, workers=0, sampling=sampling)
+    assert stats.masked_steps > 0  # the constraint had work to do
+    if sampling:
+        assert stats.refused_draws > 0
+    for workers in (2, 3):
+        result, shared = _decode(model, tokenizer, rows, workers=workers, sampling=sampling)
+        assert result.tokens == reference.tokens
+        assert result.repairs == reference.repairs
+        assert shared.overruled == stats.overruled
+        assert (shared.masked_steps, shared.refused_draws, shared.vocabulary_scans) == \
+            (stats.masked_steps, stats.refused_draws, stats.vocabulary_scans)
+
+
+def test_a_seeded_sampled_round_depends_on_the_seed_not_on_the_workers(records, tokenizer, model):
+    rows = _rows(records, tokenizer, 3)
+    first, _ = _decode(model, tokenizer, rows, workers=2, sampling=True, seed=1)
+    again, _ = _decode(model, tokenizer, rows, workers=0, sampling=True, seed=1)
+    other, _ = _decode(model, tokenizer, rows, workers=2, sampling=True, seed=2)
+    assert first.tokens == again.tokens != other.tokens
+
+
+def test_a_failing_worker_is_one_error_that_carries_its_traceback(records, tokenizer):
+    """Workers whose constraint cannot be built (a setting they do not take) raise in the main process
+    with the first one's own traceback; every reply is read, so the pool serves the next round."""
+    pool = constraint_pool(tokenizer, 2)
+    prompts = [r["prompt"] for r in records[:2]]
+    constraint = CTRCConstraint(tokenizer, prompts)
+    constraint.settings = lambda: {"no_such_setting": 1}
+    with pytest.raises(ConstraintWorkerError, match="(?s)worker 0 failed.*no_such_setting"):
+        ShardedConstraint(constraint, max_new_tokens=4, eos=[tokenizer.eos_token_id], pool=pool)
+    working = CTRCConstraint(tokenizer, prompts)
+    sharded = ShardedConstraint(working, max_new_tokens=2, eos=[tokenizer.eos_token_id], pool=pool)
+    assert not sharded.done()
+
+
+def test_a_pada_step_samples_its_groups_with_constraint_workers(tmp_path, records, tokenizer, tiny_arch):
+    """``pada.constraint_workers`` reaches the trainer: one constrained PADA step with two workers logs
+    the constraint's counters; a count below 0 is refused by name."""
+    from datasets import Dataset
+
+    from physcene.config import load_config
+    from physcene.train.pada import PADAConfig, PADATrainer, pada_arguments
+
+    cfg = load_config("train_tiny", [f"output_dir={tmp_path}", "pada.cache=fast",
+                                     "pada.constraint_workers=2"])
+    assert pada_arguments(cfg, "pada").constraint_workers == 2
+    with pytest.raises(ValueError, match="pada.constraint_workers"):
+        pada_arguments(load_config("train_tiny", [f"output_dir={tmp_path}", "pada.constraint_workers=-1"]),
+                       "pada")
+    args = PADAConfig(output_dir=str(tmp_path / "run"), num_generations=2, per_device_train_batch_size=2,
+                      max_completion_length=12, use_cpu=True, report_to="none", beta=0.0, anchor_alpha=0.0,
+                      max_steps=1, fast_decode="fast", constrained_decoding=True, constraint_workers=2,
+                      logging_steps=1, save_strategy="no")
+    prompts = [records[0]["prompt"][:200], records[1]["prompt"][:260]]
+    trainer = PADATrainer(build_scratch_model(tiny_arch, tokenizer, seed=3),
+                          reward_funcs=[lambda prompts, completions, **kw: [0.0] * len(prompts)], args=args,
+                          processing_class=tokenizer,
+                          train_dataset=Dataset.from_list([{"prompt": p, "anchor": ""} for p in prompts]))
+    trainer.train()
+    logged = {k: v for entry in trainer.state.log_history for k, v in entry.items()}
+    assert logged["time/constraint_s"] > 0 and "constraint/refused_draws" in logged
