@@ -224,15 +224,19 @@ class CTRCConstraint(LogitsProcessor):
         if self.anchors[b] is not None or token == self.eos:
             return False
         added = self.token_text[token]
-        text = self.texts[b]
-        if added and may_end_anchor(text, added):
+        if added and may_end_anchor(self.texts[b], added):
             return False
-        self.texts[b] = text + added
+        self._append(b, added)
+        return True
+
+    def _append(self, b: int, added: str) -> None:
+        """Append ``added`` to row ``b``'s text where it ends no anchor: the last step's look-ahead and
+        admitted texts no longer apply."""
+        self.texts[b] += added
         if self.admitted[b]:
             self.admitted[b] = set()
         if self.ahead[b]:
             self.ahead[b] = {}
-        return True
 
     def advance_within_rule(self, b: int, rule: Rule, token: int) -> Rule | None | bool:
         """The common step of a row under a rule: when ``rule`` admits ``token`` and the token cannot
@@ -243,14 +247,9 @@ class CTRCConstraint(LogitsProcessor):
         added = self.token_text[token]
         if rule.pattern is None or not added or token == self.eos:
             return False
-        text = self.texts[b]
-        if may_end_anchor(text, added) or not rule.admits(added):
+        if may_end_anchor(self.texts[b], added) or not rule.admits(added):
             return False
-        self.texts[b] = text + added
-        if self.admitted[b]:
-            self.admitted[b] = set()
-        if self.ahead[b]:
-            self.ahead[b] = {}
+        self._append(b, added)
         # the rule's partial is the text since its anchor (advance_row made it so): no slice of the text
         return active_rule(rule.partial + added, self.anchors[b][1], within=True)
 
