@@ -14,7 +14,9 @@ generator seeded by (call, row, position), not by the order rows are checked in,
 writes the same tokens with any number of workers (``tests/train/test_decode_shards.py``).
 
 The workers are started once per (tokenizer, count) with ``spawn`` (the parent holds CUDA) and kept
-for the process: a round only sends its prompts. Each holds one torch thread.
+for the process: a round only sends its prompts. Each holds one torch thread. As with any ``spawn``ed
+process (a DataLoader's workers too), a script of one's own that trains with workers must start from an
+``if __name__ == "__main__":`` block, or each worker runs the script again; the ``physcene`` commands do.
 """
 
 from __future__ import annotations
