@@ -5,8 +5,10 @@ constraint's own rules and choices (:class:`~physcene.train.constrained.CTRCCons
 The decisions are the processor's: greedy keeps the model's first choice when it is allowed, else
 the best allowed token (of the top ``top_k``, else of the vocabulary); sampling takes the first
 allowed token of one draw without replacement from the warped distribution (Gumbel-top-k, drawn on
-the GPU), else samples afresh among the allowed tokens of the vocabulary. Only the step's token and
-its first candidates come to the host each step; a row's logits only when those are all refused.
+the GPU), else samples afresh among the allowed tokens of the vocabulary (from a generator seeded by
+the call's ``seed``, the row and the position: the same draw whichever process checks the row). Only
+the step's token and its first candidates come to the host each step; a row's logits only when those
+are all refused.
 """
 
 from __future__ import annotations
