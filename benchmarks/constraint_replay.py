@@ -15,7 +15,9 @@ alone; each call must return what it returned when recorded, and the round must 
 tokens and counters, so a faster check is also an equal one. ``--against REV`` replays the same
 trace with the code of each git revision (a worktree of its own, in a subprocess), round by round
 interleaved with the working tree's, so load that changes during the run hits every version alike.
-The trace depends on the tokenizer and prompts only (no model is loaded by ``replay``).
+The trace depends on the tokenizer and prompts only (no model is loaded by ``replay``). ``score``
+gives the physics reward's figures of the rollouts a trace holds (collision-free and invalid shares,
+the validity terms': what a round of that sampling gives RL to learn from).
 """
 
 from __future__ import annotations
@@ -203,6 +205,28 @@ def replay(args: argparse.Namespace) -> None:
         Path(args.json).write_text(json.dumps(summary, indent=1) + "\n")
 
 
+def score(args: argparse.Namespace) -> None:
+    from physcene.reward import PhysicsReward, RewardConfig
+    from physcene.train.models import load_tokenizer
+
+    reward = PhysicsReward(RewardConfig.load(list(args.set)))
+    rows = {}
+    for path in args.traces:
+        trace = torch.load(path, weights_only=False)
+        tokenizer = load_tokenizer(trace["model"])
+        texts = [tokenizer.decode(row, skip_special_tokens=True) for row in trace["tokens"]]
+        metrics = {k: float(v) for k, v in reward.score(texts).metrics.items()}
+        rows[path] = {"rollouts": len(texts), "temperature": trace["temperature"], "model": trace["model"],
+                      "record_command": trace["command"], **metrics}
+        invalid = metrics.get("invalid_rate", float("nan"))
+        print(f"{path}: {len(texts)} rollouts at temperature {trace['temperature']}: collision-free "
+              f"{metrics['collision_free_rate']:.1%}, invalid {invalid:.1%}, "
+              f"parse failures {metrics['parse_failure_rate']:.1%}")
+    if args.json:
+        Path(args.json).write_text(json.dumps({"reward_overrides": list(args.set), "traces": rows}, indent=1)
+                                   + "\n")
+
+
 def _cpu_name() -> str:
     try:
         for line in Path("/proc/cpuinfo").read_text().splitlines():
@@ -236,8 +260,13 @@ def main() -> None:
                           "processes (physcene.train.decode.shards), e.g. --workers 2 4")
     rep.add_argument("--rounds", type=int, default=5)
     rep.add_argument("--json", help="write the figures here")
+    sco = sub.add_parser("score", help="the physics reward's figures of the rollouts recorded in traces")
+    sco.add_argument("traces", nargs="+")
+    sco.add_argument("--set", nargs="*", default=["valid_terms=[floating,shrunk,out_of_zone]"],
+                     help="configs/reward.yaml overrides (default: the RL study's validity terms)")
+    sco.add_argument("--json", help="write the figures here")
     args = parser.parse_args()
-    record(args) if args.command == "record" else replay(args)
+    {"record": record, "replay": replay, "score": score}[args.command](args)
 
 
 if __name__ == "__main__":

@@ -121,3 +121,37 @@ def test_a_pada_step_samples_its_groups_with_constraint_workers(tmp_path, record
     trainer.train()
     logged = {k: v for entry in trainer.state.log_history for k, v in entry.items()}
     assert logged["time/constraint_s"] > 0 and "constraint/refused_draws" in logged
+
+
+def test_a_recorded_round_replays_equal_with_and_without_workers(tmp_path, records, tokenizer, tiny_arch):
+    """``benchmarks/constraint_replay.py``: a round sampled under the constraint is recorded (every call
+    of the check) and replayed on a fresh constraint, in this process and over two workers, each call
+    returning what it returned when recorded; a replay whose check decides otherwise is caught."""
+    import argparse
+    import importlib.util
+    import json
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[2] / "benchmarks" / "constraint_replay.py"
+    spec = importlib.util.spec_from_file_location("constraint_replay", path)
+    replay = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(replay)
+    checkpoint = tmp_path / "ckpt"
+    build_scratch_model(tiny_arch, tokenizer, seed=5).save_pretrained(checkpoint)
+    tokenizer.save_pretrained(checkpoint)
+    data = tmp_path / "records.jsonl"
+    data.write_text("".join(json.dumps(r) + "\n" for r in records[:4]))
+    trace = tmp_path / "trace.pt"
+    replay.record(argparse.Namespace(model=str(checkpoint), records=str(data), levels=[], n=4,
+                                     max_new_tokens=48, temperature=1.0, seed=0, cache="fast", device="cpu",
+                                     out=str(trace)))
+    recorded = torch.load(trace, weights_only=False)
+    assert len(recorded["calls"]) > 10 and recorded["seed"] is not None
+    for workers in (0, 2):
+        (result,) = replay.replay_rounds(str(trace), 1, workers)
+        assert result["differing_calls"] == 0 and result["same_tokens"] and not result["logits_not_recorded"]
+    call = next(c for c in recorded["calls"] if c["tokens"])
+    call["tokens"][0] = (call["tokens"][0] + 1) % len(tokenizer)  # a step the check never saw
+    torch.save(recorded, trace)
+    (result,) = replay.replay_rounds(str(trace), 1)
+    assert not result["same_tokens"]
