@@ -96,15 +96,16 @@ def replay_once(trace: dict, tokenizer, workers: int = 0) -> dict:
     recording."""
     import inspect
 
-    from transformers import LogitsProcessorList
+    from transformers import GenerationConfig, LogitsProcessorList
 
-    from physcene.train.constrained import CTRCConstraint
+    from physcene.train.constrained import CTRCConstraint, sampling_warpers
     from physcene.train.decode import OverlappedConstraint
 
-    warpers = LogitsProcessorList()  # temperature 1: what sampling_warpers gives (no warper)
-    if trace["temperature"] != 1.0:
-        from transformers import TemperatureLogitsWarper
-        warpers.append(TemperatureLogitsWarper(trace["temperature"]))
+    # the warpers generate_token_ids sampled the round with: the checkpoint's generation config at the
+    # round's temperature
+    config = GenerationConfig.from_pretrained(trace["model"])
+    config.update(do_sample=True, temperature=trace["temperature"])
+    warpers = sampling_warpers(config) or LogitsProcessorList()
     constraint = CTRCConstraint(tokenizer, trace["prompts"], greedy=False, warpers=warpers)
     kwargs = dict(max_new_tokens=trace["max_new_tokens"], eos=trace["eos"], warpers=warpers)
     if "seed" in inspect.signature(OverlappedConstraint).parameters:  # a refused draw's seeded redraw

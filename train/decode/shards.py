@@ -22,6 +22,7 @@ process (a DataLoader's workers too), a script of one's own that trains with wor
 from __future__ import annotations
 
 import atexit
+import contextlib
 import logging
 import multiprocessing
 import pickle
@@ -32,6 +33,7 @@ import weakref
 import torch
 
 from physcene.train.constrained import CTRCConstraint
+from physcene.train.decode.overlap import OverlappedConstraint
 
 __all__ = ["ConstraintPool", "ShardedConstraint", "constraint_pool"]
 
@@ -49,8 +51,6 @@ class ConstraintWorkerError(RuntimeError):
 def _serve(conn, payload: bytes) -> None:
     """A worker: build a constraint for its rows on ``start``, check them on ``check``, hand back its
     tokens and counters on ``finish``; ``stop`` ends it."""
-    from physcene.train.decode.overlap import OverlappedConstraint
-
     torch.set_num_threads(1)
     tokenizer = pickle.loads(payload)
     check = None
@@ -120,10 +120,8 @@ class ConstraintPool:
 
     def close(self) -> None:
         for conn, process in zip(self.connections, self.processes):
-            try:
+            with contextlib.suppress(BrokenPipeError, OSError):  # a worker already gone: joined below
                 conn.send(("stop",))
-            except (BrokenPipeError, OSError):
-                pass
             process.join(timeout=5)
             if process.is_alive():
                 process.kill()

@@ -166,15 +166,14 @@ def run(args) -> dict:
         torch.backends.cuda.enable_cudnn_sdp(bool(args.cudnn_attention))
     dtype = args.dtype or ("bfloat16" if device.type == "cuda" else "float32")
     records = list(synthesize("train", n=max(32, args.batch), seed=args.seed))
+    cfg = load_config(f"train_{args.config}", list(getattr(args, "overrides", [])))
     if args.model:
         model, tokenizer, _ = load_for_generation(resolve_model(args.model), device=device, dtype=dtype)
     else:
-        cfg = load_config(f"train_{args.config}", list(getattr(args, "overrides", [])))
         model, tokenizer = random_weight_model(cfg, records, seed=args.seed, dtype=dtype)
         model = model.to(device).eval()
     if args.lora:
-        config = load_config(f"train_{args.config}", list(getattr(args, "overrides", [])))
-        model = _with_random_adapters(model, config, args.lora, args.seed)
+        model = _with_random_adapters(model, cfg, args.lora, args.seed)
     prompts = [r["prompt"] for r in records[:args.batch]]
     prompt_tokens = [len(tokenizer(p, add_special_tokens=False)["input_ids"]) for p in prompts]
     bandwidth, source = memory_bandwidth(device)
