@@ -364,12 +364,21 @@ class FastDecoder:
                 events[slot] = torch.cuda.Event()
                 events[slot].record()
 
+        # A row whose candidates are all refused has its logits read (and scanned) during the check. On
+        # the step's stream that read would queue behind step t + 1, already launched, and the host would
+        # wait for the whole step at every such check; on a stream of its own it waits only for step t,
+        # whose event the check has already waited for. The same kernels run, so the same tokens come out.
+        reads = torch.cuda.Stream(self.device) if cuda else None
+
         def check(slot: int, skip: set[int]) -> dict[int, int]:
             if events[slot] is not None:
                 events[slot].synchronize()
             start = time.perf_counter()
             tokens, candidates = slots[slot][0].tolist(), slots[slot][1].tolist()
-            corrections = constraint.check(tokens, candidates, skip, lambda row: self.logits[slot, row])
+            with torch.cuda.stream(reads) if cuda else contextlib.nullcontext():
+                corrections = constraint.check(tokens, candidates, skip, lambda row: self.logits[slot, row])
+            if cuda:  # step t + 2 rewrites this slot's logits: not before the reads are done
+                torch.cuda.current_stream(self.device).wait_stream(reads)
             timing["host_check"] += time.perf_counter() - start
             return corrections
 
