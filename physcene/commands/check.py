@@ -3,7 +3,7 @@
     physcene check scene/layout.json                    # one MesaTask layout
     physcene check Layout_info/ --json                  # every layout.json under a tree
     physcene check data.jsonl --device cuda             # a JSONL dataset (field "layout")
-    physcene check docs/results/ablation/pada.jsonl.gz  # gzipped JSONL too (an ablation row's layouts)
+    physcene check docs/results/ablation/s0/pada.jsonl.gz  # gzipped JSONL too (an ablation row's layouts)
     physcene check data/                                # a data synth folder: its JSONL, not its stats
     physcene check a.json b.json margin_cm=0.2          # configs/physics.yaml overrides
 
