@@ -487,3 +487,25 @@ def test_anchor_likelihood_cli_scores_each_named_checkpoint(tmp_path, one_thread
     with pytest.raises(SystemExit):
         anchor_likelihood.main()
     assert "model pada: '/no/such/dir' is not a checkpoint folder" in capsys.readouterr().err
+
+
+def test_pada_without_lora_trains_every_weight_and_loads_for_generation(tmp_path, one_thread):
+    """``pada.lora=null``: PADA fine-tunes every weight of the policy (a small model from scratch, where
+    LoRA's rank bounds what RL can change); the run saves a whole model, which differs from the SFT
+    base, has no adapter, and decodes through the generation loader as the evaluation reads it."""
+    from safetensors.torch import load_file
+
+    from physcene.train.generate import generate_token_ids
+
+    cfg = _sft_for_pada(tmp_path, 4, 6, "pada.max_steps=2", "pada.lora=null", "pada.num_generations=2",
+                        "pada.global_batch_size=4", "pada.per_device_batch_size=2")
+    out = run_pada(cfg, variant="pada", reward=PhysicsReward(RewardConfig(device="cpu")))
+    assert not (out / "adapter_config.json").exists() and (out / "config.json").is_file()
+    sft, rl = (load_file(next(Path(d).glob("*.safetensors"))) for d in (cfg.sft.output_dir, out))
+    changed = [k for k in sft if k in rl and not torch.equal(sft[k].float(), rl[k].float())]
+    assert len(changed) > len(sft) // 2  # the norms, embeddings and MLPs too, not a few projections
+    assert json.loads((out / "physcene_run.json").read_text())["steps"] == 2
+    model, tokenizer, _ = load_for_generation(out, device="cpu")
+    prompt = json.loads(Path(cfg.data.train).read_text().splitlines()[0])["prompt"]
+    ids = generate_token_ids(model, tokenizer, [prompt], max_new_tokens=8, batch_size=1)
+    assert len(ids) == 1 and 0 < len(ids[0]) <= 8
