@@ -17,7 +17,13 @@ trace with the code of each git revision (a worktree of its own, in a subprocess
 interleaved with the working tree's, so load that changes during the run hits every version alike.
 The trace depends on the tokenizer and prompts only (no model is loaded by ``replay``). ``score``
 gives the physics reward's figures of the rollouts a trace holds (collision-free and invalid shares,
-the validity terms': what a round of that sampling gives RL to learn from).
+the validity terms': what a round of that sampling gives RL to learn from). ``streams`` (a GPU's
+measure) samples the same round with the logits the check reads on a stream of their own
+(``FastDecoder.reads_stream``, the default) and on the decoding stream, where they wait for the step
+launched before the check, and reports each one's seconds a round and host-check seconds.
+
+    python benchmarks/constraint_replay.py streams --model small-sft-physics \
+        --records artifacts/rl-anchors/anchors.jsonl.gz --n 128 --rounds 3 --json out.json
 """
 
 from __future__ import annotations
@@ -37,22 +43,30 @@ import torch
 ROOT = Path(__file__).resolve().parents[1]
 
 
-def record(args: argparse.Namespace) -> None:
+def _round_inputs(args: argparse.Namespace):
+    """The model, tokenizer, run info and the ``--n`` prompts of ``args`` (levels ``--levels``), in the
+    order generate_token_ids batches them (by rendered length; a stable sort): the constraint's rows."""
     from physcene.artifacts import resolve_model
-    from physcene.train import decode
-    from physcene.train.generate import generate_token_ids, input_format, load_for_generation, render_prompt
+    from physcene.train.generate import input_format, load_for_generation, render_prompt
     from physcene.train.records import load_records
 
     model_path = resolve_model(args.model)
     records = [r for r in load_records(args.records) if not args.levels or r.get("level") in args.levels]
     prompts = [r["prompt"] for r in records[:args.n]]
     if len(prompts) < args.n:
-        raise SystemExit(f"record: {args.records} has {len(prompts)} prompts of levels {args.levels}, "
+        raise SystemExit(f"{args.records} has {len(prompts)} prompts of levels {args.levels}, "
                          f"{args.n} asked for")
     model, tokenizer, info = load_for_generation(model_path, device=args.device)
-    # in the order generate_token_ids batches them (by rendered length; a stable sort): the constraint's rows
     rendered = {p: len(render_prompt(tokenizer, p, **input_format(info))) for p in prompts}
     prompts.sort(key=rendered.__getitem__)
+    return model_path, model, tokenizer, info, prompts
+
+
+def record(args: argparse.Namespace) -> None:
+    from physcene.train import decode
+    from physcene.train.generate import generate_token_ids, input_format
+
+    model_path, model, tokenizer, info, prompts = _round_inputs(args)
     calls: list[dict] = []
     seeds: list = []
 
@@ -206,6 +220,64 @@ def replay(args: argparse.Namespace) -> None:
         Path(args.json).write_text(json.dumps(summary, indent=1) + "\n")
 
 
+def streams(args: argparse.Namespace) -> dict:
+    """The same round sampled with the check's logits reads on a stream of their own
+    (``FastDecoder.reads_stream``, the default) and on the decoding stream, behind the step launched
+    before the check: rounds interleaved after a warm-up of each; the median seconds of a round and of
+    its host check, and whether the two wrote the same tokens (the same kernels run either way)."""
+    from physcene.train.decode import FastDecoder
+    from physcene.train.generate import generate_token_ids, input_format
+
+    model_path, model, tokenizer, info, prompts = _round_inputs(args)
+    cuda = model.device.type == "cuda"
+
+    def one_round(own_stream: bool) -> tuple[dict, list]:
+        FastDecoder.reads_stream = own_stream
+        report: list = []
+        if cuda:
+            torch.cuda.synchronize(model.device)
+        start = time.perf_counter()
+        ids = generate_token_ids(model, tokenizer, prompts, **input_format(info),
+                                 max_new_tokens=args.max_new_tokens, batch_size=len(prompts),
+                                 do_sample=args.temperature > 0, temperature=args.temperature or 1.0,
+                                 seed=args.seed, cache=args.cache, constrained=True, report=report)
+        if cuda:
+            torch.cuda.synchronize(model.device)
+        result = report[0]
+        return {"seconds": time.perf_counter() - start, "host_check_s": result.seconds["host_check"],
+                "steps": result.steps, "repairs": result.repairs, "graphs": result.graphs}, ids
+
+    settings = {"own stream": True, "decoding stream": False}
+    rounds: dict[str, list[dict]] = {name: [] for name in settings}
+    tokens: dict[str, list] = {}
+    try:
+        for name, own in settings.items():  # warm-up: graphs captured, layers compiled
+            tokens[name] = one_round(own)[1]
+        for _ in range(args.rounds):
+            for name, own in settings.items():
+                figures, ids = one_round(own)
+                rounds[name].append(figures)
+                if ids != tokens[name]:
+                    raise SystemExit(f"streams: a seeded round with the reads on the {name} wrote other "
+                                     f"tokens than its warm-up")
+    finally:
+        FastDecoder.reads_stream = True
+    median = {name: {k: statistics.median(r[k] for r in rows) for k in ("seconds", "host_check_s")}
+              for name, rows in rounds.items()}
+    summary = {"device": torch.cuda.get_device_name(model.device) if cuda else _cpu_name(),
+               "model": str(model_path), "rows": len(prompts), "max_new_tokens": args.max_new_tokens,
+               "temperature": args.temperature, "cache": args.cache, "seed": args.seed,
+               "command": " ".join(sys.argv), "rounds": rounds, "median": median,
+               "same_tokens": tokens["own stream"] == tokens["decoding stream"]}
+    for name, m in median.items():
+        print(f"reads on the {name}: {m['seconds']:.2f} s a round (host check {m['host_check_s']:.2f} s), "
+              f"median of {args.rounds}")
+    print(f"same tokens: {summary['same_tokens']}")
+    if args.json:
+        Path(args.json).write_text(json.dumps(summary, indent=1) + "\n")
+    return summary
+
+
 def score(args: argparse.Namespace) -> None:
     from physcene.reward import PhysicsReward, RewardConfig
     from physcene.train.models import load_tokenizer
@@ -238,20 +310,30 @@ def _cpu_name() -> str:
     return f"{os.cpu_count()} logical CPUs"
 
 
+def _round_arguments(parser: argparse.ArgumentParser, cache: str) -> None:
+    """The options of a sampled round (``record``, ``streams``): model, prompts, length, sampling."""
+    parser.add_argument("--model", required=True, help="a checkpoint folder or an artifact name")
+    parser.add_argument("--records", required=True, help="JSONL (.gz ok) with a prompt column (and level)")
+    parser.add_argument("--levels", type=int, nargs="*", default=[], help="only prompts of these levels")
+    parser.add_argument("--n", type=int, default=128, help="rows (PADA: the global batch of completions)")
+    parser.add_argument("--max-new-tokens", type=int, default=2304)
+    parser.add_argument("--temperature", type=float, default=1.0)
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--cache", default=cache, help="a fast decoder setting (train.decode.FAST_CACHES)")
+    parser.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="command", required=True)
     rec = sub.add_parser("record", help="sample one round under the constraint and keep its checks")
-    rec.add_argument("--model", required=True, help="a checkpoint folder or an artifact name")
-    rec.add_argument("--records", required=True, help="JSONL (.gz ok) with a prompt column (and level)")
-    rec.add_argument("--levels", type=int, nargs="*", default=[], help="only prompts of these levels")
-    rec.add_argument("--n", type=int, default=128, help="rows (PADA: the global batch of completions)")
-    rec.add_argument("--max-new-tokens", type=int, default=2304)
-    rec.add_argument("--temperature", type=float, default=1.0)
-    rec.add_argument("--seed", type=int, default=0)
-    rec.add_argument("--cache", default="fast", help="a fast decoder setting (train.decode.FAST_CACHES)")
-    rec.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
+    _round_arguments(rec, cache="fast")
     rec.add_argument("--out", required=True)
+    stm = sub.add_parser("streams", help="sample a round with the check's logits reads on a stream of their "
+                                         "own and on the decoding stream (a GPU's A/B)")
+    _round_arguments(stm, cache="fast+fused+cudnn")
+    stm.add_argument("--rounds", type=int, default=3)
+    stm.add_argument("--json", help="write the figures here")
     rep = sub.add_parser("replay", help="time the recorded checks, with this tree and --against revisions")
     rep.add_argument("trace")
     rep.add_argument("--against", nargs="*", default=[],
@@ -267,7 +349,7 @@ def main() -> None:
                      help="configs/reward.yaml overrides (default: the RL study's validity terms)")
     sco.add_argument("--json", help="write the figures here")
     args = parser.parse_args()
-    {"record": record, "replay": replay, "score": score}[args.command](args)
+    {"record": record, "replay": replay, "streams": streams, "score": score}[args.command](args)
 
 
 if __name__ == "__main__":

@@ -155,3 +155,34 @@ def test_a_recorded_round_replays_equal_with_and_without_workers(tmp_path, recor
     torch.save(recorded, trace)
     (result,) = replay.replay_rounds(str(trace), 1)
     assert not result["same_tokens"]
+
+
+def test_streams_samples_one_round_under_each_reads_setting(tmp_path, records, tokenizer, tiny_arch, capsys):
+    """``benchmarks/constraint_replay.py streams``: the same seeded round under both places of the
+    check's logits reads, rounds timed apart; on a CPU (one stream) both write the same tokens, and
+    the decoder's setting is given back afterwards."""
+    import argparse
+    import importlib.util
+    import json
+    from pathlib import Path
+
+    from physcene.train.decode import FastDecoder
+
+    path = Path(__file__).resolve().parents[2] / "benchmarks" / "constraint_replay.py"
+    spec = importlib.util.spec_from_file_location("constraint_replay", path)
+    bench = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bench)
+    checkpoint = tmp_path / "ckpt"
+    build_scratch_model(tiny_arch, tokenizer, seed=5).save_pretrained(checkpoint)
+    tokenizer.save_pretrained(checkpoint)
+    data = tmp_path / "records.jsonl"
+    data.write_text("".join(json.dumps(r) + "\n" for r in records[:3]))
+    out = tmp_path / "streams.json"
+    summary = bench.streams(argparse.Namespace(
+        model=str(checkpoint), records=str(data), levels=[], n=3, max_new_tokens=24, temperature=1.0, seed=0,
+        cache="fast", device="cpu", rounds=2, json=str(out)))
+    assert summary["same_tokens"] and FastDecoder.reads_stream is True
+    assert [len(rows) for rows in summary["rounds"].values()] == [2, 2]
+    assert all(r["steps"] > 0 and r["seconds"] > 0 for rows in summary["rounds"].values() for r in rows)
+    assert json.loads(out.read_text())["median"].keys() == {"own stream", "decoding stream"}
+    assert "same tokens: True" in capsys.readouterr().out

@@ -79,6 +79,10 @@ class FastDecoder:
     kept in :attr:`fallback_reason`). ``buckets``: how many read lengths (graphs) the cache is cut into.
     """
 
+    reads_stream = True
+    """Under the constraint on a GPU: a row's logits are read on a stream of their own (False: on the
+    decoding stream, behind the next step: ``benchmarks/constraint_reads.py`` compares the two)."""
+
     def __init__(self, model: torch.nn.Module, *, batch: int, length: int, graphs: bool = True,
                  buckets: int = 16, attention: str = "sdpa", fuse: bool = False):
         if batch < 1 or length < 2:
@@ -368,16 +372,16 @@ class FastDecoder:
         # the step's stream that read would queue behind step t + 1, already launched, and the host would
         # wait for the whole step at every such check; on a stream of its own it waits only for step t,
         # whose event the check has already waited for. The same kernels run, so the same tokens come out.
-        reads = torch.cuda.Stream(self.device) if cuda else None
+        reads = torch.cuda.Stream(self.device) if cuda and self.reads_stream else None
 
         def check(slot: int, skip: set[int]) -> dict[int, int]:
             if events[slot] is not None:
                 events[slot].synchronize()
             start = time.perf_counter()
             tokens, candidates = slots[slot][0].tolist(), slots[slot][1].tolist()
-            with torch.cuda.stream(reads) if cuda else contextlib.nullcontext():
+            with torch.cuda.stream(reads) if reads is not None else contextlib.nullcontext():
                 corrections = constraint.check(tokens, candidates, skip, lambda row: self.logits[slot, row])
-            if cuda:  # step t + 2 rewrites this slot's logits: not before the reads are done
+            if reads is not None:  # step t + 2 rewrites this slot's logits: not before the reads are done
                 torch.cuda.current_stream(self.device).wait_stream(reads)
             timing["host_check"] += time.perf_counter() - start
             return corrections
