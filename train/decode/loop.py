@@ -81,7 +81,7 @@ class FastDecoder:
 
     reads_stream = True
     """Under the constraint on a GPU: a row's logits are read on a stream of their own (False: on the
-    decoding stream, behind the next step: ``benchmarks/constraint_reads.py`` compares the two)."""
+    decoding stream, behind the next step: ``benchmarks/constraint_replay.py streams`` compares them)."""
 
     def __init__(self, model: torch.nn.Module, *, batch: int, length: int, graphs: bool = True,
                  buckets: int = 16, attention: str = "sdpa", fuse: bool = False):
