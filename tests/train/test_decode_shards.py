@@ -123,24 +123,32 @@ def test_a_pada_step_samples_its_groups_with_constraint_workers(tmp_path, record
     assert logged["time/constraint_s"] > 0 and "constraint/refused_draws" in logged
 
 
-def test_a_recorded_round_replays_equal_with_and_without_workers(tmp_path, records, tokenizer, tiny_arch):
-    """``benchmarks/constraint_replay.py``: a round sampled under the constraint is recorded (every call
-    of the check) and replayed on a fresh constraint, in this process and over two workers, each call
-    returning what it returned when recorded; a replay whose check decides otherwise is caught."""
-    import argparse
+def _replay_bench(tmp_path, records, tokenizer, tiny_arch, n: int):
+    """``benchmarks/constraint_replay.py`` as a module, a tiny checkpoint of random weights and a
+    records file of ``n`` prompts for it."""
     import importlib.util
     import json
     from pathlib import Path
 
     path = Path(__file__).resolve().parents[2] / "benchmarks" / "constraint_replay.py"
     spec = importlib.util.spec_from_file_location("constraint_replay", path)
-    replay = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(replay)
+    bench = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bench)
     checkpoint = tmp_path / "ckpt"
     build_scratch_model(tiny_arch, tokenizer, seed=5).save_pretrained(checkpoint)
     tokenizer.save_pretrained(checkpoint)
     data = tmp_path / "records.jsonl"
-    data.write_text("".join(json.dumps(r) + "\n" for r in records[:4]))
+    data.write_text("".join(json.dumps(r) + "\n" for r in records[:n]))
+    return bench, checkpoint, data
+
+
+def test_a_recorded_round_replays_equal_with_and_without_workers(tmp_path, records, tokenizer, tiny_arch):
+    """``benchmarks/constraint_replay.py``: a round sampled under the constraint is recorded (every call
+    of the check) and replayed on a fresh constraint, in this process and over two workers, each call
+    returning what it returned when recorded; a replay whose check decides otherwise is caught."""
+    import argparse
+
+    replay, checkpoint, data = _replay_bench(tmp_path, records, tokenizer, tiny_arch, 4)
     trace = tmp_path / "trace.pt"
     replay.record(argparse.Namespace(model=str(checkpoint), records=str(data), levels=[], n=4,
                                      max_new_tokens=48, temperature=1.0, seed=0, cache="fast", device="cpu",
@@ -162,21 +170,11 @@ def test_streams_samples_one_round_under_each_reads_setting(tmp_path, records, t
     check's logits reads, rounds timed apart; on a CPU (one stream) both write the same tokens, and
     the decoder's setting is given back afterwards."""
     import argparse
-    import importlib.util
     import json
-    from pathlib import Path
 
     from physcene.train.decode import FastDecoder
 
-    path = Path(__file__).resolve().parents[2] / "benchmarks" / "constraint_replay.py"
-    spec = importlib.util.spec_from_file_location("constraint_replay", path)
-    bench = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(bench)
-    checkpoint = tmp_path / "ckpt"
-    build_scratch_model(tiny_arch, tokenizer, seed=5).save_pretrained(checkpoint)
-    tokenizer.save_pretrained(checkpoint)
-    data = tmp_path / "records.jsonl"
-    data.write_text("".join(json.dumps(r) + "\n" for r in records[:3]))
+    bench, checkpoint, data = _replay_bench(tmp_path, records, tokenizer, tiny_arch, 3)
     out = tmp_path / "streams.json"
     summary = bench.streams(argparse.Namespace(
         model=str(checkpoint), records=str(data), levels=[], n=3, max_new_tokens=24, temperature=1.0, seed=0,
