@@ -212,6 +212,51 @@ def mark_chosen(rows: list[dict]) -> list[dict]:
     return [{**row, "chosen": k in chosen} if k in scored else row for k, row in enumerate(rows)]
 
 
+def decode_layouts(cfg: DictConfig, variants: list[str]) -> dict:
+    """``ablation.decode_only``: the layouts of every model of the table (the SFT model, each variant's
+    final model and, with ``ablation.checkpoints``, its kept checkpoints) on the test draw and the
+    validation draw, kept under ``ablation.layouts`` with their source records; nothing is trained or
+    scored. The same command without ``decode_only`` then re-scores the kept
+    layouts instead of decoding them (:func:`_earlier_layouts`): decoding on a GPU host, scoring
+    elsewhere. Layouts already kept from the same checkpoint and settings are left as they are; a model
+    folder that is not there is skipped. Returns ``{"decoded": [...], "kept": [...], "missing": [...]}``."""
+    a, state = cfg.ablation, PartialState()
+    if not a.get("layouts"):
+        raise TrainingSetupError("ablation.decode_only keeps the layouts for a later scoring: set "
+                                 "ablation.layouts to a folder")
+    sft = Path(str(cfg.sft.output_dir))
+    models, done = {}, {"decoded": [], "kept": [], "missing": []}
+    for name, out_dir in [("sft", sft)] + [(_VARIANTS[v], OmegaConf.merge(cfg, {"pada": {"variant": v}})
+                                            .pada.output_dir) for v in _VARIANTS if v in variants]:
+        finished = (Path(str(out_dir)) / RUN_INFO).is_file() and read_run_info(out_dir).get("complete", True)
+        if finished:
+            models[name] = Path(str(out_dir))
+        else:
+            done["missing"].append(f"{name}: {out_dir}")
+    if a.get("checkpoints", False):
+        models.update(checkpoint_models(models))
+    folder = Path(str(a.layouts))
+    draws = [(evaluation_split(a), folder)]
+    if (validation := validation_split(a)) is not None:
+        draws.append((validation, folder / "validation"))
+    for split, where in draws:
+        items = None
+        for name, path in models.items():
+            source, label = _row_source(cfg, path, split), f"{name} ({split['name']}, seed {split['seed']})"
+            if _kept(where, name, source):
+                done["kept"].append(label)
+                continue
+            items = items if items is not None else _load_split(split)
+            outputs = _decode(cfg, path, items, sft)
+            if state.is_main_process:
+                write_layout_records(layout_records(items, outputs), where / row_file(name))
+                _record_source(where, name, source)
+                print(f"ablation: {label} decoded to {where / row_file(name)}", file=sys.stderr)
+            done["decoded"].append(label)
+    state.wait_for_everyone()
+    return done
+
+
 def checkpoint_models(models: dict[str, Path]) -> dict[str, Path]:
     """``{"pada@12": .../pada/checkpoint-12, ...}``: every kept intermediate checkpoint of the RL rows
     (``ablation.checkpoints``), in step order; the final model's own step is its row already."""
@@ -278,7 +323,7 @@ def _load_split(split: dict) -> list:
     return load_benchmark(split["name"], n=split["n"], seed=split["seed"], progress=False)
 
 
-def _decode(cfg: DictConfig, path: Path, items: list) -> list:
+def _decode(cfg: DictConfig, path: Path, items: list, base: Path | None = None) -> list:
     """The model's outputs for ``items`` at the table's generation settings (``eval.*``, the run's
     seed): the one decoding of the test rows and of the validation scenes, so a checkpoint is picked
     on the decoding it is reported with. Under accelerate the items are split between the processes
@@ -291,17 +336,26 @@ def _decode(cfg: DictConfig, path: Path, items: list) -> list:
                         device=str(state.device), cache=str(cfg.eval.get("cache", "dynamic")),
                         constrained=bool(cfg.eval.get("constrained", False)),
                         follow_plan=bool(cfg.eval.get("follow_plan", True)),
-                        seed=int(cfg.seed), **sampling(float(cfg.eval.get("temperature", 0.0))))
+                        seed=int(cfg.seed), base=base, **sampling(float(cfg.eval.get("temperature", 0.0))))
         part = generate([items[i] for i in shard], f"model:{path}", progress=False,
                         generators={f"model:{path}": model})
     return gather_object(part)  # rank order = shard order = input order
 
 
-def _model_outputs(cfg: DictConfig, name: str, path: Path, items: list, folder, source: dict | None) -> list:
+def _model_outputs(cfg: DictConfig, name: str, path: Path, items: list, folder, source: dict | None,
+                   base: Path | None = None) -> list:
     """A model's outputs for ``items``: its layouts under ``folder`` when an earlier evaluation wrote them
-    from the same checkpoint, settings and split (``source``, with ``ablation.reuse``), else decoded."""
+    from the same checkpoint, settings and split (``source``, with ``ablation.reuse``), else decoded
+    (an adapter on ``base``, the table's SFT model)."""
     earlier = _earlier_layouts(items, folder, name, source) if cfg.ablation.get("reuse", True) else None
-    return earlier if earlier is not None else _decode(cfg, path, items)
+    return earlier if earlier is not None else _decode(cfg, path, items, base)
+
+
+def _row_source(cfg: DictConfig, path: Path, split: dict) -> dict:
+    """What a row's layouts come from (kept beside them, compared before they are re-scored): the
+    checkpoint's digest, the decoding settings (``eval.*`` and the run's seed) and the split's draw."""
+    decoding = {"seed": int(cfg.seed), **OmegaConf.to_container(cfg.eval, resolve=True)}
+    return {"model": checkpoint_digest(path), "decoding": decoding, "split": split}
 
 
 def _validation_figures(items: list, outputs: list, engine, folder, name: str, source: dict | None) -> dict:
@@ -357,22 +411,21 @@ def _evaluate(cfg: DictConfig, models: dict[str, Path], budget_s: float) -> list
         references = [it.reference for it in items]
         add_row("reference", references, score_scenes(items, references, judge, engine, progress=False))
 
-    decoding = {"seed": int(cfg.seed), **OmegaConf.to_container(cfg.eval, resolve=True)}
+    base = models.get("sft")  # the adapters' base: the table's SFT model, wherever they were trained
     for name, path in models.items():
         # hashed only where the layouts are kept: what the reuse check and the record compare; the split
         # and its seed are part of it, so layouts of another draw are never re-scored as these scenes
-        origin = {"model": checkpoint_digest(path), "decoding": decoding} if layouts else None
-        source = {**origin, "split": test} if origin else None
-        val_source = {**origin, "split": validation} if origin else None
-        outputs = _model_outputs(cfg, name, path, items, layouts, source)
-        val_outputs = (_model_outputs(cfg, name, path, val_items, val_folder, val_source)
+        source = _row_source(cfg, path, test) if layouts else None
+        val_source = _row_source(cfg, path, validation) if layouts and validation else None
+        outputs = _model_outputs(cfg, name, path, items, layouts, source, base)
+        val_outputs = (_model_outputs(cfg, name, path, val_items, val_folder, val_source, base)
                        if validation else None)
         if not state.is_main_process:
             continue
         results = score_scenes(items, outputs, judge, engine, progress=False)
         add_row(name, outputs, results, _rl_steps(name, path))
         if heldout:  # PADA's mechanism: how likely the model finds repaired layouts it did not train on
-            rows[-1]["anchor_nll"] = anchor_nll(path, heldout, device=str(state.device),
+            rows[-1]["anchor_nll"] = anchor_nll(path, heldout, device=str(state.device), base=base,
                                                 max_length=int(cfg.pada.max_completion_length))["nll"]
         _record_source(layouts, name, source)
         if validation:
@@ -399,14 +452,19 @@ def _record_source(layouts, name: str, source: dict) -> None:
         write_atomic(_source_file(layouts, name), json.dumps(source, sort_keys=True) + "\n")
 
 
-def _earlier_layouts(items, layouts, name: str, source: dict) -> list | None:
-    """A row's outputs from its layouts file when an earlier evaluation wrote it from the same
-    checkpoint with the same settings on the same draw of the split (``source``; a record without the
-    split never matches), else None: a rerun decodes only what changed."""
+def _kept(layouts, name: str, source: dict) -> bool:
+    """Whether ``<layouts>`` holds the row's layouts file, written from ``source``: the same checkpoint
+    with the same settings on the same draw of the split (a record without the split never matches)."""
     if not layouts or not (Path(str(layouts)) / row_file(name)).is_file():
-        return None
+        return False
     recorded = _source_file(layouts, name)
-    if not recorded.is_file() or json.loads(recorded.read_text()) != json.loads(json.dumps(source)):
+    return recorded.is_file() and json.loads(recorded.read_text()) == json.loads(json.dumps(source))
+
+
+def _earlier_layouts(items, layouts, name: str, source: dict) -> list | None:
+    """A row's outputs from its layouts file when an earlier evaluation wrote it from ``source``
+    (:func:`_kept`), else None: a rerun decodes only what changed."""
+    if not _kept(layouts, name, source):
         return None
     from physcene.eval.harness import generate
 
@@ -489,6 +547,8 @@ def run_ablation(cfg: DictConfig, budget_min: float | None = None) -> dict:
         return result
 
     reuse = bool(a.get("reuse", True))
+    if a.get("decode_only", False):
+        return {"rows": [], "decode_only": decode_layouts(cfg, variants)}
 
     def finished(out_dir) -> bool:  # a stage that already wrote its final model (reuse=true)
         # an RL run records its base at the start with complete=false (train/models.py base_checked)

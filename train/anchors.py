@@ -199,13 +199,14 @@ def run_anchors(cfg: DictConfig) -> Path:
 
 @torch.no_grad()
 def anchor_nll(model_path: str | Path, records: list[dict], *, column: str = "anchor", max_length: int = 8192,
-               device: str | None = None, batch_size: int = 16) -> dict:
+               device: str | None = None, batch_size: int = 16, base: str | Path | None = None) -> dict:
     """How likely the model at ``model_path`` (an SFT model or an RL adapter on it) finds anchors:
     the mean NLL per anchor token (EOS included, as PADA's cross-entropy counts them) of the records'
     ``column`` text given their prompts, teacher-forced. Held-out anchors (``anchors.exclude``) make it
     the measure of what PADA claims: the policy kept close to the repaired layouts of prompts it did
-    not train on. Returns ``{"nll", "tokens", "n"}`` (records without an anchor are left out)."""
-    model, tokenizer, info = load_for_generation(model_path, device=device)
+    not train on. Returns ``{"nll", "tokens", "n"}`` (records without an anchor are left out). ``base``: an
+    adapter's base model (:func:`physcene.train.generate.adapter_base`)."""
+    model, tokenizer, info = load_for_generation(model_path, device=device, base=base)
     fmt = input_format(info)
     rows = []
     for r in records:

@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import copy
 import json
+import re
 from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
 from pathlib import Path
@@ -39,10 +40,18 @@ from tqdm.auto import tqdm
 from transformers import CompileConfig, LogitsProcessorList, PreTrainedModel, PreTrainedTokenizerBase
 from transformers.utils import logging as transformers_logging
 
+from physcene.artifacts import checkpoint_digest
 from physcene.ctrc.prompts import with_physics
 from physcene.train.constrained import CTRCConstraint, sampling_warpers
 from physcene.train.decode import FAST_CACHES
-from physcene.train.models import TrainingSetupError, load_model, load_tokenizer, read_run_info, torch_dtype
+from physcene.train.models import (
+    RUN_INFO,
+    TrainingSetupError,
+    load_model,
+    load_tokenizer,
+    read_run_info,
+    torch_dtype,
+)
 
 __all__ = ["CACHE_MODES", "cache_generate_kwargs", "check_cache", "generate", "generate_token_ids",
            "generate_with", "input_format", "load_for_generation", "longest_prompt_tokens", "render_prompt",
@@ -118,8 +127,11 @@ def set_trainer_cache(generation_config, *, static: bool, compiled: bool, tokeni
 
 
 def load_for_generation(model_path: str | Path, device: str | torch.device | None = None,
-                        dtype: str | None = None) -> tuple[PreTrainedModel, PreTrainedTokenizerBase, dict]:
-    """(model in eval mode on ``device``, left-padding tokenizer, run info) for ``model_path``."""
+                        dtype: str | None = None, base: str | Path | None = None,
+                        ) -> tuple[PreTrainedModel, PreTrainedTokenizerBase, dict]:
+    """(model in eval mode on ``device``, left-padding tokenizer, run info) for ``model_path``. A LoRA
+    adapter is merged into its base: ``base`` where given (:func:`adapter_base`; a full checkpoint
+    ignores it), else the folder its ``adapter_config.json`` names."""
     path = Path(model_path)
     if not path.is_dir():
         raise TrainingSetupError(f"model path {str(path)!r} is not a directory")
@@ -131,7 +143,7 @@ def load_for_generation(model_path: str | Path, device: str | torch.device | Non
     if adapter.is_file():
         from peft import PeftModel
 
-        base_path = json.loads(adapter.read_text())["base_model_name_or_path"]
+        base_path = adapter_base(path, base)
         model = PeftModel.from_pretrained(load_model(base_path, dtype=dtype), str(path)).merge_and_unload()
         if not info:
             info = read_run_info(base_path)
@@ -139,6 +151,31 @@ def load_for_generation(model_path: str | Path, device: str | torch.device | Non
         model = load_model(path, dtype=dtype)
     model.to(device).eval()
     return model, load_tokenizer(path), info
+
+
+def adapter_base(adapter_dir: str | Path, base: str | Path | None = None) -> str:
+    """The base model folder of the LoRA adapter at ``adapter_dir`` (a run's final adapter or one of
+    its ``checkpoint-N``): ``base`` where given, checked against the base digest the run recorded
+    (``base_sha256``, :func:`physcene.train.models.base_checked`); else the folder the adapter config
+    names, which is the training host's path and need not exist where the adapter was carried to
+    (an error then says to pass ``base``)."""
+    folder = Path(adapter_dir)
+    named = json.loads((folder / "adapter_config.json").read_text()).get("base_model_name_or_path") or ""
+    run = folder.parent if re.fullmatch(r"checkpoint-\d+", folder.name) else folder
+    info_path = run / RUN_INFO
+    recorded = json.loads(info_path.read_text()).get("base_sha256") if info_path.is_file() else None
+    if base is None:
+        if not named or not Path(named).is_dir():
+            where = f"on the base {named!r}, which is not here" if named else "that names no base"
+            raise TrainingSetupError(f"{folder}: a LoRA adapter {where}; pass the base it was trained on "
+                                     f"(base=...{f', sha256 {recorded}' if recorded else ''})")
+        return named
+    if not (Path(base) / "config.json").is_file():
+        raise TrainingSetupError(f"base {str(base)!r} for the adapter {folder} has no config.json")
+    if recorded is not None and (digest := checkpoint_digest(base)) != recorded:
+        raise TrainingSetupError(f"{folder} was trained on a base with sha256 {recorded}; {base} has sha256 "
+                                 f"{digest}: pass the base it was trained on")
+    return str(base)
 
 
 def input_format(info: dict) -> dict:
@@ -294,7 +331,7 @@ def generate(model_path: str | Path, prompts: Sequence[str], *, max_new_tokens: 
              batch_size: int | None = None, do_sample: bool = False, temperature: float = 1.0, seed: int = 0,
              device: str | torch.device | None = None, dtype: str | None = None,
              cache: str = "dynamic", constrained: bool = False, follow_plan: bool = True,
-             progress: bool = False) -> list[str]:
+             progress: bool = False, base: str | Path | None = None) -> list[str]:
     """Completions of ``prompts`` by the checkpoint at ``model_path`` (greedy unless ``do_sample``).
 
     ``prompts`` are CTRC prompt strings (``physcene.ctrc.build_prompt``); chat-format checkpoints get
@@ -305,12 +342,13 @@ def generate(model_path: str | Path, prompts: Sequence[str], *, max_new_tokens: 
     ``constrained``: CTRC-constrained decoding (:mod:`physcene.train.constrained`; ``follow_plan``: its
     layout follows the completion's own plan). ``progress``: a bar on stderr over the prompts,
     advanced as each batch is decoded (off for callers with their own bars: the ablation, analyses).
+    ``base``: an adapter checkpoint's base model (:func:`adapter_base`).
     """
     check_cache(cache)
     if dtype is not None:
         torch_dtype(dtype)  # validate early
     with _loading_bar(progress):
-        model, tokenizer, info = load_for_generation(model_path, device=device, dtype=dtype)
+        model, tokenizer, info = load_for_generation(model_path, device=device, dtype=dtype, base=base)
     batch_size = batch_size or int(info.get("eval_batch_size", 16))
     return generate_with(model, tokenizer, prompts, **input_format(info), max_new_tokens=max_new_tokens,
                          batch_size=batch_size, do_sample=do_sample, temperature=temperature, seed=seed,

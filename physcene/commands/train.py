@@ -107,5 +107,5 @@ def _run_stage(args) -> int:
         from physcene.train.ablation import run_ablation
 
         result = run_ablation(cfg, budget_min=args.budget_min)
-        print(json.dumps(result["rows"], indent=1))
+        print(json.dumps(result.get("decode_only", result["rows"]), indent=1))
     return 0

@@ -233,3 +233,50 @@ def test_validation_scores_every_model_row_and_picks_the_checkpoint(tmp_path, st
     assert len(calls) == 6 and capsys.readouterr().err.count("re-scored from") == 6
     assert [(r.get("val_scr"), r.get("chosen")) for r in again] == [(r.get("val_scr"), r.get("chosen"))
                                                                    for r in rows]
+
+
+def test_decode_only_keeps_every_models_layouts_and_the_scoring_run_re_scores_them(tmp_path, stub_decoding,
+                                                                                   monkeypatch, capsys):
+    """ablation.decode_only=true decodes the SFT model, the RL run and its kept checkpoint into
+    ablation.layouts with their source records, trains and scores nothing, and names a variant whose
+    model is not there; the same table without it re-scores all three instead of decoding them. Layouts
+    already kept are not decoded twice."""
+    calls, _ = stub_decoding
+    cfg = _config(tmp_path, "ablation.decode_only=true", "ablation.checkpoints=true",
+                  "ablation.variants=[grpo,pada]")
+    run = tmp_path / "run"
+    _model(run / "sft", steps=0)
+    _model(run / "grpo", steps=2)
+    (_model(run / "grpo" / "checkpoint-1") / "adapter_config.json").write_text("{}")
+    monkeypatch.setattr(ablation, "_evaluate", lambda *a, **k: pytest.fail("decode_only scored"))
+    monkeypatch.setattr(ablation, "run_anchors", lambda *a, **k: pytest.fail("decode_only made anchors"))
+    result = ablation.run_ablation(cfg)
+    assert result["rows"] == [] and [c[0] for c in calls] == ["sft", "grpo", "checkpoint-1"]
+    assert result["decode_only"]["decoded"] == [f"{n} (test, seed 0)" for n in ("sft", "grpo", "grpo@1")]
+    assert result["decode_only"]["missing"] == [f"pada: {run / 'pada'}"]
+    for name in ("sft", "grpo", "grpo-1"):
+        assert _layouts(tmp_path / "layouts" / f"{name}.jsonl.gz") == _draw(0)
+        assert (tmp_path / "layouts" / f"{name}.source.json").is_file()
+    again = ablation.run_ablation(cfg)
+    assert len(calls) == 3 and again["decode_only"]["kept"] == result["decode_only"]["decoded"]
+    capsys.readouterr()
+    monkeypatch.undo()
+    monkeypatch.setattr(ablation, "_completions", lambda *a, **k: pytest.fail("decoded again"))
+    models = {"sft": run / "sft", "grpo": run / "grpo", "grpo@1": run / "grpo" / "checkpoint-1"}
+    rows = ablation._evaluate(_config(tmp_path), models, budget_s=600)
+    assert [r["name"] for r in rows] == ["sft", "sft+tto", "grpo", "grpo@1"]
+    assert capsys.readouterr().err.count("re-scored from") == 3
+
+
+def test_decode_only_needs_a_layouts_folder(tmp_path):
+    with pytest.raises(TrainingSetupError, match="decode_only keeps the layouts .* set ablation.layouts"):
+        ablation.run_ablation(_config(tmp_path, "ablation.decode_only=true", "ablation.layouts=null"))
+
+
+def test_the_adapters_are_decoded_on_the_tables_sft_model(tmp_path, stub_decoding):
+    """Every row is decoded with base= the table's SFT model: an RL adapter names its training host's
+    base path, which a run carried to another host does not have."""
+    calls, _ = stub_decoding
+    models = {"sft": _model(tmp_path / "sft"), "grpo": _model(tmp_path / "grpo", steps=2)}
+    ablation._evaluate(_config(tmp_path), models, budget_s=600)
+    assert [options["base"] for _, _, options in calls] == [tmp_path / "sft"] * 2

@@ -1,0 +1,69 @@
+"""An RL adapter on a host other than its training host: the base its ``adapter_config.json`` names is
+that host's path. ``load_for_generation(..., base=...)`` merges the adapter (a run's final one or a
+``checkpoint-N``) into the base it is given, checked against the digest the run recorded; without it a
+missing base is one error that says to pass it."""
+
+from __future__ import annotations
+
+import json
+import shutil
+
+import pytest
+import torch
+from peft import LoraConfig, get_peft_model
+
+from physcene.artifacts import checkpoint_digest
+from physcene.train.generate import load_for_generation
+from physcene.train.models import RUN_INFO, TrainingSetupError, build_scratch_model, load_model
+
+pytestmark = pytest.mark.usefixtures("one_thread")  # fixtures: tests/train/conftest.py
+
+
+@pytest.fixture
+def carried(tmp_path, tokenizer, tiny_arch):
+    """(checkpoint-3 of an RL run whose base was at train_host/base, that base moved to here/base, the
+    logits of the merged adapter on the training host)."""
+    base_dir = tmp_path / "train_host" / "base"
+    build_scratch_model(tiny_arch, tokenizer, seed=1).save_pretrained(base_dir)
+    tokenizer.save_pretrained(base_dir)
+    lora = LoraConfig(r=4, lora_alpha=8, target_modules=["q_proj", "v_proj"])
+    model = get_peft_model(load_model(base_dir, dtype="float32"), lora)
+    with torch.no_grad():
+        for name, param in model.named_parameters():
+            if "lora_B" in name:
+                param.normal_(0, 0.2)
+    ckpt = tmp_path / "run" / "checkpoint-3"
+    model.save_pretrained(ckpt)
+    tokenizer.save_pretrained(ckpt)
+    (tmp_path / "run" / RUN_INFO).write_text(json.dumps({"base_sha256": checkpoint_digest(base_dir)}))
+    ids = torch.tensor([tokenizer("layout:")["input_ids"]])
+    trained, _, _ = load_for_generation(ckpt, device="cpu")
+    logits = trained(input_ids=ids).logits
+    moved = tmp_path / "here" / "base"
+    shutil.move(str(base_dir), moved)
+    return ckpt, moved, ids, logits
+
+
+def test_a_carried_adapter_loads_on_the_base_it_is_given(carried):
+    ckpt, base, ids, logits = carried
+    model, _, _ = load_for_generation(ckpt, device="cpu", base=base)
+    torch.testing.assert_close(model(input_ids=ids).logits, logits)
+
+
+def test_without_its_base_the_error_says_to_pass_it(carried):
+    ckpt, _, _, _ = carried
+    with pytest.raises(TrainingSetupError, match=r"checkpoint-3: a LoRA adapter on the base .*train_host/"
+                                                 r"base', which is not here; pass the base it was"):
+        load_for_generation(ckpt, device="cpu")
+
+
+def test_a_base_of_another_digest_is_refused(carried, tmp_path, tokenizer, tiny_arch):
+    ckpt, _, _, _ = carried
+    other = tmp_path / "other"
+    build_scratch_model(tiny_arch, tokenizer, seed=2).save_pretrained(other)
+    tokenizer.save_pretrained(other)
+    with pytest.raises(TrainingSetupError, match="checkpoint-3 was trained on a base with sha256 .*: pass "
+                                                 "the base it was trained on"):
+        load_for_generation(ckpt, device="cpu", base=other)
+    with pytest.raises(TrainingSetupError, match="has no config.json"):
+        load_for_generation(ckpt, device="cpu", base=tmp_path)
