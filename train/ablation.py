@@ -212,14 +212,20 @@ def mark_chosen(rows: list[dict]) -> list[dict]:
     return [{**row, "chosen": k in chosen} if k in scored else row for k, row in enumerate(rows)]
 
 
+def finished_run(out_dir) -> bool:
+    """Whether a stage's folder holds its final model: its run info, not marked ``complete: false`` (an
+    RL run records its base at the start with complete=false, train/models.py ``base_checked``)."""
+    return (Path(str(out_dir)) / RUN_INFO).is_file() and bool(read_run_info(out_dir).get("complete", True))
+
+
 def decode_layouts(cfg: DictConfig, variants: list[str]) -> dict:
     """``ablation.decode_only``: the layouts of every model of the table (the SFT model, each variant's
     final model and, with ``ablation.checkpoints``, its kept checkpoints) on the test draw and the
     validation draw, kept under ``ablation.layouts`` with their source records; nothing is trained or
-    scored. The same command without ``decode_only`` then re-scores the kept
-    layouts instead of decoding them (:func:`_earlier_layouts`): decoding on a GPU host, scoring
-    elsewhere. Layouts already kept from the same checkpoint and settings are left as they are; a model
-    folder that is not there is skipped. Returns ``{"decoded": [...], "kept": [...], "missing": [...]}``."""
+    scored. The same command without ``decode_only`` then re-scores the kept layouts instead of decoding
+    them (:func:`_earlier_layouts`): decoding on a GPU host, scoring elsewhere. Layouts already kept from
+    the same checkpoint and settings are left as they are; a stage without a finished model is listed as
+    missing. Returns ``{"decoded": [...], "kept": [...], "missing": [...]}``."""
     a, state = cfg.ablation, PartialState()
     if not a.get("layouts"):
         raise TrainingSetupError("ablation.decode_only keeps the layouts for a later scoring: set "
@@ -228,8 +234,7 @@ def decode_layouts(cfg: DictConfig, variants: list[str]) -> dict:
     models, done = {}, {"decoded": [], "kept": [], "missing": []}
     for name, out_dir in [("sft", sft)] + [(_VARIANTS[v], OmegaConf.merge(cfg, {"pada": {"variant": v}})
                                             .pada.output_dir) for v in _VARIANTS if v in variants]:
-        finished = (Path(str(out_dir)) / RUN_INFO).is_file() and read_run_info(out_dir).get("complete", True)
-        if finished:
+        if finished_run(out_dir):
             models[name] = Path(str(out_dir))
         else:
             done["missing"].append(f"{name}: {out_dir}")
@@ -551,9 +556,7 @@ def run_ablation(cfg: DictConfig, budget_min: float | None = None) -> dict:
         return {"rows": [], "decode_only": decode_layouts(cfg, variants)}
 
     def finished(out_dir) -> bool:  # a stage that already wrote its final model (reuse=true)
-        # an RL run records its base at the start with complete=false (train/models.py base_checked)
-        done = (Path(str(out_dir)) / RUN_INFO).is_file() and read_run_info(out_dir).get("complete", True)
-        return reuse and done
+        return reuse and finished_run(out_dir)
 
     sft_dir = Path(str(cfg.sft.output_dir))
     if finished(sft_dir):
