@@ -67,3 +67,22 @@ def test_a_base_of_another_digest_is_refused(carried, tmp_path, tokenizer, tiny_
         load_for_generation(ckpt, device="cpu", base=other)
     with pytest.raises(TrainingSetupError, match="has no config.json"):
         load_for_generation(ckpt, device="cpu", base=tmp_path)
+
+
+def test_the_anchor_likelihood_tool_takes_the_base(carried, records, tmp_path, monkeypatch):
+    """`python -m physcene.train.analysis.anchor_likelihood ANCHORS NAME=ADAPTER --base BASE`: the carried
+    adapter's held-out anchor NLL, on the base given."""
+    from physcene.train.analysis import anchor_likelihood
+    from physcene.train.anchors import anchor_nll
+    from physcene.train.records import write_records
+
+    ckpt, base, _, _ = carried
+    held = tmp_path / "held.jsonl"
+    write_records([dict(r, anchor=r["completion"]) for r in records[:2]], held)
+    out = tmp_path / "nll.json"
+    monkeypatch.setattr("sys.argv", ["anchor_likelihood", str(held), f"pada@3={ckpt}", "--base", str(base),
+                                     "--max-length", "64", "--out", str(out)])
+    anchor_likelihood.main()
+    anchors = [dict(r, anchor=r["completion"]) for r in records[:2]]
+    expected = anchor_nll(ckpt, anchors, base=base, max_length=64)
+    assert json.loads(out.read_text())["models"]["pada@3"]["nll"] == pytest.approx(expected["nll"])

@@ -11,6 +11,9 @@ on kept checkpoints without evaluating them again:
     python -m physcene.train.analysis.anchor_likelihood runs/rl/anchors_heldout.jsonl.gz \\
         sft=artifacts/small-sft pada@50=artifacts/rl-s0-pada/checkpoint-50 pada=artifacts/rl-s0-pada \\
         --out docs/results/anchor_nll.json
+
+``--base`` loads the adapters on that SFT model instead of the path their ``adapter_config.json`` names
+(the training host's; :func:`physcene.train.generate.adapter_base`).
 """
 
 from __future__ import annotations
@@ -31,14 +34,16 @@ __all__ = ["anchor_likelihoods"]
 
 
 def anchor_likelihoods(anchors: str | Path, models: dict[str, str], *, device: str = "cpu",
-                       batch_size: int = 16, max_length: int = 8192) -> dict:
+                       batch_size: int = 16, max_length: int = 8192, base: str | Path | None = None) -> dict:
     """``{"anchors", "n", "tokens", "models": {name: {"path", "nll", "seconds"}}}`` for each named model
-    (a checkpoint folder: an SFT model or an RL adapter) on the anchor file ``anchors``."""
+    (a checkpoint folder: an SFT model or an RL adapter, on ``base`` where given) on the anchor file
+    ``anchors``."""
     records = load_records(str(anchors))
     out: dict = {"anchors": str(anchors), "models": {}}
     for name, path in models.items():
         start = time.perf_counter()
-        figure = anchor_nll(path, records, device=device, batch_size=batch_size, max_length=max_length)
+        figure = anchor_nll(path, records, device=device, batch_size=batch_size, max_length=max_length,
+                            base=base)
         out.update(n=figure["n"], tokens=figure["tokens"])
         out["models"][name] = {"path": str(path), "nll": figure["nll"],
                                "seconds": round(time.perf_counter() - start, 1)}
@@ -64,11 +69,13 @@ def main() -> None:
     parser.add_argument("--device", default="cpu", help="torch device (default: cpu)")
     parser.add_argument("--batch-size", type=int, default=16)
     parser.add_argument("--max-length", type=int, default=2304, help="anchor tokens kept (the rollout bound)")
+    parser.add_argument("--base", help="the SFT model the adapters are loaded on (default: the one each "
+                                       "adapter_config.json names)")
     args = parser.parse_args()
     if not Path(args.anchors).is_file():
         parser.error(f"anchors: {args.anchors!r} does not exist")
     result = anchor_likelihoods(args.anchors, dict(args.models), device=args.device,
-                                batch_size=args.batch_size, max_length=args.max_length)
+                                batch_size=args.batch_size, max_length=args.max_length, base=args.base)
     result["device"] = torch.cuda.get_device_name(0) if args.device.startswith("cuda") else "cpu"
     result["command"] = "python -m physcene.train.analysis.anchor_likelihood " + shlex.join(sys.argv[1:])
     print(json.dumps(result, indent=1))
