@@ -212,6 +212,12 @@ def mark_chosen(rows: list[dict]) -> list[dict]:
     return [{**row, "chosen": k in chosen} if k in scored else row for k, row in enumerate(rows)]
 
 
+def _variant_runs(cfg: DictConfig, variants: list[str]) -> list[tuple[str, str, str]]:
+    """(variant, row name, output folder) of each RL variant of the table, in the table's order."""
+    return [(v, _VARIANTS[v], OmegaConf.merge(cfg, {"pada": {"variant": v}}).pada.output_dir)
+            for v in _VARIANTS if v in variants]
+
+
 def finished_run(out_dir) -> bool:
     """Whether a stage's folder holds its final model: its run info, not marked ``complete: false`` (an
     RL run records its base at the start with complete=false, train/models.py ``base_checked``)."""
@@ -232,8 +238,7 @@ def decode_layouts(cfg: DictConfig, variants: list[str]) -> dict:
                                  "ablation.layouts to a folder")
     sft = Path(str(cfg.sft.output_dir))
     models, done = {}, {"decoded": [], "kept": [], "missing": []}
-    for name, out_dir in [("sft", sft)] + [(_VARIANTS[v], OmegaConf.merge(cfg, {"pada": {"variant": v}})
-                                            .pada.output_dir) for v in _VARIANTS if v in variants]:
+    for _, name, out_dir in [("sft", "sft", sft), *_variant_runs(cfg, variants)]:
         if finished_run(out_dir):
             models[name] = Path(str(out_dir))
         else:
@@ -568,8 +573,7 @@ def run_ablation(cfg: DictConfig, budget_min: float | None = None) -> dict:
     timed("anchors", run_anchors, cfg)
     models = {"sft": sft_dir}
     skipped = []
-    for variant, name in ((v, _VARIANTS[v]) for v in _VARIANTS if v in variants):
-        out_dir = OmegaConf.merge(cfg, {"pada": {"variant": variant}}).pada.output_dir
+    for variant, name, out_dir in _variant_runs(cfg, variants):
         if finished(out_dir):
             models[name], stages[variant] = Path(str(out_dir)), {"reused": True}
             continue

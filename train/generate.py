@@ -45,11 +45,11 @@ from physcene.ctrc.prompts import with_physics
 from physcene.train.constrained import CTRCConstraint, sampling_warpers
 from physcene.train.decode import FAST_CACHES
 from physcene.train.models import (
-    RUN_INFO,
     TrainingSetupError,
     load_model,
     load_tokenizer,
     read_run_info,
+    recorded_base_digest,
     torch_dtype,
 )
 
@@ -161,9 +161,7 @@ def adapter_base(adapter_dir: str | Path, base: str | Path | None = None) -> str
     (an error then says to pass ``base``)."""
     folder = Path(adapter_dir)
     named = json.loads((folder / "adapter_config.json").read_text()).get("base_model_name_or_path") or ""
-    run = folder.parent if re.fullmatch(r"checkpoint-\d+", folder.name) else folder
-    info_path = run / RUN_INFO
-    recorded = json.loads(info_path.read_text()).get("base_sha256") if info_path.is_file() else None
+    recorded = recorded_base_digest(folder.parent if re.fullmatch(r"checkpoint-\d+", folder.name) else folder)
     if base is None:
         if not named or not Path(named).is_dir():
             where = f"on the base {named!r}, which is not here" if named else "that names no base"

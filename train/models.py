@@ -50,6 +50,7 @@ __all__ = [
     "load_tokenizer",
     "prepare_model_and_tokenizer",
     "read_run_info",
+    "recorded_base_digest",
     "save_train_log",
     "set_attention_kernels",
     "tokenizer_settings",
@@ -274,18 +275,24 @@ def read_run_info(model_dir: str | Path) -> dict:
     return info or {}
 
 
+def recorded_base_digest(run_dir: str | Path) -> str | None:
+    """The base digest (``base_sha256``) an RL run at ``run_dir`` recorded, or None: read raw, since an
+    unfinished run's info (``complete: false``) records it too."""
+    info_path = Path(run_dir) / RUN_INFO
+    return json.loads(info_path.read_text()).get("base_sha256") if info_path.is_file() else None
+
+
 def base_checked(out_dir: str | Path, base_dir: str | Path, **info) -> str:
     """The digest of the base checkpoint an RL run at ``out_dir`` starts from
     (:func:`physcene.artifacts.checkpoint_digest`: weights, config, tokenizer), checked against the one
     its run info recorded: resuming an adapter on another base trains it on weights it was not made
     for. A new run records it (``base_sha256``, ``complete: false`` until the run saves its model)."""
     digest = checkpoint_digest(base_dir)
-    info_path = Path(out_dir) / RUN_INFO  # raw: an unfinished run's info is what is checked
-    recorded = json.loads(info_path.read_text()).get("base_sha256") if info_path.is_file() else None
+    recorded = recorded_base_digest(out_dir)
     if recorded is not None and recorded != digest:
         raise TrainingSetupError(f"{out_dir} was trained from a base with sha256 {recorded}; {base_dir} has "
                                  f"sha256 {digest}: restore the base it was trained on, or start a new "
                                  "output_dir")
-    if not info_path.is_file():
+    if not (Path(out_dir) / RUN_INFO).is_file():
         write_run_info(out_dir, **info, base_sha256=digest, complete=False)
     return digest
