@@ -82,6 +82,22 @@ def test_a_seed_without_a_run_is_not_evaluated(tmp_path):
         ("runs/rl/s1", ["grpo"], "0")]
 
 
+def test_decode_only_decodes_each_seeds_rows_per_gpu_at_once_into_the_table_folder(tmp_path):
+    done = _rl_ablation(tmp_path, RUNS="0:pada 0:pada_star 1:pada", STAGES="decode", GPUS="1", PER_GPU="2")
+    assert done.returncode == 0, done.stderr
+    commands = _commands(done.stdout)
+    assert [(c["RUN"], _variants(c), c["CUDA_VISIBLE_DEVICES"], c["log"]) for c in commands] == [
+        ("runs/rl/s0", ["pada", "pada_star"], "0", "runs/rl/s0/decode.log"),
+        ("runs/rl/s1", ["pada"], "0", "runs/rl/s1/decode.log")]
+    for c in commands:  # the eval stage's command with decode_only: its layouts are the ones eval re-scores
+        assert c["STAGES"] == "eval"
+        assert c["EXTRA"].split()[-1] == "ablation.decode_only=true"
+        assert f"ablation.layouts={c['RUN']}/layouts" in c["EXTRA"].split()
+    evals = _rl_ablation(tmp_path, RUNS="0:pada 0:pada_star 1:pada", STAGES="eval", GPUS="1")
+    evals = _commands(evals.stdout)
+    assert [c["EXTRA"].split()[:-1] for c in commands] == [c["EXTRA"].split() for c in evals]
+
+
 @pytest.mark.parametrize("word", ["0-pada", "pada", "x:pada", "-1:pada", "0:pdaa", "0:", ":grpo",
                                   "0:pada:grpo"])
 def test_a_malformed_run_is_one_error_line_before_anything_runs(tmp_path, word):

@@ -19,7 +19,9 @@
 # outside the pool: all GPUs), rl (the runs, PER_GPU at a time on each GPU: slot k taking runs k,
 # k + GPUS * PER_GPU, ...), eval (per seed with a run: reference, sft, sft+tto, each of the seed's variants
 # with every checkpoint on N_TEST test scenes, rule judge, and each model's NLL of the held-out anchors:
-# $RUN/s<seed>/ablation.json; give eval the RUNS the runs had).
+# $RUN/s<seed>/ablation.json; give eval the RUNS the runs had), decode (the same rows' layouts only, into
+# $RUN/s<seed>/layouts, PER_GPU seeds at a time on each GPU: ablation.decode_only; eval run elsewhere on
+# them re-scores them without decoding; not in the default STAGES).
 # DRY=1 prints each ablation_small.sh command (its environment, its log) instead of running it, the
 # stages one after the other; nothing is written.
 # The reward is the paper's with the validity terms (floating, shrunk, out of zone: VALID='[]' for the
@@ -46,6 +48,7 @@ TOKENS=${TOKENS:-2304}              # rollout and anchor length bound (the paper
 N_TEST=${N_TEST:-866}
 RL_CACHE=${RL_CACHE:-fast+fused+cudnn}  # sampled groups
 EVAL_CACHE=${EVAL_CACHE:-fast}      # anchors and evaluation (greedy): HF's ids; fast+fused+cudnn: ~1.4x faster
+PORTS=${PORTS:-29600}               # run k's rendezvous ports from PORTS + 10 k (two studies on one host: apart)
 STOP_IN=${STOP_IN:-}                # seconds: every run stops (and saves) this long after the script started
 EXTRA=${EXTRA:-}
 STAGES=${STAGES:-"anchors rl eval"}
@@ -114,20 +117,22 @@ rl_slot() {  # $1: a slot (GPU $1 % GPUS): runs $1, $1 + GPUS * PER_GPU, ... one
     seed=${runs[$k]%%:*} variant=${runs[$k]#*:} dir=$RUN/s${runs[$k]%%:*}
     stamp "$variant seed $seed on GPU $gpu"
     small "$dir/$variant.log" CUDA_VISIBLE_DEVICES="$gpu" STOP_IN="$(left)" NPROC=1 CONFIG="$CONFIG" RUN="$dir" \
-      STAGES="$variant" PORT=$((29600 + 10 * k)) ANCHORS="$POOL" MAX_TOKENS="$TOKENS" PADA_TOKENS="$TOKENS" \
+      STAGES="$variant" PORT=$((PORTS + 10 * k)) ANCHORS="$POOL" MAX_TOKENS="$TOKENS" PADA_TOKENS="$TOKENS" \
       PADA_BATCH="$BATCH" PADA_MICRO="$MICRO" PADA_MIN=100000 PADA_CACHE="$RL_CACHE" CACHE="$EVAL_CACHE" \
       EXTRA="$common $rl seed=$seed" || stamp "$variant seed $seed failed: $dir/$variant.log"
   done
 }
-eval_seed() {  # $1: a seed, $2: its GPU: the seed's table, its variants those it has runs of
-  local dir=$RUN/s$1
-  stamp "eval seed $1 on GPU $2: $(variants_of "$1")"
-  small "$dir/eval.log" CUDA_VISIBLE_DEVICES="$2" NPROC=1 CONFIG="$CONFIG" RUN="$dir" STAGES=eval \
+eval_seed() {  # $1: a seed, $2: its GPU, $3: eval or decode: the seed's table (decode: its layouts only,
+  # ablation.decode_only), its variants those it has runs of
+  local dir=$RUN/s$1 only=${3:-eval}
+  stamp "$only seed $1 on GPU $2: $(variants_of "$1")"
+  small "$dir/$only.log" CUDA_VISIBLE_DEVICES="$2" NPROC=1 CONFIG="$CONFIG" RUN="$dir" STAGES=eval \
     ANCHORS="$POOL" MAX_TOKENS="$TOKENS" N_TEST="$N_TEST" PADA_MIN=100000 CACHE="$EVAL_CACHE" \
     PADA_TOKENS="$TOKENS" PADA_BATCH="$BATCH" PADA_MICRO="$MICRO" \
     EXTRA="$common $rl seed=$1 ablation.checkpoints=true ablation.reference=true \
 ablation.variants=[$(variants_of "$1")] ablation.output=$dir/ablation.json ablation.layouts=$dir/layouts \
-ablation.heldout_anchors=$held" || stamp "eval seed $1 failed: $dir/eval.log"
+ablation.heldout_anchors=$held$([ "$only" = decode ] && echo " ablation.decode_only=true")" \
+    || stamp "$only seed $1 failed: $dir/$only.log"
 }
 
 if want anchors; then
@@ -140,6 +145,13 @@ if want anchors; then
 fi
 if want rl; then
   for slot in $(seq 0 $((GPUS * PER_GPU - 1))); do spawn rl_slot "$slot"; done
+  wait
+fi
+if want decode; then  # PER_GPU seeds at a time on each GPU
+  for k in "${!seeds[@]}"; do
+    spawn eval_seed "${seeds[$k]}" $((k % GPUS)) decode
+    if (((k + 1) % (GPUS * PER_GPU) == 0)); then wait; fi
+  done
   wait
 fi
 if want eval; then
