@@ -93,6 +93,9 @@ def test_decode_only_decodes_each_seeds_rows_per_gpu_at_once_into_the_table_fold
         assert c["STAGES"] == "eval"
         assert c["EXTRA"].split()[-1] == "ablation.decode_only=true"
         assert f"ablation.layouts={c['RUN']}/layouts" in c["EXTRA"].split()
+    # tables made at once on one host rendezvous on ports of their own, apart from the runs' ports
+    ports = [int(c["PORT"]) for c in commands]
+    assert len(set(ports)) == 2 and min(ports) >= 29600 + 10 * 3
     evals = _rl_ablation(tmp_path, RUNS="0:pada 0:pada_star 1:pada", STAGES="eval", GPUS="1")
     evals = _commands(evals.stdout)
     assert [c["EXTRA"].split()[:-1] for c in commands] == [c["EXTRA"].split() for c in evals]

@@ -130,7 +130,9 @@ done
 wait  # the variants started in the background (PARALLEL=1)
 if want eval; then
   stamp "eval ($N_TEST test scenes)"
-  $LAUNCH -m physcene.cli train ablation --config "$CONFIG" $common \
+  launch="$LAUNCH"  # a port of its own: the tables of several seeds may be made at once on one host
+  [[ "$LAUNCH" == *"accelerate launch"* ]] && launch="$LAUNCH --main_process_port $((port + 1))"
+  $launch -m physcene.cli train ablation --config "$CONFIG" $common \
     ablation.budget_min="$(python3 -c "print(10 * $PADA_MIN)")"
 fi
 if want plan; then

@@ -48,7 +48,8 @@ TOKENS=${TOKENS:-2304}              # rollout and anchor length bound (the paper
 N_TEST=${N_TEST:-866}
 RL_CACHE=${RL_CACHE:-fast+fused+cudnn}  # sampled groups
 EVAL_CACHE=${EVAL_CACHE:-fast}      # anchors and evaluation (greedy): HF's ids; fast+fused+cudnn: ~1.4x faster
-PORTS=${PORTS:-29600}               # run k's rendezvous ports from PORTS + 10 k (two studies on one host: apart)
+PORTS=${PORTS:-29600}               # rendezvous ports: run k's from PORTS + 10 k, then each seed's table's (two
+                                    # studies on one host: PORTS apart)
 STOP_IN=${STOP_IN:-}                # seconds: every run stops (and saves) this long after the script started
 EXTRA=${EXTRA:-}
 STAGES=${STAGES:-"anchors rl eval"}
@@ -122,11 +123,12 @@ rl_slot() {  # $1: a slot (GPU $1 % GPUS): runs $1, $1 + GPUS * PER_GPU, ... one
       EXTRA="$common $rl seed=$seed" || stamp "$variant seed $seed failed: $dir/$variant.log"
   done
 }
-eval_seed() {  # $1: a seed, $2: its GPU, $3: eval or decode: the seed's table (decode: its layouts only,
-  # ablation.decode_only), its variants those it has runs of
+eval_seed() {  # $1: a seed, $2: its GPU, $3: eval or decode, $4: the seed's index (its ports): the seed's
+  # table (decode: its layouts only, ablation.decode_only), its variants those it has runs of
   local dir=$RUN/s$1 only=${3:-eval}
   stamp "$only seed $1 on GPU $2: $(variants_of "$1")"
   small "$dir/$only.log" CUDA_VISIBLE_DEVICES="$2" NPROC=1 CONFIG="$CONFIG" RUN="$dir" STAGES=eval \
+    PORT=$((PORTS + 10 * (${#runs[@]} + $4))) \
     ANCHORS="$POOL" MAX_TOKENS="$TOKENS" N_TEST="$N_TEST" PADA_MIN=100000 CACHE="$EVAL_CACHE" \
     PADA_TOKENS="$TOKENS" PADA_BATCH="$BATCH" PADA_MICRO="$MICRO" \
     EXTRA="$common $rl seed=$1 ablation.checkpoints=true ablation.reference=true \
@@ -149,14 +151,14 @@ if want rl; then
 fi
 if want decode; then  # PER_GPU seeds at a time on each GPU
   for k in "${!seeds[@]}"; do
-    spawn eval_seed "${seeds[$k]}" $((k % GPUS)) decode
+    spawn eval_seed "${seeds[$k]}" $((k % GPUS)) decode "$k"
     if (((k + 1) % (GPUS * PER_GPU) == 0)); then wait; fi
   done
   wait
 fi
 if want eval; then
   for k in "${!seeds[@]}"; do
-    spawn eval_seed "${seeds[$k]}" $((k % GPUS))
+    spawn eval_seed "${seeds[$k]}" $((k % GPUS)) eval "$k"
     if (((k + 1) % GPUS == 0)); then wait; fi
   done
   wait
