@@ -26,6 +26,9 @@ commands under a job time limit.
 from __future__ import annotations
 
 import contextlib
+import functools
+import hashlib
+import importlib
 import json
 import sys
 import time
@@ -37,7 +40,7 @@ from accelerate import PartialState
 from accelerate.utils import gather_object
 from omegaconf import DictConfig, OmegaConf
 
-from physcene.artifacts import ArtifactError, checkpoint_digest, repo_root
+from physcene.artifacts import ArtifactError, checkpoint_digest, file_sha256, repo_root
 from physcene.files import write_atomic
 from physcene.layout import layout_to_dict, row_file, write_layout_records
 from physcene.reward import RewardConfig, band_low_ratio
@@ -391,7 +394,11 @@ def _evaluate(cfg: DictConfig, models: dict[str, Path], budget_s: float) -> list
     ``<layouts>/<row>.jsonl.gz`` (re-score with ``physcene eval --generator file:FILE``).
 
     Under accelerate every process generates its share of every model (:func:`_decode`); the main
-    process scores, repairs and reports, the others return no rows.
+    process scores, repairs and reports, the others return no rows. With ``ablation.reuse`` and
+    ``ablation.layouts`` a row whose figures an earlier evaluation kept (``<row>.row.json``) from the
+    same layouts, scored by the same physcene code on the same kind of device (with the same held-out
+    anchors and validation draw), is taken as it was (:func:`_kept_row`): a table grown by new
+    checkpoints scores only those.
     """
     from physcene.eval.harness import make_judge, repair_outputs, score_scenes
     from physcene.physics import PhysicsEngine
@@ -412,16 +419,36 @@ def _evaluate(cfg: DictConfig, models: dict[str, Path], budget_s: float) -> list
                                      "anchors of prompts outside the RL pool: anchors.exclude)")
         heldout = load_records(str(a.heldout_anchors))
     rows, start = [], time.monotonic()
+    # what every kept row's figures must have been scored with (ablation.reuse, kept layouts only)
+    scoring = ({"code": scoring_code_digest(), "device": state.device.type, "split": test,
+                "validation": validation, "heldout": file_sha256(a.heldout_anchors) if heldout else None,
+                "max_length": int(cfg.pada.max_completion_length)}
+               if layouts and a.get("reuse", True) else None)
 
     def add_row(name, outputs, results, rl_steps=0):
         rows.append(table_row(name, items, outputs, results, engine, seed=int(cfg.seed), rl_steps=rl_steps,
                               layouts=Path(str(layouts)) if layouts else None))
 
+    def scored(name: str, inputs: dict, score) -> None:
+        """Row ``name``: kept from an earlier evaluation of the same ``inputs`` by the same scoring, else
+        ``score()`` (which adds it) and kept for the next one."""
+        key = {**scoring, "inputs": inputs, "seed": int(cfg.seed)} if scoring else None
+        kept = _kept_row(layouts, name, key) if key else None
+        if kept is not None:
+            rows.append(kept)
+            print(f"ablation: {name} figures kept from {_row_figures_file(layouts, name)}", file=sys.stderr)
+            return
+        score()
+        if key:
+            write_atomic(_row_figures_file(layouts, name), json.dumps({"key": key, "row": rows[-1]}) + "\n")
+
     if a.get("reference", False) and state.is_main_process:
         references = [it.reference for it in items]
-        add_row("reference", references, score_scenes(items, references, judge, engine, progress=False))
+        scored("reference", {"reference": True}, lambda: add_row(
+            "reference", references, score_scenes(items, references, judge, engine, progress=False)))
 
     base = models.get("sft")  # the adapters' base: the table's SFT model, wherever they were trained
+    base_source = _row_source(cfg, base, test) if base is not None and scoring else None
     for name, path in models.items():
         # hashed only where the layouts are kept: what the reuse check and the record compare; the split
         # and its seed are part of it, so layouts of another draw are never re-scored as these scenes
@@ -432,23 +459,71 @@ def _evaluate(cfg: DictConfig, models: dict[str, Path], budget_s: float) -> list
                        if validation else None)
         if not state.is_main_process:
             continue
-        results = score_scenes(items, outputs, judge, engine, progress=False)
-        add_row(name, outputs, results, _rl_steps(name, path))
-        if heldout:  # PADA's mechanism: how likely the model finds repaired layouts it did not train on
-            rows[-1]["anchor_nll"] = anchor_nll(path, heldout, device=str(state.device), base=base,
-                                                max_length=int(cfg.pada.max_completion_length))["nll"]
+
+        def score_model(name, path, outputs, val_outputs, val_source):
+            results = score_scenes(items, outputs, judge, engine, progress=False)
+            add_row(name, outputs, results, _rl_steps(name, path))
+            if heldout:  # PADA's mechanism: how likely the model finds repaired layouts it did not train on
+                rows[-1]["anchor_nll"] = anchor_nll(path, heldout, device=str(state.device), base=base,
+                                                    max_length=int(cfg.pada.max_completion_length))["nll"]
+            if validation:
+                rows[-1].update(_validation_figures(val_items, val_outputs, engine, val_folder, name,
+                                                    val_source))
+
+        # an adapter's held-out NLL is read on the table's SFT model: its digest is an input too
+        scored(name, {"source": source, "validation": val_source,
+                      "base": base_source["model"] if base_source and name != "sft" else None},
+               partial(score_model, name, path, outputs, val_outputs, val_source))
         _record_source(layouts, name, source)
-        if validation:
-            rows[-1].update(_validation_figures(val_items, val_outputs, engine, val_folder, name, val_source))
-        if name == "sft":  # repaired again even from reused outputs: the row reports TTO's own figures
-            repaired, extras = repair_outputs(outputs, tto_overrides=list(cfg.anchors.tto), engine=engine,
-                                              progress=False)
-            add_row("sft+tto", repaired,
-                    score_scenes(items, repaired, judge, engine, extras=extras, progress=False))
+        if name == "sft":  # repaired (unless kept): the row reports TTO's own figures
+
+            def score_repaired(outputs):
+                repaired, extras = repair_outputs(outputs, tto_overrides=list(cfg.anchors.tto), engine=engine,
+                                                  progress=False)
+                add_row("sft+tto", repaired,
+                        score_scenes(items, repaired, judge, engine, extras=extras, progress=False))
+
+            scored("sft+tto", {"source": source, "tto": list(cfg.anchors.tto)},
+                   partial(score_repaired, outputs))
         if time.monotonic() - start > budget_s:  # every rank generates every model: no early exit
             print(f"ablation: eval budget spent after {name}", file=sys.stderr)
     state.wait_for_everyone()
     return rows
+
+
+@functools.cache
+def scoring_code_digest() -> str:
+    """sha256 over the installed physcene code and configs (every file of the ``physcene``,
+    ``physcene.eval``, ``physcene.kernels``, ``physcene.train`` and ``physcene.configs`` packages but
+    bytecode): a row's kept figures are taken only from the code that scores them now."""
+    h = hashlib.sha256()
+    for package in ("physcene", "physcene.eval", "physcene.kernels", "physcene.train", "physcene.configs"):
+        root = Path(importlib.import_module(package).__file__).parent
+        for f in sorted(root.rglob("*")):
+            if f.is_file() and "__pycache__" not in f.parts and f.suffix != ".pyc":
+                h.update(f"{package}/{f.relative_to(root).as_posix()}\0".encode())
+                h.update(f.read_bytes())
+    return h.hexdigest()
+
+
+def _row_figures_file(layouts, name: str) -> Path:
+    return Path(str(layouts)) / row_file(name, ".row.json")
+
+
+def _kept_row(layouts, name: str, key: dict) -> dict | None:
+    """The row an earlier evaluation kept beside its layouts when it was scored from ``key`` (the row's
+    inputs and the scoring: code, device, split, held-out anchors, validation draw) and its layouts file
+    is still there, else None."""
+    kept = _row_figures_file(layouts, name)
+    if not kept.is_file():
+        return None
+    record = json.loads(kept.read_text())
+    row = record.get("row") or {}
+    if record.get("key") != json.loads(json.dumps(key)) or row.get("name") != name:
+        return None
+    if row.get("layouts") and not (Path(str(layouts)) / row_file(name)).is_file():
+        return None
+    return row
 
 
 def _source_file(layouts, name: str) -> Path:

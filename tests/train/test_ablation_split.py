@@ -280,3 +280,38 @@ def test_the_adapters_are_decoded_on_the_tables_sft_model(tmp_path, stub_decodin
     models = {"sft": _model(tmp_path / "sft"), "grpo": _model(tmp_path / "grpo", steps=2)}
     ablation._evaluate(_config(tmp_path), models, budget_s=600)
     assert [options["base"] for _, _, options in calls] == [tmp_path / "sft"] * 2
+
+
+def test_a_rerun_keeps_the_rows_scored_from_the_same_layouts_by_the_same_code(tmp_path, stub_decoding,
+                                                                              monkeypatch, capsys):
+    """A table evaluated again takes each row (reference, SFT, SFT + TTO, an RL row) as an earlier
+    evaluation kept it beside its layouts: nothing is scored again. A changed checkpoint has its row
+    decoded and scored again, the others kept; other scoring code, or ablation.reuse=false, scores
+    every row again."""
+    from physcene.eval import harness
+
+    scored, score = [], harness.score_scenes
+
+    def counted(items, outputs, *args, **kwargs):
+        scored.append(len(outputs))
+        return score(items, outputs, *args, **kwargs)
+
+    monkeypatch.setattr(harness, "score_scenes", counted)
+    calls, _ = stub_decoding
+    cfg = _config(tmp_path, "ablation.reference=true")
+    models = {"sft": _model(tmp_path / "sft"), "grpo": _model(tmp_path / "grpo", steps=2)}
+    first = ablation._evaluate(cfg, models, budget_s=600)
+    assert [r["name"] for r in first] == ["reference", "sft", "sft+tto", "grpo"] and len(scored) == 4
+    capsys.readouterr()
+    again = ablation._evaluate(cfg, models, budget_s=600)
+    assert again == first and len(scored) == 4 and len(calls) == 2
+    assert capsys.readouterr().err.count("figures kept from") == 4
+    (tmp_path / "grpo" / "config.json").write_text(json.dumps({"name": "grpo", "trained": "more"}))
+    ablation._evaluate(cfg, models, budget_s=600)
+    assert len(scored) == 5 and [c[0] for c in calls] == ["sft", "grpo", "grpo"]
+    assert capsys.readouterr().err.count("figures kept from") == 3
+    monkeypatch.setattr(ablation, "scoring_code_digest", lambda: "other code")
+    assert ablation._evaluate(cfg, models, budget_s=600) == ablation._evaluate(cfg, models, budget_s=600)
+    assert len(scored) == 9  # once under the other code, then kept
+    ablation._evaluate(OmegaConf.merge(cfg, {"ablation": {"reuse": False}}), models, budget_s=600)
+    assert len(scored) == 13 and len(calls) == 5  # reuse=false: every model decoded and scored again
