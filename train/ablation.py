@@ -553,7 +553,7 @@ def _earlier_layouts(items, layouts, name: str, source: dict) -> list | None:
         return None
     from physcene.eval.harness import generate
 
-    print(f"ablation: {name} re-scored from {Path(str(layouts)) / row_file(name)}", file=sys.stderr)
+    print(f"ablation: {name} layouts read from {Path(str(layouts)) / row_file(name)}", file=sys.stderr)
     return generate(items, f"file:{Path(str(layouts)) / row_file(name)}", progress=False)
 
 

@@ -90,13 +90,13 @@ def test_layouts_of_another_draw_are_decoded_again_not_re_scored(tmp_path, stub_
     models = {"grpo": _model(tmp_path / "grpo", steps=2)}
     ablation._evaluate(cfg, models, budget_s=600)
     ablation._evaluate(cfg, models, budget_s=600)
-    assert len(calls) == 1 and "grpo re-scored from" in capsys.readouterr().err
+    assert len(calls) == 1 and "grpo layouts read from" in capsys.readouterr().err
     record = tmp_path / "layouts" / "grpo.source.json"
     record.write_text(json.dumps({k: v for k, v in json.loads(record.read_text()).items() if k != "split"}))
     ablation._evaluate(cfg, models, budget_s=600)
-    assert len(calls) == 2 and "re-scored" not in capsys.readouterr().err
+    assert len(calls) == 2 and "layouts read" not in capsys.readouterr().err
     ablation._evaluate(OmegaConf.merge(cfg, {"ablation": {"test_seed": 5}}), models, budget_s=600)
-    assert len(calls) == 3 and "re-scored" not in capsys.readouterr().err
+    assert len(calls) == 3 and "layouts read" not in capsys.readouterr().err
     assert _layouts(tmp_path / "layouts" / "grpo.jsonl.gz") == _draw(5)
 
 
@@ -230,7 +230,7 @@ def test_validation_scores_every_model_row_and_picks_the_checkpoint(tmp_path, st
     assert "| grpo@1 (chosen) |" in (tmp_path / "ablation.md").read_text()
     capsys.readouterr()
     again = mark_chosen(ablation._evaluate(cfg, models, budget_s=600))
-    assert len(calls) == 6 and capsys.readouterr().err.count("re-scored from") == 6
+    assert len(calls) == 6 and capsys.readouterr().err.count("layouts read from") == 6
     assert [(r.get("val_scr"), r.get("chosen")) for r in again] == [(r.get("val_scr"), r.get("chosen"))
                                                                    for r in rows]
 
@@ -265,7 +265,7 @@ def test_decode_only_keeps_every_models_layouts_and_the_scoring_run_re_scores_th
     models = {"sft": run / "sft", "grpo": run / "grpo", "grpo@1": run / "grpo" / "checkpoint-1"}
     rows = ablation._evaluate(_config(tmp_path), models, budget_s=600)
     assert [r["name"] for r in rows] == ["sft", "sft+tto", "grpo", "grpo@1"]
-    assert capsys.readouterr().err.count("re-scored from") == 3
+    assert capsys.readouterr().err.count("layouts read from") == 3
 
 
 def test_decode_only_needs_a_layouts_folder(tmp_path):

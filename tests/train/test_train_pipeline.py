@@ -230,12 +230,12 @@ def test_ablation_rows_per_level_and_per_checkpoint(tmp_path, one_thread, capsys
     capsys.readouterr()
     again = run_ablation(cfg, budget_min=30)
     log = capsys.readouterr().err
-    assert all(f"{name} re-scored from" in log for name in ("sft", "grpo", "grpo@1"))
+    assert all(f"{name} layouts read from" in log for name in ("sft", "grpo", "grpo@1"))
     figures = ("scr", "acr", "parse_rate", "judge_avg", "by_level")
     assert [[r[k] for k in figures] for r in again["rows"] + again["checkpoint_rows"]] == \
         [[r[k] for k in figures] for r in result["rows"] + result["checkpoint_rows"]]
     run_ablation(OmegaConf.merge(cfg, {"eval": {"max_new_tokens": 12}}), budget_min=30)
-    assert "re-scored" not in capsys.readouterr().err
+    assert "layouts read from" not in capsys.readouterr().err
 
 
 def test_pada_resumes_from_its_last_checkpoint_with_its_beta(tmp_path, one_thread, step_counter):
