@@ -448,11 +448,11 @@ def _evaluate(cfg: DictConfig, models: dict[str, Path], budget_s: float) -> list
             "reference", references, score_scenes(items, references, judge, engine, progress=False)))
 
     base = models.get("sft")  # the adapters' base: the table's SFT model, wherever they were trained
-    base_source = _row_source(cfg, base, test) if base is not None and scoring else None
+    base_source = _row_source(cfg, base, test) if base is not None and layouts else None
     for name, path in models.items():
         # hashed only where the layouts are kept: what the reuse check and the record compare; the split
         # and its seed are part of it, so layouts of another draw are never re-scored as these scenes
-        source = _row_source(cfg, path, test) if layouts else None
+        source = (base_source if path == base else _row_source(cfg, path, test)) if layouts else None
         val_source = _row_source(cfg, path, validation) if layouts and validation else None
         outputs = _model_outputs(cfg, name, path, items, layouts, source, base)
         val_outputs = (_model_outputs(cfg, name, path, val_items, val_folder, val_source, base)

@@ -32,7 +32,8 @@ from pathlib import Path
 
 from safetensors import safe_open
 
-__all__ = ["checkpoint_problem", "complete_checkpoints", "last_complete_checkpoint", "weights_problem"]
+__all__ = ["checkpoint_problem", "complete_checkpoints", "last_complete_checkpoint", "run_folder",
+           "weights_problem"]
 
 logger = logging.getLogger(__name__)
 
@@ -42,6 +43,12 @@ _CHECKPOINT = re.compile(r"^checkpoint-(\d+)$")
 _WEIGHTS = ("model.safetensors", "model.safetensors.index.json", "adapter_model.safetensors",
             "pytorch_model.bin", "pytorch_model.bin.index.json", "adapter_model.bin")
 _TORCH_SAVE_SUFFIXES = (".pt", ".pth", ".bin")
+
+
+def run_folder(folder: str | Path) -> Path:
+    """The run folder of a Trainer checkpoint ``<run>/checkpoint-N``; any other folder as it is."""
+    folder = Path(folder)
+    return folder.parent if _CHECKPOINT.match(folder.name) else folder
 
 
 def _safetensors_problem(path: Path) -> str | None:

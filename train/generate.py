@@ -30,7 +30,6 @@ from __future__ import annotations
 
 import copy
 import json
-import re
 from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
 from pathlib import Path
@@ -42,6 +41,7 @@ from transformers.utils import logging as transformers_logging
 
 from physcene.artifacts import checkpoint_digest
 from physcene.ctrc.prompts import with_physics
+from physcene.train.checkpoints import run_folder
 from physcene.train.constrained import CTRCConstraint, sampling_warpers
 from physcene.train.decode import FAST_CACHES
 from physcene.train.models import (
@@ -161,7 +161,7 @@ def adapter_base(adapter_dir: str | Path, base: str | Path | None = None) -> str
     (an error then says to pass ``base``)."""
     folder = Path(adapter_dir)
     named = json.loads((folder / "adapter_config.json").read_text()).get("base_model_name_or_path") or ""
-    recorded = recorded_base_digest(folder.parent if re.fullmatch(r"checkpoint-\d+", folder.name) else folder)
+    recorded = recorded_base_digest(run_folder(folder))
     if base is None:
         if not named or not Path(named).is_dir():
             where = f"on the base {named!r}, which is not here" if named else "that names no base"
