@@ -101,6 +101,21 @@ def test_decode_only_decodes_each_seeds_rows_per_gpu_at_once_into_the_table_fold
     assert [c["EXTRA"].split()[:-1] for c in commands] == [c["EXTRA"].split() for c in evals]
 
 
+def test_a_study_from_a_first_gpu_keeps_every_stage_on_its_own_gpus(tmp_path):
+    done = _rl_ablation(tmp_path, RUNS="0:pada 1:grpo 2:pada", STAGES="anchors rl decode", FIRST_GPU="1",
+                        GPUS="2")
+    assert done.returncode == 0, done.stderr
+    commands = _commands(done.stdout)
+    anchors = [c for c in commands if c["STAGES"] == "anchors"]
+    assert [(c["CUDA_VISIBLE_DEVICES"], c["NPROC"]) for c in anchors] == [("1,2", "2"), ("1,2", "2")]
+    rl = [c for c in commands if c["STAGES"] in ("pada", "grpo")]
+    assert [(c["RUN"], c["CUDA_VISIBLE_DEVICES"]) for c in rl] == [
+        ("runs/rl/s0", "1"), ("runs/rl/s2", "1"), ("runs/rl/s1", "2")]
+    decode = [c for c in commands if c["STAGES"] == "eval"]
+    assert [(c["RUN"], c["CUDA_VISIBLE_DEVICES"]) for c in decode] == [
+        ("runs/rl/s0", "1"), ("runs/rl/s1", "2"), ("runs/rl/s2", "1")]
+
+
 @pytest.mark.parametrize("word", ["0-pada", "pada", "x:pada", "-1:pada", "0:pdaa", "0:", ":grpo",
                                   "0:pada:grpo"])
 def test_a_malformed_run_is_one_error_line_before_anything_runs(tmp_path, word):

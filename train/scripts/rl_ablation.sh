@@ -12,11 +12,12 @@
 #     --sources runs/rl/s0/ablation.json runs/rl/s1/ablation.json --layouts docs/results/ablation
 #   RUNS="0:pada_star 1:pada 1:grpo" bash train/scripts/rl_ablation.sh         # these runs only
 #   DRY=1 RUNS="0:pada_star 1:pada" GPUS=2 bash train/scripts/rl_ablation.sh   # print the commands, run none
+#   FIRST_GPU=1 GPUS=1 RUN=runs/other bash train/scripts/rl_ablation.sh        # a second study on GPU 1 alone
 #
 # Runs: RUNS names them one by one as seed:variant words (variant: grpo, pada_star or pada); unset, they
 # are every SEEDS x VARIANTS pair. A malformed word stops the script before anything runs (exit 2).
 # Stages: anchors (the base's greedy layouts of POOL training prompts, TTO-repaired, and of HELDOUT prompts
-# outside the pool: all GPUs), rl (the runs, PER_GPU at a time on each GPU: slot k taking runs k,
+# outside the pool: all the study's GPUs), rl (the runs, PER_GPU at a time on each GPU: slot k taking runs k,
 # k + GPUS * PER_GPU, ...), eval (per seed with a run: reference, sft, sft+tto, each of the seed's variants
 # with every checkpoint on N_TEST test scenes, rule judge, and each model's NLL of the held-out anchors:
 # $RUN/s<seed>/ablation.json; give eval the RUNS the runs had), decode (the same rows' layouts only, into
@@ -53,7 +54,10 @@ PORTS=${PORTS:-29600}               # rendezvous ports: run k's from PORTS + 10 
 STOP_IN=${STOP_IN:-}                # seconds: every run stops (and saves) this long after the script started
 EXTRA=${EXTRA:-}
 STAGES=${STAGES:-"anchors rl eval"}
-GPUS=${GPUS:-$(python3 -c "import torch; print(max(1, torch.cuda.device_count()))")}
+FIRST_GPU=${FIRST_GPU:-0}           # the study's GPUs: FIRST_GPU ... FIRST_GPU + GPUS - 1 (two studies on one host:
+                                    # each on GPUs of its own)
+GPUS=${GPUS:-$(python3 -c "import torch; print(max(1, torch.cuda.device_count() - $FIRST_GPU))")}
+gpus=$(seq -s, "$FIRST_GPU" $((FIRST_GPU + GPUS - 1)))  # CUDA_VISIBLE_DEVICES of a stage on all of them
 PER_GPU=${PER_GPU:-1}               # RL runs sharing one GPU at a time (a 27 M model leaves an H100 idle between
                                     # its kernels: 2 fill the gaps of one)
 want() { [[ " $STAGES " == *" $1 "* ]]; }
@@ -113,7 +117,7 @@ rl="pada.num_generations=$G pada.scale_rewards=$SCALE pada.reward=[\"valid_terms
 rl="$rl pada.max_steps=$STEPS pada.save_steps=$SAVE pada.save_total_limit=null"
 
 rl_slot() {  # $1: a slot (GPU $1 % GPUS): runs $1, $1 + GPUS * PER_GPU, ... one after the other
-  local gpu=$(($1 % GPUS)) k seed variant dir
+  local gpu=$((FIRST_GPU + $1 % GPUS)) k seed variant dir
   for k in $(seq "$1" $((GPUS * PER_GPU)) $((${#runs[@]} - 1))); do
     seed=${runs[$k]%%:*} variant=${runs[$k]#*:} dir=$RUN/s${runs[$k]%%:*}
     stamp "$variant seed $seed on GPU $gpu"
@@ -139,10 +143,10 @@ ablation.heldout_anchors=$held$([ "$only" = decode ] && echo " ablation.decode_o
 
 if want anchors; then
   stamp "anchors: $POOL prompts on $GPUS GPU(s)"
-  small "" STOP_IN="$(left)" NPROC="$GPUS" RUN="$RUN" STAGES=anchors ANCHORS="$POOL" MAX_TOKENS="$TOKENS" \
+  small "" CUDA_VISIBLE_DEVICES="$gpus" STOP_IN="$(left)" NPROC="$GPUS" RUN="$RUN" STAGES=anchors ANCHORS="$POOL" MAX_TOKENS="$TOKENS" \
     CACHE="$EVAL_CACHE" EXTRA="$common"
   stamp "held-out anchors: $HELDOUT prompts outside the pool"
-  small "" STOP_IN="$(left)" NPROC="$GPUS" RUN="$RUN" STAGES=anchors ANCHORS="$HELDOUT" MAX_TOKENS="$TOKENS" \
+  small "" CUDA_VISIBLE_DEVICES="$gpus" STOP_IN="$(left)" NPROC="$GPUS" RUN="$RUN" STAGES=anchors ANCHORS="$HELDOUT" MAX_TOKENS="$TOKENS" \
     CACHE="$EVAL_CACHE" EXTRA="$common $heldout"
 fi
 if want rl; then
@@ -151,14 +155,14 @@ if want rl; then
 fi
 if want decode; then  # PER_GPU seeds at a time on each GPU
   for k in "${!seeds[@]}"; do
-    spawn eval_seed "${seeds[$k]}" $((k % GPUS)) decode "$k"
+    spawn eval_seed "${seeds[$k]}" $((FIRST_GPU + k % GPUS)) decode "$k"
     if (((k + 1) % (GPUS * PER_GPU) == 0)); then wait; fi
   done
   wait
 fi
 if want eval; then
   for k in "${!seeds[@]}"; do
-    spawn eval_seed "${seeds[$k]}" $((k % GPUS)) eval "$k"
+    spawn eval_seed "${seeds[$k]}" $((FIRST_GPU + k % GPUS)) eval "$k"
     if (((k + 1) % GPUS == 0)); then wait; fi
   done
   wait
