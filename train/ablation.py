@@ -708,7 +708,8 @@ def merge_ablations(sources: list[str | Path], out: str | Path, layouts: str | P
     ``<layouts>/s<seed>/`` and the row names the copy, so the table and its layouts travel together
     (``physcene eval --generator file:...`` recomputes a row). Two rows with the same name, seed and
     steps are an error naming both sources, and so are sources scored on different draws of the test
-    split (``test_split``: their rows would not compare)."""
+    split (``test_split``: their rows would not compare). A merged table is a source too: a new seed's
+    table merged into it, with the same ``layouts``, leaves its rows' layouts where they are."""
     import shutil
 
     merged: dict = {"rows": [], "checkpoint_rows": [], "gpu": [], "commands": [], "sources": []}
@@ -739,7 +740,8 @@ def merge_ablations(sources: list[str | Path], out: str | Path, layouts: str | P
                     found = _row_layouts(row["layouts"], source)
                     copy = Path(layouts) / f"s{row.get('seed', 0)}" / found.name
                     copy.parent.mkdir(parents=True, exist_ok=True)
-                    shutil.copyfile(found, copy)
+                    if not (copy.exists() and copy.samefile(found)):  # a merged table grown: in place
+                        shutil.copyfile(found, copy)
                     row["layouts"] = _repository_path(copy)
                 merged[part].append(row)
     merged["gpu"] = merged["gpu"][0] if len(merged["gpu"]) == 1 else merged["gpu"]

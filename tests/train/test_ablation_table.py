@@ -131,6 +131,27 @@ def test_seeds_merge_into_one_table_with_their_layouts(table, tmp_path):
                  "--sources", str(tmp_path / "s0.json"), str(tmp_path / "s0.json")]) != 0
 
 
+def test_a_merged_table_grows_by_a_new_seed_in_place(table, tmp_path):
+    """The merged table is itself a source: seed 1's table merged into it, written over it with the same
+    layouts folder, keeps seed 0's rows and their layouts files as they were and adds seed 1's."""
+    from physcene.train.ablation import merge_ablations
+
+    _, data = table
+    (tmp_path / "s0.json").write_text(json.dumps(data))
+    out, layouts = tmp_path / "docs" / "ablation.json", tmp_path / "docs" / "ablation"
+    merge_ablations([tmp_path / "s0.json"], out, layouts)
+    kept = {p.name: p.read_bytes() for p in (layouts / "s0").iterdir()}
+    grown = tmp_path / "grown_from.json"
+    grown.write_text(out.read_text())
+    seed1 = {**data, "rows": [{**r, "seed": 1} for r in data["rows"]]}
+    (tmp_path / "s1.json").write_text(json.dumps(seed1))
+    merged = merge_ablations([grown, tmp_path / "s1.json"], out, layouts)
+    assert [(r["name"], r["seed"]) for r in merged["rows"]] == [("reference", 0), ("pada", 0),
+                                                                ("reference", 1), ("pada", 1)]
+    assert {p.name: p.read_bytes() for p in (layouts / "s0").iterdir()} == kept
+    assert sorted(p.name for p in (layouts / "s1").iterdir()) == sorted(kept)
+
+
 def test_tables_of_different_test_draws_are_not_merged(table, tmp_path):
     """Two seeds' tables scored on different draws of the test split (``test_split``) are refused with
     one error naming both draws; the same draw merges and the merged table records it."""
