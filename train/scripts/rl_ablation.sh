@@ -116,7 +116,7 @@ heldout="anchors.exclude=$RUN/anchors.jsonl.gz anchors.output=$held anchors.pool
 rl="pada.num_generations=$G pada.scale_rewards=$SCALE pada.reward=[\"valid_terms=$VALID\"]"
 rl="$rl pada.max_steps=$STEPS pada.save_steps=$SAVE pada.save_total_limit=null"
 
-rl_slot() {  # $1: a slot (GPU $1 % GPUS): runs $1, $1 + GPUS * PER_GPU, ... one after the other
+rl_slot() {  # $1: a slot (GPU FIRST_GPU + $1 % GPUS): runs $1, $1 + GPUS * PER_GPU, ... one after the other
   local gpu=$((FIRST_GPU + $1 % GPUS)) k seed variant dir
   for k in $(seq "$1" $((GPUS * PER_GPU)) $((${#runs[@]} - 1))); do
     seed=${runs[$k]%%:*} variant=${runs[$k]#*:} dir=$RUN/s${runs[$k]%%:*}
@@ -143,11 +143,11 @@ ablation.heldout_anchors=$held$([ "$only" = decode ] && echo " ablation.decode_o
 
 if want anchors; then
   stamp "anchors: $POOL prompts on $GPUS GPU(s)"
-  small "" CUDA_VISIBLE_DEVICES="$gpus" STOP_IN="$(left)" NPROC="$GPUS" RUN="$RUN" STAGES=anchors ANCHORS="$POOL" MAX_TOKENS="$TOKENS" \
-    CACHE="$EVAL_CACHE" EXTRA="$common"
+  small "" CUDA_VISIBLE_DEVICES="$gpus" STOP_IN="$(left)" NPROC="$GPUS" RUN="$RUN" STAGES=anchors \
+    ANCHORS="$POOL" MAX_TOKENS="$TOKENS" CACHE="$EVAL_CACHE" EXTRA="$common"
   stamp "held-out anchors: $HELDOUT prompts outside the pool"
-  small "" CUDA_VISIBLE_DEVICES="$gpus" STOP_IN="$(left)" NPROC="$GPUS" RUN="$RUN" STAGES=anchors ANCHORS="$HELDOUT" MAX_TOKENS="$TOKENS" \
-    CACHE="$EVAL_CACHE" EXTRA="$common $heldout"
+  small "" CUDA_VISIBLE_DEVICES="$gpus" STOP_IN="$(left)" NPROC="$GPUS" RUN="$RUN" STAGES=anchors \
+    ANCHORS="$HELDOUT" MAX_TOKENS="$TOKENS" CACHE="$EVAL_CACHE" EXTRA="$common $heldout"
 fi
 if want rl; then
   for slot in $(seq 0 $((GPUS * PER_GPU - 1))); do spawn rl_slot "$slot"; done
