@@ -17,13 +17,16 @@ trace with the code of each git revision (a worktree of its own, in a subprocess
 interleaved with the working tree's, so load that changes during the run hits every version alike.
 The trace depends on the tokenizer and prompts only (no model is loaded by ``replay``). ``score``
 gives the physics reward's figures of the rollouts a trace holds (collision-free and invalid shares,
-the validity terms': what a round of that sampling gives RL to learn from). ``streams`` (a GPU's
+the validity terms': what a round of that sampling gives RL to learn from). ``profile`` replays a trace
+once under cProfile (after an untimed round) and lists the functions that hold the check's time, with
+the share spent inside regular-expression matching: where a faster check must save. ``streams`` (a GPU's
 measure) samples the same round with the logits the check reads on a stream of their own
 (``FastDecoder.reads_stream``, the default) and on the decoding stream, where they wait for the step
 launched before the check, and reports each one's seconds a round and host-check seconds.
 
     python benchmarks/constraint_replay.py streams --model small-sft-physics \
         --records artifacts/rl-anchors/anchors.jsonl.gz --n 128 --rounds 3 --json out.json
+    python benchmarks/constraint_replay.py profile trace.pt --top 15 --json out.json
 """
 
 from __future__ import annotations
@@ -104,10 +107,10 @@ def record(args: argparse.Namespace) -> None:
           f"-> {args.out}")
 
 
-def replay_once(trace: dict, tokenizer, workers: int = 0) -> dict:
+def replay_once(trace: dict, tokenizer, workers: int = 0, profiler=None) -> dict:
     """One round: a fresh constraint fed the recorded calls (``workers``: checked by that many worker
     processes); the seconds in its checks, and whether each call and the round's end agree with the
-    recording."""
+    recording. ``profiler`` (a ``cProfile.Profile``) runs during the checks alone."""
     import inspect
 
     from transformers import GenerationConfig, LogitsProcessorList
@@ -141,9 +144,13 @@ def replay_once(trace: dict, tokenizer, workers: int = 0) -> dict:
             return logits[b]
 
         torch.set_rng_state(call["rng"])
+        if profiler is not None:
+            profiler.enable()
         start = time.perf_counter()
         corrections = check.check(call["tokens"], call["candidates"], set(call["skip"]), logits_row)
         seconds += time.perf_counter() - start
+        if profiler is not None:
+            profiler.disable()
         differing += corrections != call["corrections"]
     return {"seconds": seconds, "calls": len(trace["calls"]), "differing_calls": differing,
             "logits_not_recorded": unread, "same_tokens": check.tokens() == trace["tokens"]}
@@ -218,6 +225,47 @@ def replay(args: argparse.Namespace) -> None:
             print(f"{name} / working tree: {summary['versions'][name]['median_s'] / base:.3f} of the time")
     if args.json:
         Path(args.json).write_text(json.dumps(summary, indent=1) + "\n")
+
+
+def profile(args: argparse.Namespace) -> dict:
+    """One replay of the trace with cProfile on during the checks, after an untimed one: the ``--top``
+    functions by their own time (calls, own and cumulative seconds, own share of all the checks' profiled
+    time), the share inside the regex engines' matching methods, and the replay's equality with the
+    recording."""
+    import cProfile
+    import pstats
+
+    from physcene.train.models import load_tokenizer
+
+    trace = torch.load(args.trace, weights_only=False)
+    tokenizer = load_tokenizer(trace["model"])
+    replay_once(trace, tokenizer)
+    profiler = cProfile.Profile()
+    result = replay_once(trace, tokenizer, profiler=profiler)
+    stats = pstats.Stats(profiler).stats  # (file, line, name) -> (calls, primitive, own, cumulative, callers)
+    total = sum(own for _, _, own, _, _ in stats.values())
+    functions = sorted(({"function": f"{Path(file).name}:{line}({name})" if line else name, "calls": calls,
+                         "own_s": own, "cumulative_s": cumulative, "own_share": own / total}
+                        for (file, line, name), (_, calls, own, cumulative, _) in stats.items()),
+                       key=lambda f: -f["own_s"])
+    methods = [f"'{m}' of '{kind}" for m in ("match", "fullmatch", "search", "findall")
+               for kind in ("_regex.Pattern", "re.Pattern")]
+    matching = sum(f["own_s"] for f in functions if any(m in f["function"] for m in methods))
+    steps, rows = len(trace["calls"]), len(trace["prompts"])
+    equal = result["differing_calls"] == 0 and result["same_tokens"] and not result["logits_not_recorded"]
+    summary = {"trace": str(args.trace), "rows": rows, "steps": steps, "profiled_check_s": result["seconds"],
+               "regex_matching_share": matching / total, "equal_to_recording": equal, "cpu": _cpu_name(),
+               "record_command": trace["command"], "command": " ".join(sys.argv),
+               "functions": functions[:args.top]}
+    print(f"{rows} rows x {steps} steps: {result['seconds']:.3f} s in the checks under the profiler; "
+          f"{100 * summary['regex_matching_share']:.1f} % of it inside regex matching; "
+          f"equal to the recording: {summary['equal_to_recording']}")
+    for f in summary["functions"]:
+        print(f"{100 * f['own_share']:6.1f} %  {f['own_s']:7.3f} s own  {f['cumulative_s']:7.3f} s cum  "
+              f"{f['calls']:>8} calls  {f['function']}")
+    if args.json:
+        Path(args.json).write_text(json.dumps(summary, indent=1) + "\n")
+    return summary
 
 
 def streams(args: argparse.Namespace) -> dict:
@@ -343,13 +391,18 @@ def main() -> None:
                           "processes (physcene.train.decode.shards), e.g. --workers 2 4")
     rep.add_argument("--rounds", type=int, default=5)
     rep.add_argument("--json", help="write the figures here")
+    pro = sub.add_parser("profile", help="where the recorded checks' time goes, by function (cProfile)")
+    pro.add_argument("trace")
+    pro.add_argument("--top", type=int, default=20, help="functions listed, by their own time")
+    pro.add_argument("--json", help="write the figures here")
     sco = sub.add_parser("score", help="the physics reward's figures of the rollouts recorded in traces")
     sco.add_argument("traces", nargs="+")
     sco.add_argument("--set", nargs="*", default=["valid_terms=[floating,shrunk,out_of_zone]"],
                      help="configs/reward.yaml overrides (default: the RL study's validity terms)")
     sco.add_argument("--json", help="write the figures here")
     args = parser.parse_args()
-    {"record": record, "replay": replay, "streams": streams, "score": score}[args.command](args)
+    verbs = {"record": record, "replay": replay, "profile": profile, "streams": streams, "score": score}
+    verbs[args.command](args)
 
 
 if __name__ == "__main__":

@@ -158,6 +158,16 @@ def test_a_recorded_round_replays_equal_with_and_without_workers(tmp_path, recor
     for workers in (0, 2):
         (result,) = replay.replay_rounds(str(trace), 1, workers)
         assert result["differing_calls"] == 0 and result["same_tokens"] and not result["logits_not_recorded"]
+    # `profile`: the check's functions by their own time, the constraint's own among them
+    profiled = replay.profile(argparse.Namespace(trace=str(trace), top=10**6, json=str(tmp_path / "p.json")))
+    assert profiled["equal_to_recording"] and 0.0 <= profiled["regex_matching_share"] < 1.0
+    own = [f["own_s"] for f in profiled["functions"]]
+    assert own == sorted(own, reverse=True)
+    # the checks alone: the constraint built before them (its __init__, the vocabulary's index) is not in it
+    assert not any(f["function"].startswith("processor.py") and "__init__" in f["function"]
+                   for f in profiled["functions"])
+    assert any("advance_row" in f["function"] or "advance_within_rule" in f["function"]
+               for f in profiled["functions"])
     call = next(c for c in recorded["calls"] if c["tokens"])
     call["tokens"][0] = (call["tokens"][0] + 1) % len(tokenizer)  # a step the check never saw
     torch.save(recorded, trace)
