@@ -30,6 +30,7 @@ import functools
 import hashlib
 import importlib
 import json
+import shutil
 import sys
 import time
 from functools import partial
@@ -254,10 +255,13 @@ def decode_layouts(cfg: DictConfig, variants: list[str]) -> dict:
         draws.append((validation, folder / "validation"))
     for split, where in draws:
         items = None
+        sources = {name: _row_source(cfg, path, split) for name, path in models.items()}
+        adopted = _adopt_layouts(where, sources) if state.is_main_process else {}
+        state.wait_for_everyone()
         for name, path in models.items():
-            source, label = _row_source(cfg, path, split), f"{name} ({split['name']}, seed {split['seed']})"
+            source, label = sources[name], f"{name} ({split['name']}, seed {split['seed']})"
             if _kept(where, name, source):
-                done["kept"].append(label)
+                done["kept"].append(label + (f" (as {adopted[name]})" if name in adopted else ""))
                 continue
             items = items if items is not None else _load_split(split)
             outputs = _decode(cfg, path, items, sft)
@@ -449,10 +453,15 @@ def _evaluate(cfg: DictConfig, models: dict[str, Path], budget_s: float) -> list
 
     base = models.get("sft")  # the adapters' base: the table's SFT model, wherever they were trained
     base_source = _row_source(cfg, base, test) if base is not None and layouts else None
+    # hashed only where the layouts are kept: what the reuse check and the record compare; the split and
+    # its seed are part of it, so layouts of another draw are never re-scored as these scenes
+    sources = {name: (base_source if path == base else _row_source(cfg, path, test)) if layouts else None
+               for name, path in models.items()}
+    if layouts and a.get("reuse", True) and state.is_main_process:
+        _adopt_layouts(layouts, sources)  # before any row's layouts are written again
+    state.wait_for_everyone()
     for name, path in models.items():
-        # hashed only where the layouts are kept: what the reuse check and the record compare; the split
-        # and its seed are part of it, so layouts of another draw are never re-scored as these scenes
-        source = (base_source if path == base else _row_source(cfg, path, test)) if layouts else None
+        source = sources[name]
         val_source = _row_source(cfg, path, validation) if layouts and validation else None
         outputs = _model_outputs(cfg, name, path, items, layouts, source, base)
         val_outputs = (_model_outputs(cfg, name, path, val_items, val_folder, val_source, base)
@@ -544,6 +553,31 @@ def _kept(layouts, name: str, source: dict) -> bool:
         return False
     recorded = _source_file(layouts, name)
     return recorded.is_file() and json.loads(recorded.read_text()) == json.loads(json.dumps(source))
+
+
+def _adopt_layouts(layouts, sources: dict[str, dict]) -> dict[str, str]:
+    """Before anything is decoded or re-written: each row of ``sources`` (name -> what its layouts come
+    from) without layouts of its own whose source another row's layouts file under ``layouts`` records
+    gets a copy of that file and its record. A run's final model decoded as its row and kept as a
+    checkpoint once the run went on (``pada`` at 100 steps is ``pada@100`` after a resume) is the same
+    model under another name. Returns {row: the file it was copied from}."""
+    folder = Path(str(layouts))
+    if not folder.is_dir():
+        return {}
+    recorded = {}
+    for record in sorted(folder.glob("*.source.json")):
+        written = record.with_name(record.name.removesuffix(".source.json") + ".jsonl.gz")
+        if written.is_file():
+            recorded.setdefault(json.dumps(json.loads(record.read_text()), sort_keys=True), written)
+    adopted = {}
+    for name, source in sources.items():
+        same = recorded.get(json.dumps(json.loads(json.dumps(source)), sort_keys=True))
+        if same is None or same.name == row_file(name) or _kept(folder, name, source):
+            continue
+        shutil.copyfile(same, folder / row_file(name))
+        _record_source(folder, name, source)
+        adopted[name] = same.name
+    return adopted
 
 
 def _earlier_layouts(items, layouts, name: str, source: dict) -> list | None:
@@ -710,8 +744,6 @@ def merge_ablations(sources: list[str | Path], out: str | Path, layouts: str | P
     steps are an error naming both sources, and so are sources scored on different draws of the test
     split (``test_split``: their rows would not compare). A merged table is a source too: a new seed's
     table merged into it, with the same ``layouts``, leaves its rows' layouts where they are."""
-    import shutil
-
     merged: dict = {"rows": [], "checkpoint_rows": [], "gpu": [], "commands": [], "sources": []}
     seen: dict[tuple, str] = {}
     split: tuple[dict, str] | None = None  # the first source's test_split, and that source

@@ -12,6 +12,7 @@ import json
 import pytest
 from omegaconf import OmegaConf
 
+from physcene.artifacts import checkpoint_digest
 from physcene.config import load_config
 from physcene.eval.harness import load_benchmark
 from physcene.layout import layout_record_lines, layout_to_dict
@@ -266,6 +267,39 @@ def test_decode_only_keeps_every_models_layouts_and_the_scoring_run_re_scores_th
     rows = ablation._evaluate(_config(tmp_path), models, budget_s=600)
     assert [r["name"] for r in rows] == ["sft", "sft+tto", "grpo", "grpo@1"]
     assert capsys.readouterr().err.count("layouts read from") == 3
+
+
+def test_a_final_model_kept_as_a_checkpoint_row_after_a_resume_is_not_decoded_again(tmp_path, stub_decoding,
+                                                                                    capsys):
+    """A run decoded at its end (row ``grpo``, 2 steps) and then resumed to 3 steps: its step-2
+    checkpoint (the same files, so the same source) becomes row ``grpo@2``, which takes the ``grpo``
+    row's layouts before the new final model's replace them, under decode_only and in a scoring run
+    alike; only the new final model is decoded."""
+    import shutil
+
+    calls, _ = stub_decoding
+    cfg = _config(tmp_path, "ablation.decode_only=true", "ablation.checkpoints=true",
+                  "ablation.variants=[grpo]")
+    run = tmp_path / "run"
+    _model(run / "sft", steps=0)
+    (_model(run / "grpo", steps=2) / "adapter_config.json").write_text("{}")
+    ablation.run_ablation(cfg)
+    assert [c[0] for c in calls] == ["sft", "grpo"]
+    shutil.copytree(tmp_path / "layouts", tmp_path / "scored")
+    # the run goes on: its files at step 2 become checkpoint-2, its final model has 3 steps
+    (run / "grpo").rename(tmp_path / "step2")
+    (_model(run / "grpo", steps=3) / "config.json").write_text(json.dumps({"steps": 3}))
+    (tmp_path / "step2").rename(run / "grpo" / "checkpoint-2")
+    again = ablation.run_ablation(cfg)
+    assert [c[0] for c in calls] == ["sft", "grpo", "grpo"]  # the new final model alone
+    assert again["decode_only"]["kept"] == ["sft (test, seed 0)", "grpo@2 (test, seed 0) (as grpo.jsonl.gz)"]
+    step2 = json.loads((tmp_path / "layouts" / "grpo-2.source.json").read_text())
+    assert step2["model"] == checkpoint_digest(run / "grpo" / "checkpoint-2")
+    capsys.readouterr()
+    models = {"sft": run / "sft", "grpo": run / "grpo", "grpo@2": run / "grpo" / "checkpoint-2"}
+    ablation._evaluate(_config(tmp_path, f"ablation.layouts={tmp_path / 'scored'}"), models, budget_s=600)
+    assert [c[0] for c in calls] == ["sft", "grpo", "grpo", "grpo"]  # again the new final model alone
+    assert "grpo@2 layouts read from" in capsys.readouterr().err
 
 
 def test_decode_only_needs_a_layouts_folder(tmp_path):
