@@ -57,3 +57,14 @@ def test_probes_run_on_a_checkpoint(records, tmp_path, monkeypatch):
     z = probe.zone_probe(probe._Scorer(str(tmp_path / "ckpt")), records[0])
     width_depth = [v for v in records[0]["completion"].split('"bbox": [')[1].split("]")[0].split(", ")][1:4:2]
     assert len(z["digit_probabilities"]) == sum(c.isdigit() for v in width_depth for c in v)
+
+
+def test_a_vocabulary_without_digit_tokens_reports_no_digit_median(records, monkeypatch):
+    """With whole numbers as single tokens (the ``ctrc`` tokenizer) no zone digit is probed: the median is
+    None and the rest of the probes still report."""
+    monkeypatch.setattr(probe, "zone_probe", lambda scorer, r: {"digit_probabilities": [], "nll": 2.0,
+                                                                 "nll_bigger_zone": 3.0})
+    monkeypatch.setattr(probe, "neighbour_probe", lambda scorer, r: {"nll": 2.0, "nll_moved_onto_next": 2.5})
+    result = probe.probe(None, records)
+    assert result["zone"] == {"n": 3, "digit_probability_median": None, "nll_change_bigger_zone": 0.5}
+    assert result["neighbour"] == {"n": 3, "nll_change_moved_onto_next": 0.25, "raised": 3}

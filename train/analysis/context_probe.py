@@ -123,7 +123,8 @@ def probe(scorer: _Scorer, rows: list[dict]) -> dict:
 
     digits = [p for z in zone for p in z["digit_probabilities"]]
     return {
-        "zone": {"n": len(zone), "digit_probability_median": statistics.median(digits),
+        # a vocabulary of whole numbers (docs/training.md, "Fewer tokens per object") has no digit tokens
+        "zone": {"n": len(zone), "digit_probability_median": statistics.median(digits) if digits else None,
                  "nll_change_bigger_zone": rel(zone, "nll", "nll_bigger_zone")},
         "neighbour": {"n": len(near), "nll_change_moved_onto_next": rel(near, "nll", "nll_moved_onto_next"),
                       "raised": sum(m["nll_moved_onto_next"] > m["nll"] for m in near)},
