@@ -156,6 +156,11 @@ def replay_once(trace: dict, tokenizer, workers: int = 0, profiler=None) -> dict
             "logits_not_recorded": unread, "same_tokens": check.tokens() == trace["tokens"]}
 
 
+def _equal(result: dict) -> bool:
+    """Whether a replayed round decided as recorded: every call, the round's tokens, no unrecorded read."""
+    return result["differing_calls"] == 0 and result["same_tokens"] and not result["logits_not_recorded"]
+
+
 def replay_rounds(trace_path: str, rounds: int, workers: int = 0) -> list[dict]:
     """``rounds`` replays after one untimed (the rule patterns compiled, the vocabulary's index built:
     what a PADA run has from its second round on)."""
@@ -210,8 +215,7 @@ def replay(args: argparse.Namespace) -> None:
                "rounds": args.rounds, "cpu": _cpu_name(), "versions": {}}
     for name, runs in results.items():
         times = [r["seconds"] for r in runs]
-        equal = all(r["differing_calls"] == 0 and r["same_tokens"] and not r["logits_not_recorded"]
-                    for r in runs)
+        equal = all(_equal(r) for r in runs)
         summary["versions"][name] = {"median_s": statistics.median(times), "min_s": min(times),
                                      "ms_per_step": 1e3 * statistics.median(times) / steps,
                                      "us_per_row_step": 1e6 * statistics.median(times) / steps / rows,
@@ -252,7 +256,7 @@ def profile(args: argparse.Namespace) -> dict:
                for kind in ("_regex.Pattern", "re.Pattern")]
     matching = sum(f["own_s"] for f in functions if any(m in f["function"] for m in methods))
     steps, rows = len(trace["calls"]), len(trace["prompts"])
-    equal = result["differing_calls"] == 0 and result["same_tokens"] and not result["logits_not_recorded"]
+    equal = _equal(result)
     summary = {"trace": str(args.trace), "rows": rows, "steps": steps, "profiled_check_s": result["seconds"],
                "regex_matching_share": matching / total, "equal_to_recording": equal, "cpu": _cpu_name(),
                "record_command": trace["command"], "command": " ".join(sys.argv),
