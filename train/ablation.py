@@ -571,7 +571,7 @@ def _adopt_layouts(layouts, sources: dict[str, dict]) -> dict[str, str]:
             recorded.setdefault(json.dumps(json.loads(record.read_text()), sort_keys=True), written)
     adopted = {}
     for name, source in sources.items():
-        same = recorded.get(json.dumps(json.loads(json.dumps(source)), sort_keys=True))
+        same = recorded.get(json.dumps(source, sort_keys=True))  # as _record_source writes it
         if same is None or same.name == row_file(name) or _kept(folder, name, source):
             continue
         shutil.copyfile(same, folder / row_file(name))
