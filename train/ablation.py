@@ -248,7 +248,7 @@ def decode_layouts(cfg: DictConfig, variants: list[str]) -> dict:
         else:
             done["missing"].append(f"{name}: {out_dir}")
     if a.get("checkpoints", False):
-        models.update(checkpoint_models(models))
+        models.update(checkpoint_models(models, a.checkpoints))
     folder = Path(str(a.layouts))
     draws = [(evaluation_split(a), folder)]
     if (validation := validation_split(a)) is not None:
@@ -274,18 +274,27 @@ def decode_layouts(cfg: DictConfig, variants: list[str]) -> dict:
     return done
 
 
-def checkpoint_models(models: dict[str, Path]) -> dict[str, Path]:
-    """``{"pada@12": .../pada/checkpoint-12, ...}``: every kept intermediate checkpoint of the RL rows
-    (``ablation.checkpoints``), in step order; the final model's own step is its row already."""
+def checkpoint_models(models: dict[str, Path], steps=True) -> dict[str, Path]:
+    """``{"pada@12": .../pada/checkpoint-12, ...}``: the kept intermediate checkpoints of the RL rows
+    (``ablation.checkpoints``: true, every one; a list of steps, those of them that were kept), in step
+    order; the final model's own step is its row already."""
+    if steps is not True:
+        try:
+            if isinstance(steps, str):
+                raise TypeError(steps)
+            wanted = {int(step) for step in steps}
+        except (TypeError, ValueError):
+            raise TrainingSetupError("ablation.checkpoints is true, false or a list of RL steps, "
+                                     f"not {steps!r}") from None
     out = {}
     for name in ("grpo", "pada*", "pada"):
         if name not in models:
             continue
-        steps = sorted(int(d.name.split("-")[1]) for d in Path(models[name]).glob("checkpoint-*")
-                       if d.name.split("-")[1].isdigit() and (d / "adapter_config.json").is_file())
+        kept = sorted(int(d.name.split("-")[1]) for d in Path(models[name]).glob("checkpoint-*")
+                      if d.name.split("-")[1].isdigit() and (d / "adapter_config.json").is_file())
         final = read_run_info(models[name]).get("steps")
         out.update({f"{name}@{step}": Path(models[name]) / f"checkpoint-{step}"
-                    for step in steps if step != final})
+                    for step in kept if step != final and (steps is True or step in wanted)})
     return out
 
 
@@ -693,7 +702,7 @@ def run_ablation(cfg: DictConfig, budget_min: float | None = None) -> dict:
             skipped.append({"name": name, "skipped": str(exc)})
             continue
         stages[variant]["stopped_by_budget"] = budget.stopped_early
-    extra = checkpoint_models(models) if a.get("checkpoints", False) else {}
+    extra = checkpoint_models(models, a.checkpoints) if a.get("checkpoints", False) else {}
     evaluated = mark_chosen(timed("eval", _evaluate, cfg, {**models, **extra}, shares["eval"] * budget_s))
     rows = [r for r in evaluated if r["name"] not in extra and r["name"] != "reference"] + skipped
     reference = [r for r in evaluated if r["name"] == "reference"]

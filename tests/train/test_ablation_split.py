@@ -302,6 +302,26 @@ def test_a_final_model_kept_as_a_checkpoint_row_after_a_resume_is_not_decoded_ag
     assert "grpo@2 layouts read from" in capsys.readouterr().err
 
 
+def test_checkpoints_as_a_list_of_steps_takes_those_that_were_kept(tmp_path, stub_decoding):
+    """ablation.checkpoints=[2,4] decodes the kept checkpoints of those steps (a step not kept, or the
+    final model's own, is no row); anything but true, false or a list of steps is one clear error."""
+    calls, _ = stub_decoding
+    run = tmp_path / "run"
+    _model(run / "sft", steps=0)
+    _model(run / "grpo", steps=4)
+    for step in (1, 2, 3):
+        (_model(run / "grpo" / f"checkpoint-{step}") / "adapter_config.json").write_text("{}")
+    cfg = _config(tmp_path, "ablation.decode_only=true", "ablation.checkpoints=[2,4,5]",
+                  "ablation.variants=[grpo]")
+    result = ablation.run_ablation(cfg)
+    assert [c[0] for c in calls] == ["sft", "grpo", "checkpoint-2"]
+    assert result["decode_only"]["decoded"] == [f"{n} (test, seed 0)" for n in ("sft", "grpo", "grpo@2")]
+    models = {"grpo": run / "grpo"}
+    assert list(ablation.checkpoint_models(models, True)) == ["grpo@1", "grpo@2", "grpo@3"]
+    with pytest.raises(TrainingSetupError, match="ablation.checkpoints is true, false or a list of RL steps"):
+        ablation.checkpoint_models(models, "100")
+
+
 def test_decode_only_needs_a_layouts_folder(tmp_path):
     with pytest.raises(TrainingSetupError, match="decode_only keeps the layouts .* set ablation.layouts"):
         ablation.run_ablation(_config(tmp_path, "ablation.decode_only=true", "ablation.layouts=null"))

@@ -45,6 +45,7 @@ SCALE=${SCALE:-batch}
 VALID=${VALID:-"[floating,shrunk,out_of_zone]"}
 STEPS=${STEPS:-300}                 # optimiser steps per run: 300 x 128 = 38,400 rollouts (the paper: ~37 k)
 SAVE=${SAVE:-50}                    # a checkpoint (kept, with optimiser state) every SAVE steps: the curves' points
+CHECKPOINTS=${CHECKPOINTS:-true}    # the kept checkpoints decode / eval take as rows: true (all) or steps ([100,200])
 TOKENS=${TOKENS:-2304}              # rollout and anchor length bound (the paper's)
 N_TEST=${N_TEST:-866}
 RL_CACHE=${RL_CACHE:-fast+fused+cudnn}  # sampled groups
@@ -135,7 +136,7 @@ eval_seed() {  # $1: a seed, $2: its GPU, $3: eval or decode, $4: the seed's ind
     PORT=$((PORTS + 10 * (${#runs[@]} + $4))) \
     ANCHORS="$POOL" MAX_TOKENS="$TOKENS" N_TEST="$N_TEST" PADA_MIN=100000 CACHE="$EVAL_CACHE" \
     PADA_TOKENS="$TOKENS" PADA_BATCH="$BATCH" PADA_MICRO="$MICRO" \
-    EXTRA="$common $rl seed=$1 ablation.checkpoints=true ablation.reference=true \
+    EXTRA="$common $rl seed=$1 ablation.checkpoints=$CHECKPOINTS ablation.reference=true \
 ablation.variants=[$(variants_of "$1")] ablation.output=$dir/ablation.json ablation.layouts=$dir/layouts \
 ablation.heldout_anchors=$held$([ "$only" = decode ] && echo " ablation.decode_only=true")" \
     || stamp "$only seed $1 failed: $dir/$only.log"
