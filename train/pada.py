@@ -41,7 +41,12 @@ from trl import GRPOTrainer
 from physcene.reward.trl import PhysicsRewardFunction
 from physcene.train.checkpoints import last_complete_checkpoint
 from physcene.train.config import VARIANTS, PADAConfig, pada_arguments, reward_overrides
-from physcene.train.constrained_rollouts import ConstrainedRollouts, fast_rollouts, generate_with_processors
+from physcene.train.constrained_rollouts import (
+    ConstrainedRollouts,
+    OverruledStop,
+    fast_rollouts,
+    generate_with_processors,
+)
 from physcene.train.denoise import Denoise
 from physcene.train.diagnostics import NonfiniteProbe
 from physcene.train.extension import PADAExtension
@@ -321,6 +326,15 @@ class PADATrainer(GRPOTrainer):
         return loss + self.anchor_alpha * ce * weight
 
 
+def overruled_stop(pada_cfg) -> list[OverruledStop]:
+    """``[OverruledStop]`` when ``pada.stop_overruled`` is set and groups are sampled under the
+    constraint (else ``[]``)."""
+    share = pada_cfg.get("stop_overruled")
+    if share is None or not pada_cfg.get("constrained", False):
+        return []
+    return [OverruledStop(float(share), int(pada_cfg.get("stop_overruled_steps", 5)))]
+
+
 def run_pada(cfg, variant: str | None = None, reward=None, callbacks=()) -> Path:
     """Train stage 2 (``variant`` or ``cfg.pada.variant``) from ``cfg.pada.model`` on ``cfg.pada.anchors``.
 
@@ -363,7 +377,8 @@ def run_pada(cfg, variant: str | None = None, reward=None, callbacks=()) -> Path
         train_dataset=dataset,
         processing_class=tokenizer,
         peft_config=lora_config(cfg.pada.lora),
-        callbacks=[*callbacks, *time_budget_callbacks(cfg.pada), SkipNonFiniteSteps()],
+        callbacks=[*callbacks, *time_budget_callbacks(cfg.pada), SkipNonFiniteSteps(),
+                   *overruled_stop(cfg.pada)],
     )
     kl = cfg.pada.adaptive_kl
     if kl is not None and args.beta > 0:
@@ -382,6 +397,8 @@ def run_pada(cfg, variant: str | None = None, reward=None, callbacks=()) -> Path
                        stopped_by_budget=any(getattr(c, "stopped_early", False)
                                              for c in trainer.callback_handler.callbacks),
                        nonfinite_steps_dropped=skipped_steps(trainer),
+                       stopped_off_grammar=next((c.stopped_at for c in trainer.callback_handler.callbacks
+                                                 if isinstance(c, OverruledStop)), None),
                        base_model=str(model_dir.resolve()), base_sha256=base_sha256, n_records=len(records),
                        complete=True)
     return out

@@ -5,6 +5,7 @@ import random
 
 import pytest
 import torch
+from omegaconf import OmegaConf
 from transformers import GenerationConfig, LogitsProcessorList
 
 from physcene.ctrc import ParseError, parse
@@ -628,3 +629,26 @@ def test_a_token_inside_its_rule_takes_the_short_step_to_the_same_rule(records, 
                 assert short.texts == general.texts
     # declined though admitted: only the tokens that may end an anchor (the general step looks for it)
     assert taken > 5 * (declined - refused) and refused > 10
+
+
+def test_overruled_stop_stops_with_a_checkpoint_once_the_mean_share_passes_its_bound():
+    """OverruledStop averages constraint/overruled_frac over its last `steps` logs and, past the
+    bound, stops the run and asks for a save, once; a log without the share is ignored."""
+    from transformers import TrainerControl, TrainerState
+
+    from physcene.train.constrained_rollouts import OverruledStop
+    from physcene.train.pada import overruled_stop
+
+    stop, state, control = OverruledStop(0.2, steps=3), TrainerState(), TrainerControl()
+    for step, share in enumerate([0.01, 0.05, 0.5, 0.02, 0.4], start=1):  # means .19, .19, .31
+        state.global_step = step
+        stop.on_log(None, state, control, logs={"constraint/overruled_frac": share, "loss": 0.1})
+        stop.on_log(None, state, control, logs={"loss": 0.1})
+        assert control.should_training_stop == (step == 5) and stop.stopped_at == (5 if step == 5 else None)
+    assert control.should_save
+    with pytest.raises(ValueError, match="share of the sampled tokens in \\(0, 1\\), got 1.5"):
+        OverruledStop(1.5)
+    on = OmegaConf.create({"stop_overruled": 0.2, "stop_overruled_steps": 4, "constrained": True})
+    assert [s.recent.maxlen for s in overruled_stop(on)] == [4]
+    assert overruled_stop(OmegaConf.merge(on, {"constrained": False})) == []
+    assert overruled_stop(OmegaConf.merge(on, {"stop_overruled": None})) == []

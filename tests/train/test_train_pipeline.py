@@ -111,8 +111,10 @@ def test_tiny_pipeline_end_to_end(tmp_path, one_thread, monkeypatch):
     for variant in ("grpo", "pada_star", "pada"):
         # pada samples its groups under the CTRC constraint (pada.constrained), the others without
         # (and leaves the tokens the constraint chose out of its loss: pada.mask_overruled)
+        # (and stops a run once the constraint overrules more than pada.stop_overruled of the tokens)
         constrained = OmegaConf.merge(vcfg, {"pada": {"constrained": variant == "pada",
-                                                      "mask_overruled": variant == "pada"}})
+                                                      "mask_overruled": variant == "pada",
+                                                      "stop_overruled": 1e-6, "stop_overruled_steps": 1}})
         outs[variant] = run_pada(constrained, variant=variant, reward=reward)
         assert bool(calls) == (variant == "pada")
         assert outs[variant].name == variant and (outs[variant] / "adapter_model.safetensors").is_file()
@@ -128,6 +130,8 @@ def test_tiny_pipeline_end_to_end(tmp_path, one_thread, monkeypatch):
             assert step["time/constraint_wait_s"] == 0.0  # no device to wait for on the CPU
             assert step["constraint/refused_draws"] >= 0 and step["constraint/vocabulary_scans"] >= 0
             assert 0 <= step["constraint/overruled_frac"] <= 1
+            info = json.loads((outs[variant] / "physcene_run.json").read_text())
+            assert info["stopped_off_grammar"] == (1 if step["constraint/overruled_frac"] > 1e-6 else None)
         assert ("anchor_ce" in step) == (variant != "grpo")
         if variant != "grpo":
             assert step["anchor_ce"] > 0

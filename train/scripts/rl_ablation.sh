@@ -45,6 +45,8 @@ SCALE=${SCALE:-batch}
 VALID=${VALID:-"[floating,shrunk,out_of_zone]"}
 STEPS=${STEPS:-300}                 # optimiser steps per run: 300 x 128 = 38,400 rollouts (the paper: ~37 k)
 SAVE=${SAVE:-50}                    # a checkpoint (kept, with optimiser state) every SAVE steps: the curves' points
+STOP_OVERRULED=${STOP_OVERRULED:-0.2}  # a run stops (saving) once the constraint overrules this share of its sampled
+                                    # tokens over 5 steps: its policy has left the grammar (null: never)
 CHECKPOINTS=${CHECKPOINTS:-true}    # the kept checkpoints decode / eval take as rows: true (all) or steps ([100,200])
 TOKENS=${TOKENS:-2304}              # rollout and anchor length bound (the paper's)
 N_TEST=${N_TEST:-866}
@@ -115,7 +117,7 @@ common="sft.output_dir=$BASE anchors.output=$RUN/anchors.jsonl.gz anchors.pool_s
 held=$RUN/anchors_heldout.jsonl.gz  # (named here: a RUN= word of a later command would change $RUN inside it)
 heldout="anchors.exclude=$RUN/anchors.jsonl.gz anchors.output=$held anchors.pool_size=$HELDOUT"
 rl="pada.num_generations=$G pada.scale_rewards=$SCALE pada.reward=[\"valid_terms=$VALID\"]"
-rl="$rl pada.max_steps=$STEPS pada.save_steps=$SAVE pada.save_total_limit=null"
+rl="$rl pada.max_steps=$STEPS pada.save_steps=$SAVE pada.save_total_limit=null pada.stop_overruled=$STOP_OVERRULED"
 
 rl_slot() {  # $1: a slot (GPU FIRST_GPU + $1 % GPUS): runs $1, $1 + GPUS * PER_GPU, ... one after the other
   local gpu=$((FIRST_GPU + $1 % GPUS)) k seed variant dir
