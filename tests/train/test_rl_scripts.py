@@ -101,6 +101,22 @@ def test_decode_only_decodes_each_seeds_rows_per_gpu_at_once_into_the_table_fold
     assert [c["EXTRA"].split()[:-1] for c in commands] == [c["EXTRA"].split() for c in evals]
 
 
+def test_runs_stop_off_grammar_and_tables_take_the_checkpoints_named(tmp_path):
+    """Every run and table carries pada.stop_overruled (STOP_OVERRULED, 0.2 unless set), and the tables
+    take the kept checkpoints CHECKPOINTS names (all of them unless set)."""
+    def words(**env):
+        done = _rl_ablation(tmp_path, RUNS="0:pada 0:grpo", STAGES="rl decode", **env)
+        assert done.returncode == 0, done.stderr
+        return [c["EXTRA"].split() for c in _commands(done.stdout)]
+
+    default = words()
+    assert len(default) == 3 and all("pada.stop_overruled=0.2" in w for w in default)
+    assert "ablation.checkpoints=true" in default[-1]
+    chosen = words(STOP_OVERRULED="null", CHECKPOINTS="[100,200]")
+    assert all("pada.stop_overruled=null" in w for w in chosen)
+    assert "ablation.checkpoints=[100,200]" in chosen[-1]
+
+
 def test_a_study_from_a_first_gpu_keeps_every_stage_on_its_own_gpus(tmp_path):
     done = _rl_ablation(tmp_path, RUNS="0:pada 1:grpo 2:pada", STAGES="anchors rl decode", FIRST_GPU="1",
                         GPUS="2")
