@@ -652,3 +652,76 @@ def test_overruled_stop_stops_with_a_checkpoint_once_the_mean_share_passes_its_b
     assert [s.recent.maxlen for s in overruled_stop(on)] == [4]
     assert overruled_stop(OmegaConf.merge(on, {"constrained": False})) == []
     assert overruled_stop(OmegaConf.merge(on, {"stop_overruled": None})) == []
+
+
+def _regex_admits(rule: Rule, added: str) -> bool:
+    """:meth:`Rule.admits` by ``regex`` partial matching over the whole text since the anchor (what it
+    did before the automata): the reference the automata must equal."""
+    from physcene.train.constrained.grammar import _compiled, _extents_possible
+
+    if rule.pattern is None:
+        return False
+    text = rule.partial + added
+    if rule.choices:
+        after = rule.after_choice()
+        return any(c.startswith(text) or not rule.closed and text.startswith(c) and (
+            after is None or _compiled(after).fullmatch(text, partial=True, pos=len(c)) is not None)
+            for c in rule.choices)
+    if _compiled(rule.pattern).fullmatch(text, partial=True) is None:
+        return False
+    return not rule.ordered or _extents_possible(text, rule.ordered)
+
+
+def test_the_rules_automata_answer_what_regex_partial_matching_answers(records, tokenizer):
+    """A rule's check runs on a DFA of its pattern, built lazily, its state cached by the text since
+    the anchor (``train/constrained/automaton.py``). Along real completions and noisy ones (a random
+    token offered at every step, kept at every seventh), every rule admits exactly the tokens that
+    ``regex`` partial matching admits, and every rule's segment ends (``_Core.ends_in``) exactly where
+    ``regex`` finds its whole text (``_Core.complete``); and on every prefix of the rules' segments and
+    random characters after it (digits of other scripts, escapes, control characters), each pattern's
+    automaton is live and accepting exactly where ``regex`` matches partially and fully."""
+    import regex
+
+    from physcene.train.constrained import grammar
+    from physcene.train.constrained.automaton import automaton
+
+    gen = random.Random(3)
+    vocab = len(tokenizer)
+    texts = vocabulary(tokenizer).texts
+    checked = ended = 0
+    segments: dict[str, set[str]] = {}  # each regex pattern -> the partials it was checked on
+    for r in records[:3]:
+        ids = tokenizer(r["completion"], add_special_tokens=False)["input_ids"]
+        for noisy in (False, True):
+            proc = CTRCConstraint(tokenizer, [r["prompt"]])
+            rule = proc.advance_row(0, [])
+            for k, true in enumerate(ids):
+                offered = [gen.randrange(vocab) for _ in range(4)] + [true] if noisy else [true]
+                if rule is not None:
+                    for t in offered:
+                        assert rule.admits(texts[t]) == _regex_admits(rule, texts[t]), rule.partial
+                        checked += 1
+                    if rule.pattern and not rule.choices:
+                        segments.setdefault(rule.pattern, set()).add(rule.partial)
+                found = proc.anchors[0]
+                if isinstance(found, tuple) and found[1] is not None:  # the segment, then the true text
+                    core = found[1]
+                    true_text = r["completion"][found[0]:][:gen.randrange(400)]
+                    for partial in (proc.texts[0][found[0]:], true_text):
+                        assert core.ends_in(partial) == (core.complete(partial) is not None), partial
+                        ended += core.ends_in(partial)
+                token = offered[0] if noisy and k % 7 == 3 and rule is not None and rule.admits(
+                    texts[offered[0]]) else true
+                rule = proc.advance_row(0, [token])
+                if proc.finished[0]:
+                    break
+    assert checked > 2000 and ended > 50 and len(segments) >= 4
+    odd = ["\u0663", "\u00a0", "\x01", "\\", "u", "\u00e9", '"', "}", "\n", ".", "-", "0", "9", " ", ","]
+    for pattern, partials in segments.items():
+        for p in (pattern, grammar._then_anything(pattern)):
+            machine, reference = automaton(p), regex.compile(p)
+            for partial in partials:
+                for text in (partial, *(partial + c for c in gen.sample(odd, 4))):
+                    state = machine.advance(machine.start, text)
+                    assert machine.live[state] == (reference.fullmatch(text, partial=True) is not None), text
+                    assert machine.accepting[state] == (reference.fullmatch(text) is not None), text

@@ -65,6 +65,7 @@ from physcene.ctrc.grammar import (
 from physcene.ctrc.prompts import OBJECT_LIST_LABEL, ZONE_LABEL
 from physcene.ctrc.writer import json_line
 from physcene.layout import category_from_instance
+from physcene.train.constrained.automaton import automaton
 
 __all__ = ["ANCHOR", "PlannedEntry", "Rule", "active_rule", "constraint_rule", "last_anchor",
            "listed_instance_ids", "may_end_anchor", "planned_entries", "prompt_zone", "within_rule"]
@@ -146,8 +147,13 @@ class Rule(NamedTuple):
         if self.choices:
             return any(c.startswith(text) or not self.closed and text.startswith(c) and self._follows(text, c)
                        for c in self.choices)
-        if _compiled(self.pattern).fullmatch(text, partial=True) is None:
+        # the partial match of the pattern, as the state of its automaton after the text: the rule's
+        # text so far has its state cached (the last step kept it), so a step reads only the token
+        machine = automaton(self.pattern)
+        state = machine.state(text) if not self.partial else machine.step(machine.state(self.partial), added)
+        if not machine.live[state]:
             return False
+        machine.keep(text, state)
         return not self.ordered or _extents_possible(text, self.ordered)
 
     def after_choice(self) -> str | None:
@@ -156,7 +162,10 @@ class Rule(NamedTuple):
 
     def _follows(self, text: str, choice: str) -> bool:
         after = self.after_choice()
-        return after is None or _compiled(after).fullmatch(text, partial=True, pos=len(choice)) is not None
+        if after is None:
+            return True
+        machine = automaton(after)
+        return machine.live[machine.state(text[len(choice):])]
 
 
 class _Core(NamedTuple):
@@ -170,6 +179,21 @@ class _Core(NamedTuple):
         anchor's rule takes over) unless the completion ends with it."""
         pattern = self.pattern if self.then_eos else _then_anything(self.pattern)
         return Rule(partial, pattern, self.ordered, self.choices, closed=self.then_eos)
+
+    def ends_in(self, partial: str) -> bool:
+        """Whether ``partial`` starts with all of the rule's text (:meth:`complete` is not None): the
+        automaton of the pattern then anything accepts ``partial`` (after a choice, what follows it)."""
+        if not self.choices:
+            machine = automaton(_then_anything(self.pattern))
+            return machine.accepting[machine.state(partial)]
+        for c in self.choices:
+            if partial.startswith(c):
+                if not self.pattern:
+                    return True
+                machine = automaton(_then_anything(self.pattern))
+                if machine.accepting[machine.state(partial[len(c):])]:
+                    return True
+        return False
 
     def complete(self, partial: str) -> int | None:
         """Where the rule's text ends if ``partial`` starts with all of it, else None."""
@@ -283,9 +307,12 @@ def active_rule(partial: str, core: _Core | None, within: bool = False) -> Rule 
     caller already knows ``partial`` continues the rule (its last token was checked against it)."""
     if core is None:
         return None
-    end = core.complete(partial)
-    if end is not None:  # the segment is complete
-        return Rule(partial, None) if core.then_eos and end == len(partial) else None
+    if core.then_eos:  # EOS only where the rule's text ends the partial exactly
+        end = core.complete(partial)
+        if end is not None:
+            return Rule(partial, None) if end == len(partial) else None
+    elif core.ends_in(partial):  # the segment is complete: free text until the next anchor
+        return None
     return core.prefix_rule(partial) if within or within_rule(partial, core) else None
 
 
