@@ -156,6 +156,29 @@ class Rule(NamedTuple):
         machine.keep(text, state)
         return not self.ordered or _extents_possible(text, self.ordered)
 
+    def after(self, added: str, core: _Core | None) -> Rule | None | bool:
+        """The rule in force after ``added`` where this rule (of ``core``, from :func:`last_anchor`, its
+        ``partial`` the text since the anchor) admits it and no anchor ends inside it: what
+        ``admits`` + :func:`active_rule` give; False where the rule refuses ``added``. Under a regex
+        rule that does not end the completion one move of the pattern's automaton decides both: its
+        pattern is the core's then anything, so the state after the text is live where the rule
+        admits it and accepting where the segment is complete (free text follows: None)."""
+        if len(self.choices) == 1:  # the commonest literal rule (a category, a planned id or parent)
+            text, choice = self.partial + added, self.choices[0]
+            if len(text) < len(choice) and choice.startswith(text):  # admitted, and not yet complete
+                return Rule(text, self.pattern, self.ordered, self.choices, self.closed)
+        if self.choices or self.closed or self.pattern is None:
+            return active_rule(self.partial + added, core, within=True) if self.admits(added) else False
+        machine = automaton(self.pattern)
+        state = machine.step(machine.state(self.partial), added)
+        if not machine.live[state]:
+            return False
+        text = self.partial + added
+        if self.ordered and not _extents_possible(text, self.ordered):
+            return False
+        machine.keep(text, state)
+        return None if machine.accepting[state] else Rule(text, self.pattern, self.ordered)
+
     def after_choice(self) -> str | None:
         """The regex the text after a complete choice must continue; None where anything may follow."""
         return None if self.pattern == _ANY else self.pattern
@@ -329,12 +352,28 @@ def last_anchor(text: str, listed: Sequence[str] | None, zone: Sequence[float] |
     a decoder need not look for one again until a token that can end an anchor arrives.
     """
     tail = text[-_TAIL:]
-    anchors = list(ANCHOR.finditer(tail))
-    if not anchors:
+    anchor = _last_match(tail)
+    if anchor is None:
         return None
-    anchor = anchors[-1]
     position = len(text) - len(tail) + anchor.end()
     return position, _core(text[:position], anchor, listed, zone, follow_plan)
+
+
+def _last_match(tail: str):
+    """The last of ``ANCHOR``'s matches in ``tail`` (scanned from its start), read from its last lines
+    only: a match holds a line break only as its first character, so none spans a line break and the
+    scan from the start tries a match at every line break; from there on it finds what a scan from that
+    line break finds (a match's look-ahead stops at the next line break, so it sees the same text when
+    the scan ends there)."""
+    end = len(tail)
+    while True:
+        start = max(tail.rfind(STEP_SEPARATOR, 0, end), 0)
+        anchor = None
+        for found in ANCHOR.finditer(tail, start, end):
+            anchor = found
+        if anchor is not None or start == 0:
+            return anchor
+        end = start
 
 
 class PlannedEntry(NamedTuple):

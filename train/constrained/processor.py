@@ -12,6 +12,7 @@ from dataclasses import dataclass, field
 import torch
 from transformers import LogitsProcessor, LogitsProcessorList, PreTrainedTokenizerBase
 
+from physcene.ctrc.grammar import PLACE
 from physcene.train.constrained.grammar import (
     Rule,
     active_rule,
@@ -242,16 +243,40 @@ class CTRCConstraint(LogitsProcessor):
         """The common step of a row under a rule: when ``rule`` admits ``token`` and the token cannot
         end an anchor, it is appended here and the rule then in force returned (None: the rule's text
         is complete, free text follows), at one partial match instead of :meth:`allowed_tokens` +
-        :meth:`advance_row`, which come to the same rule; else False (nothing changed: the caller takes
-        the general path, which also counts and repairs a refusal)."""
+        :meth:`advance_row`, which come to the same rule; a token that may end an anchor at one anchor
+        search (:meth:`_advance_across_anchor`); else False (nothing changed: the caller takes the
+        general path, which also counts and repairs a refusal)."""
         added = self.token_text[token]
         if rule.pattern is None or not added or token == self.eos:
             return False
-        if may_end_anchor(self.texts[b], added) or not rule.admits(added):
-            return False
-        self._append(b, added)
+        if self.token_index.may_end[token] or self.texts[b].endswith(PLACE):
+            if may_end_anchor(self.texts[b], added):
+                return self._advance_across_anchor(b, rule, added)
         # the rule's partial is the text since its anchor (advance_row made it so): no slice of the text
-        return active_rule(rule.partial + added, self.anchors[b][1], within=True)
+        after = rule.after(added, self.anchors[b][1])
+        if after is not False:
+            self._append(b, added)
+        return after
+
+    def _advance_across_anchor(self, b: int, rule: Rule, added: str) -> Rule | None | bool:
+        """The step of :meth:`advance_within_rule` for a token that may end an anchor: where ``rule``
+        admits it and it keeps inside the rule of any anchor it ends, it is appended and the rule then
+        in force returned, at one anchor search (what :meth:`allowed_tokens` + :meth:`advance_row`
+        decide with two); else False (nothing changed)."""
+        if not rule.admits(added):
+            return False
+        text = self.texts[b]
+        full = text + added
+        found = last_anchor(full, self.listed[b], self.zones[b], self.follow_plan)
+        if found is not None and found[0] > len(text) and not within_rule(full[found[0]:], found[1]):
+            return False
+        self.texts[b] = full
+        if self.admitted[b]:
+            self.admitted[b] = set()
+        if self.ahead[b]:
+            self.ahead[b] = {}
+        self.anchors[b] = found
+        return None if found is None else active_rule(full[found[0]:], found[1])
 
     def advance_row(self, b: int, ids: Sequence[int]) -> Rule | None:
         """Append row ``b``'s new token ``ids`` to its text; the rule then in force (None: free text, or

@@ -11,6 +11,7 @@ import weakref
 import torch
 from transformers import GenerationConfig, LogitsProcessorList, PreTrainedTokenizerBase
 
+from physcene.ctrc.grammar import KEY_COLON, PLACE, STEP_END, STEP_SEPARATOR
 from physcene.train.constrained.grammar import Rule, _compiled
 
 __all__ = ["TokenIndex", "rejection_draw", "sampling_warpers", "vocabulary"]
@@ -105,6 +106,11 @@ class TokenIndex:
 
     def __init__(self, texts: list[str]):
         self.texts = texts  # by token id
+        # whether a token's text may end an anchor after some text (may_end_anchor): it holds a key's
+        # colon, a line break, a full stop or the last letter of "Place"; another only after a text
+        # that ends with "Place"
+        self.may_end = [any(c in text for c in (KEY_COLON, STEP_SEPARATOR, STEP_END, PLACE[-1]))
+                        for text in texts]
         self.by_text: dict[str, list[int]] = {}
         for t, text in enumerate(texts):
             if text:  # special tokens ("") fit no rule
