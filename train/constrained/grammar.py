@@ -67,7 +67,8 @@ from physcene.ctrc.writer import json_line
 from physcene.layout import category_from_instance
 from physcene.train.constrained.automaton import automaton
 
-__all__ = ["ANCHOR", "PlannedEntry", "Rule", "active_rule", "constraint_rule", "last_anchor",
+__all__ = ["ANCHOR", "PlannedEntry", "Rule", "active_rule", "anchor_core", "constraint_rule", "find_anchor",
+           "last_anchor",
            "listed_instance_ids", "may_end_anchor", "planned_entries", "prompt_zone", "within_rule"]
 
 _OBJECT_LIST = re.compile(re.escape(OBJECT_LIST_LABEL) + r"([^\n]*)")
@@ -351,12 +352,27 @@ def last_anchor(text: str, listed: Sequence[str] | None, zone: Sequence[float] |
     None: no anchor in the last ``_TAIL`` characters. The rule stays valid until the next anchor, so
     a decoder need not look for one again until a token that can end an anchor arrives.
     """
+    found = find_anchor(text)
+    if found is None:
+        return None
+    position, anchor = found
+    return position, _core(text[:position], anchor, listed, zone, follow_plan)
+
+
+def find_anchor(text: str) -> tuple[int, re.Match] | None:
+    """The search of :func:`last_anchor` without the rule: (where the last anchor ends, its match), or
+    None. The rule is a function of ``text`` up to there and the match's groups (:func:`anchor_core`)."""
     tail = text[-_TAIL:]
     anchor = _last_match(tail)
     if anchor is None:
         return None
-    position = len(text) - len(tail) + anchor.end()
-    return position, _core(text[:position], anchor, listed, zone, follow_plan)
+    return len(text) - len(tail) + anchor.end(), anchor
+
+
+def anchor_core(text: str, found: tuple[int, re.Match], listed: Sequence[str] | None,
+                zone: Sequence[float] | None = None, follow_plan: bool = True) -> _Core | None:
+    """The rule of the anchor :func:`find_anchor` found in ``text``."""
+    return _core(text[:found[0]], found[1], listed, zone, follow_plan)
 
 
 def _last_match(tail: str):
@@ -421,17 +437,16 @@ def _planned(plan: str, listed: tuple[str, ...]) -> tuple[PlannedEntry, ...] | N
 def _core(text: str, anchor, listed: Sequence[str] | None, zone: Sequence[float] | None,
           follow_plan: bool = True) -> _Core | None:
     """The rule of ``anchor``, the last anchor of ``text`` (which ends with it)."""
-    in_plan = LAYOUT_HEADER not in text  # the anchor lies in the plan
-    key = anchor.group("key")
-    if anchor.group("step") is not None or anchor.group("line") is not None:
-        if not in_plan or not listed:
+    key, step, line = anchor.group("key", "step", "line")
+    if step is not None or line is not None:
+        if LAYOUT_HEADER in text or not listed:  # the anchor lies in the layout, or no list
             return None
         placed = set(_PLACED_IN_PLAN.findall(text))
         left = [i for i in listed if i not in placed]
-        if anchor.group("step") is not None:  # an id left, then words without quotes or braces to the "."
+        if step is not None:  # an id left, then words without quotes or braces to the "."
             return _Core(_STEP_WORDS, choices=tuple(f" {i}" for i in left)) if left else None
         if left:
-            return _literal(STEP_SEPARATOR + step_start(int(anchor.group("line")) + 1))
+            return _literal(STEP_SEPARATOR + step_start(int(line) + 1))
         return _literal(_LAYOUT_START)
     if zone is not None and key in (ZONE_BBOX, ZONE):  # given by the prompt: copy it
         if key == ZONE_BBOX:  # the root entry: the zone with a zero height
@@ -445,9 +460,13 @@ def _core(text: str, anchor, listed: Sequence[str] | None, zone: Sequence[float]
         placed = set(_INSTANCE_IDS.findall(text))
         return _rotation_core(any(i not in placed for i in listed))
     ids = _INSTANCE_IDS.findall(text)
-    follow = key_text(next_key(key))
+    follow = _follow(key)
+    if key == CATEGORY:  # the id's own category: no plan needed
+        if not ids or ids[-1] == TABLE:
+            return None
+        return _choices_core((category_from_instance(ids[-1]),), follow)
     plan = planned_entries(text, listed) if follow_plan else None
-    planned = {e.iid: e for e in plan} if plan else {}
+    planned = _by_iid(plan) if plan else {}
     if key == INSTANCE_ID:
         if not ids:
             return _literal(VALUE_SPACE + f'"{TABLE}"' + _ROOT_KEYS)
@@ -456,10 +475,6 @@ def _core(text: str, anchor, listed: Sequence[str] | None, zone: Sequence[float]
         allowed = [i for i in listed if i not in ids]
         if plan and len(ids) - 1 < len(plan) and plan[len(ids) - 1].iid in allowed:
             allowed = [plan[len(ids) - 1].iid]  # the plan's next object (ids[0] is the root)
-    elif key == CATEGORY:
-        if not ids or ids[-1] == TABLE:
-            return None
-        allowed = [category_from_instance(ids[-1])]
     elif key == PARENT_ID:
         allowed = [TABLE, *[i for i in ids[:-1] if i != TABLE]]
         step = planned.get(ids[-1]) if ids else None
@@ -476,7 +491,25 @@ def _core(text: str, anchor, listed: Sequence[str] | None, zone: Sequence[float]
         return _relation_core(tuple(allowed), follow)
     if not allowed:
         return None
+    return _choices_core(tuple(allowed), follow)
+
+
+@functools.lru_cache(maxsize=4096)
+def _choices_core(allowed: tuple[str, ...], follow: str) -> _Core:
+    """The literal rule of one of the ``allowed`` JSON strings, then the key ``follow``."""
     return _literal(*(VALUE_SPACE + f'"{i}"' + follow for i in allowed))
+
+
+@functools.cache
+def _follow(key: str) -> str:
+    """The text of the key after ``key``'s value (``, "category":``)."""
+    return key_text(next_key(key))
+
+
+@functools.lru_cache(maxsize=1024)
+def _by_iid(plan: tuple[PlannedEntry, ...]) -> dict[str, PlannedEntry]:
+    """A plan's entries by id (read-only: shared by every rule of that plan)."""
+    return {e.iid: e for e in plan}
 
 
 @functools.cache

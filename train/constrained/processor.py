@@ -16,6 +16,8 @@ from physcene.ctrc.grammar import PLACE
 from physcene.train.constrained.grammar import (
     Rule,
     active_rule,
+    anchor_core,
+    find_anchor,
     last_anchor,
     listed_instance_ids,
     may_end_anchor,
@@ -93,6 +95,9 @@ class CTRCConstraint(LogitsProcessor):
         # each row's last anchor (position, rule regex): looked for again only when a token that can
         # end an anchor arrives (_may_end_anchor), so a step costs O(1) regex work per row
         self.anchors: list = [_UNSET] * len(prompts)
+        # each row's anchor in force as (position, match groups) where the short step found it: a search
+        # that finds it again reuses its rule (None: found by the general step, not kept)
+        self.anchor_keys: list = [None] * len(prompts)
         # each row's texts since its anchor that the last step found inside the anchor's rule (the
         # tokens it allowed): the next step need not match the rule again for the one that came
         self.admitted: list[set[str]] = [set() for _ in prompts]
@@ -267,16 +272,24 @@ class CTRCConstraint(LogitsProcessor):
             return False
         text = self.texts[b]
         full = text + added
-        found = last_anchor(full, self.listed[b], self.zones[b], self.follow_plan)
-        if found is not None and found[0] > len(text) and not within_rule(full[found[0]:], found[1]):
+        match = find_anchor(full)
+        key = None if match is None else (match[0], match[1].groups())
+        if key is None:
+            found = None
+        elif key == self.anchor_keys[b]:  # the anchor in force: its rule is a function of the same text
+            found = self.anchors[b]
+        else:
+            found = (match[0], anchor_core(full, match, self.listed[b], self.zones[b], self.follow_plan))
+        within = found is not None and found[0] > len(text)  # the token ends an anchor: its rule holds?
+        if within and not within_rule(full[found[0]:], found[1]):
             return False
         self.texts[b] = full
         if self.admitted[b]:
             self.admitted[b] = set()
         if self.ahead[b]:
             self.ahead[b] = {}
-        self.anchors[b] = found
-        return None if found is None else active_rule(full[found[0]:], found[1])
+        self.anchors[b], self.anchor_keys[b] = found, key
+        return None if found is None else active_rule(full[found[0]:], found[1], within=within)
 
     def advance_row(self, b: int, ids: Sequence[int]) -> Rule | None:
         """Append row ``b``'s new token ``ids`` to its text; the rule then in force (None: free text, or
@@ -293,6 +306,7 @@ class CTRCConstraint(LogitsProcessor):
         admitted, self.admitted[b] = self.admitted[b], set()
         ahead, self.ahead[b] = self.ahead[b], {}
         if searched:
+            self.anchor_keys[b] = None
             found = ahead.get(added, _UNSET)
             self.anchors[b] = (last_anchor(self.texts[b], self.listed[b], self.zones[b], self.follow_plan)
                                if found is _UNSET else found)
