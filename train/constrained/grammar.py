@@ -6,6 +6,7 @@ whitespace) and the prompt's **Object List** and **item_placement_zone**. The pa
 
 from __future__ import annotations
 
+import bisect
 import functools
 import json
 import math
@@ -164,10 +165,20 @@ class Rule(NamedTuple):
         rule that does not end the completion one move of the pattern's automaton decides both: its
         pattern is the core's then anything, so the state after the text is live where the rule
         admits it and accepting where the segment is complete (free text follows: None)."""
-        if len(self.choices) == 1:  # the commonest literal rule (a category, a planned id or parent)
-            text, choice = self.partial + added, self.choices[0]
-            if len(text) < len(choice) and choice.startswith(text):  # admitted, and not yet complete
+        if self.choices:
+            text = self.partial + added
+            if _inside_a_choice(text, self.choices):  # admitted, and no choice complete in it
                 return Rule(text, self.pattern, self.ordered, self.choices, self.closed)
+            choice = None if self.closed or self.pattern is None else _choice_before(text, self.choices)
+            if choice is not None:  # past its one choice (a plan step's id): the words after it
+                if self.pattern == _ANY:  # nothing follows the choice: the segment is complete
+                    return None
+                machine = automaton(self.pattern)  # the core's pattern then anything, after the choice
+                state = machine.state(text[len(choice):])
+                if not machine.live[state]:
+                    return False
+                return None if machine.accepting[state] else Rule(text, self.pattern, self.ordered,
+                                                                  self.choices)
         if self.choices or self.closed or self.pattern is None:
             return active_rule(self.partial + added, core, within=True) if self.admits(added) else False
         machine = automaton(self.pattern)
@@ -190,6 +201,37 @@ class Rule(NamedTuple):
             return True
         machine = automaton(after)
         return machine.live[machine.state(text[len(choice):])]
+
+
+def _inside_a_choice(text: str, choices: tuple[str, ...]) -> bool:
+    """Whether ``text`` is a proper prefix of one of ``choices`` and none of them is a prefix of it
+    (so a literal rule admits it and is not complete after it); False also where that is not
+    decided this way (one choice a prefix of another: the general test decides)."""
+    if len(choices) == 1:
+        return len(text) < len(choices[0]) and choices[0].startswith(text)
+    ordered, nested = _sorted_choices(choices)
+    if nested:
+        return False
+    i = bisect.bisect_left(ordered, text)
+    # no choice is a prefix of another, so none is a prefix of a proper prefix of one
+    return i < len(ordered) and len(ordered[i]) > len(text) and ordered[i].startswith(text)
+
+
+def _choice_before(text: str, choices: tuple[str, ...]) -> str | None:
+    """The choice that is a prefix of ``text`` where no choice is a prefix of another (then there is
+    at most one, and no choice starts with ``text`` unless it is that one); else None."""
+    ordered, nested = _sorted_choices(choices)
+    if nested:
+        return None
+    i = bisect.bisect_right(ordered, text) - 1  # the last choice up to text: the prefix, if any
+    return ordered[i] if i >= 0 and text.startswith(ordered[i]) else None
+
+
+@functools.lru_cache(maxsize=4096)
+def _sorted_choices(choices: tuple[str, ...]) -> tuple[list[str], bool]:
+    """A literal rule's choices in sorted order, and whether one of them is a prefix of another."""
+    ordered = sorted(choices)
+    return ordered, any(b.startswith(a) for a, b in zip(ordered, ordered[1:]))
 
 
 class _Core(NamedTuple):
@@ -338,6 +380,22 @@ def active_rule(partial: str, core: _Core | None, within: bool = False) -> Rule 
     elif core.ends_in(partial):  # the segment is complete: free text until the next anchor
         return None
     return core.prefix_rule(partial) if within or within_rule(partial, core) else None
+
+
+def entered_rule(partial: str, core: _Core | None) -> Rule | None | bool:
+    """:func:`active_rule` of ``partial``, the text since an anchor just written, where it continues
+    ``core``'s rule (:func:`within_rule`); else False. A regex rule that does not end the completion:
+    one state of its automaton decides both."""
+    if core is None:
+        return None
+    if core.choices or core.then_eos:
+        return active_rule(partial, core, within=True) if within_rule(partial, core) else False
+    pattern = _then_anything(core.pattern)
+    machine = automaton(pattern)
+    state = machine.state(partial)
+    if not machine.live[state] or core.ordered and not _extents_possible(partial, core.ordered):
+        return False
+    return None if machine.accepting[state] else Rule(partial, pattern, core.ordered)
 
 
 def within_rule(partial: str, core: _Core | None) -> bool:

@@ -17,6 +17,7 @@ from physcene.train.constrained.grammar import (
     Rule,
     active_rule,
     anchor_core,
+    entered_rule,
     find_anchor,
     last_anchor,
     listed_instance_ids,
@@ -260,7 +261,11 @@ class CTRCConstraint(LogitsProcessor):
         # the rule's partial is the text since its anchor (advance_row made it so): no slice of the text
         after = rule.after(added, self.anchors[b][1])
         if after is not False:
-            self._append(b, added)
+            self.texts[b] += added  # _append's, inline: the commonest step of all
+            if self.admitted[b]:
+                self.admitted[b] = set()
+            if self.ahead[b]:
+                self.ahead[b] = {}
         return after
 
     def _advance_across_anchor(self, b: int, rule: Rule, added: str) -> Rule | None | bool:
@@ -280,16 +285,21 @@ class CTRCConstraint(LogitsProcessor):
             found = self.anchors[b]
         else:
             found = (match[0], anchor_core(full, match, self.listed[b], self.zones[b], self.follow_plan))
-        within = found is not None and found[0] > len(text)  # the token ends an anchor: its rule holds?
-        if within and not within_rule(full[found[0]:], found[1]):
-            return False
+        if found is None:
+            after = None
+        elif found[0] > len(text):  # the token ends an anchor: its text must continue the anchor's rule
+            after = entered_rule(full[found[0]:], found[1])
+            if after is False:
+                return False
+        else:
+            after = active_rule(full[found[0]:], found[1])
         self.texts[b] = full
         if self.admitted[b]:
             self.admitted[b] = set()
         if self.ahead[b]:
             self.ahead[b] = {}
         self.anchors[b], self.anchor_keys[b] = found, key
-        return None if found is None else active_rule(full[found[0]:], found[1], within=within)
+        return after
 
     def advance_row(self, b: int, ids: Sequence[int]) -> Rule | None:
         """Append row ``b``'s new token ``ids`` to its text; the rule then in force (None: free text, or
