@@ -760,3 +760,33 @@ def test_the_last_anchor_read_from_the_last_lines_is_the_last_of_the_whole_tail(
                 compared += 1
                 found += got is not None
     assert compared > 2000 and found > compared // 2
+
+
+def test_the_short_step_of_a_literal_rule_equals_admits_and_active_rule():
+    """``Rule.after`` of literal rules (one choice, several, one choice a prefix of another as
+    `` 3_comb_1`` of `` 3_comb_10``, closed, with words after a plan step's id) and of regex rules
+    gives what ``admits`` + ``active_rule`` give, for every prefix of every choice and the texts
+    that run past them."""
+    from physcene.train.constrained.grammar import _STEP_WORDS, _Core, _literal, active_rule
+
+    cores = [_literal(' "2_tray_0", "category":'),
+             _literal(' "1_mirror_0", "category":', ' "3_comb_0", "category":', ' "3_comb_1", "category":'),
+             _literal(" [0.0, 113.7, 0.0, 48.25]\n}\n", then_eos=True),
+             _Core(_STEP_WORDS, choices=(" 3_comb_1", " 3_comb_10", " 2_tray_0")),
+             _Core(_STEP_WORDS, choices=(" 1_mirror_0", " 2_tray_0")),
+             _literal(" 3_comb_1", " 3_comb_10, 11", " 2_tray_0"),  # complete inside a longer choice
+             _Core(r' -?(?:0|[1-9]\d{0,3})(?:\.\d{1,8})?\}')]
+    extra = ["", "x", " ", ".", " on the table.", " in 2_tray_0.", '"', ", ", "0", "1.", "9}", "\n"]
+    compared = 0
+    for core in cores:
+        texts = {c[:n] + e for c in (core.choices or (" 12.5}",)) for n in range(len(c) + 1) for e in extra}
+        for text in sorted(texts):
+            for cut in range(len(text) + 1):
+                rule = active_rule(text[:cut], core)
+                if rule is None or rule.pattern is None:
+                    continue
+                added = text[cut:]
+                want = active_rule(text, core, within=True) if rule.admits(added) else False
+                assert rule.after(added, core) == want, (core, text[:cut], added)
+                compared += 1
+    assert compared > 5000
