@@ -88,6 +88,7 @@ class CTRCConstraint(LogitsProcessor):
         self.prompts = list(prompts)
         self.token_index = vocabulary(tokenizer)
         self.token_text = self.token_index.texts
+        self.may_end = self.token_index.may_end  # per token: whether it may end an anchor
         self.eos = tokenizer.eos_token_id
         self.listed = [listed_instance_ids(p) for p in prompts]
         self.zones = [prompt_zone(p) for p in prompts]
@@ -255,7 +256,7 @@ class CTRCConstraint(LogitsProcessor):
         added = self.token_text[token]
         if rule.pattern is None or not added or token == self.eos:
             return False
-        if self.token_index.may_end[token] or self.texts[b].endswith(PLACE):
+        if self.may_end[token] or self.texts[b].endswith(PLACE):
             if may_end_anchor(self.texts[b], added):
                 return self._advance_across_anchor(b, rule, added)
         # the rule's partial is the text since its anchor (advance_row made it so): no slice of the text
