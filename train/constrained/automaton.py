@@ -18,10 +18,15 @@ from __future__ import annotations
 
 import functools
 import re
-import re._constants as sre
-import re._parser as sre_parse
 
 import regex
+
+try:  # Python 3.11+
+    import re._constants as sre
+    import re._parser as sre_parse
+except ImportError:  # Python 3.10
+    import sre_constants as sre
+    import sre_parse
 
 __all__ = ["DEAD", "Automaton", "automaton"]
 
@@ -30,10 +35,12 @@ DEAD = 0
 
 _CATEGORIES = {sre.CATEGORY_DIGIT: r"\d", sre.CATEGORY_NOT_DIGIT: r"\D", sre.CATEGORY_SPACE: r"\s",
                sre.CATEGORY_NOT_SPACE: r"\S", sre.CATEGORY_WORD: r"\w", sre.CATEGORY_NOT_WORD: r"\W"}
+_POSSESSIVE_REPEAT = getattr(sre, "POSSESSIVE_REPEAT", None)  # Python 3.11+
 _UNSUPPORTED_FLAGS = re.IGNORECASE | re.DOTALL | re.MULTILINE | re.LOCALE | re.VERBOSE | re.ASCII
 # texts and (state, token text) moves cached per automaton; past these the cache starts afresh
-_TEXTS_KEPT = 1 << 16
-_MOVES_KEPT = 1 << 18
+# (a step needs only its row's last text: a few per row)
+_TEXTS_KEPT = 1 << 14
+_MOVES_KEPT = 1 << 16
 
 
 class Automaton:
@@ -144,9 +151,9 @@ class Automaton:
             return self._sequence(list(sub), after, pattern)
         if op is sre.BRANCH:
             return self._add(("split", [self._sequence(list(alt), after, pattern) for alt in arg[1]]))
-        if op in (sre.MAX_REPEAT, sre.MIN_REPEAT, sre.POSSESSIVE_REPEAT):
-            if op is sre.POSSESSIVE_REPEAT:
-                raise ValueError(f"automaton: possessive repeats of {pattern!r} are not supported")
+        if op is _POSSESSIVE_REPEAT and op is not None:
+            raise ValueError(f"automaton: possessive repeats of {pattern!r} are not supported")
+        if op in (sre.MAX_REPEAT, sre.MIN_REPEAT):
             low, high, sub = arg
             sub = list(sub)
             if high == sre.MAXREPEAT:

@@ -68,9 +68,9 @@ from physcene.ctrc.writer import json_line
 from physcene.layout import category_from_instance
 from physcene.train.constrained.automaton import automaton
 
-__all__ = ["ANCHOR", "PlannedEntry", "Rule", "active_rule", "anchor_core", "constraint_rule", "find_anchor",
-           "last_anchor",
-           "listed_instance_ids", "may_end_anchor", "planned_entries", "prompt_zone", "within_rule"]
+__all__ = ["ANCHOR", "PlannedEntry", "Rule", "active_rule", "anchor_core", "constraint_rule", "entered_rule",
+           "find_anchor", "last_anchor", "listed_instance_ids", "may_end_anchor", "planned_entries",
+           "prompt_zone", "within_rule"]
 
 _OBJECT_LIST = re.compile(re.escape(OBJECT_LIST_LABEL) + r"([^\n]*)")
 _ZONE = re.compile(re.escape(ZONE_LABEL) + r"(\[[^\]\n]*\])")

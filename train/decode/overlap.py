@@ -66,7 +66,8 @@ class OverlappedConstraint:
             if finished[b] or b in skip:
                 continue
             rule = rules[b]
-            # most rows: free text, or a token inside the rule in force; neither ends an anchor
+            # most rows: free text, or a token the rule in force admits (one that ends an anchor too,
+            # at one anchor search); a refused one takes the general path below
             if rule is None:
                 kept = free_text(b, token)
             else:
