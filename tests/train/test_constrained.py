@@ -591,11 +591,11 @@ def test_a_token_inside_its_rule_takes_the_short_step_to_the_same_rule(records, 
     """``advance_within_rule`` (the fast decoder's step for a row under a rule) against the general
     step (``allowed_tokens`` + ``advance_row``), side by side on two constraints: along real completions
     and along noisy ones (a random token offered before every tenth true one), it gives the same rule
-    and text wherever it takes the step, declines every token the rule refuses and every token that may
-    end an anchor, and takes most of the ruled steps."""
+    and text wherever it takes the step (a token that may end an anchor too, through one anchor
+    search), declines every token the rule refuses, and takes every other ruled step but EOS."""
     gen = random.Random(7)
     vocab = len(tokenizer)
-    taken = declined = refused = 0
+    taken = declined = refused = across = 0
     for r in records[:3]:
         ids = tokenizer(r["completion"], add_special_tokens=False)["input_ids"]
         for noisy in (False, True):
@@ -613,8 +613,7 @@ def test_a_token_inside_its_rule_takes_the_short_step_to_the_same_rule(records, 
                     admitted = bool(general.allowed_tokens(0, rule, [t]))
                     if stepped is False:
                         declined += 1
-                        may_end = may_end_anchor(general.texts[0], general.token_text[t])
-                        assert not admitted or may_end or t == tokenizer.eos_token_id
+                        assert not admitted or t == tokenizer.eos_token_id
                         if not admitted:
                             refused += 1
                             continue
@@ -622,13 +621,21 @@ def test_a_token_inside_its_rule_takes_the_short_step_to_the_same_rule(records, 
                         short.advance_row(0, [t])
                         break
                     taken += 1
+                    across += may_end_anchor(general.texts[0], general.token_text[t])
                     assert admitted, (general.texts[0][-60:], general.token_text[t])
                     rule = general.advance_row(0, [t])
                     assert stepped == rule and short.texts == general.texts
                     break
                 assert short.texts == general.texts
-    # declined though admitted: only the tokens that may end an anchor (the general step looks for it)
-    assert taken > 5 * (declined - refused) and refused > 10
+    # declined: only what the general step refuses
+    assert declined == refused > 10 and across > 50
+    # the short step's test of a token that may end an anchor: its flag, or a text that ends "Place"
+    index = vocabulary(tokenizer)
+    texts = [r["completion"][:k] for r in records[:2] for k in range(0, len(r["completion"]), 37)]
+    for text in texts + ["\n2. P", "\n2. Pl", "\n2. Pla", "\n2. Plac", "\n2. Place", "1. Place 1_x_0 on"]:
+        for t, added in enumerate(index.texts):
+            if added and may_end_anchor(text, added):
+                assert index.may_end[t] or text.endswith("Place"), (text[-20:], added)
 
 
 def test_overruled_stop_stops_with_a_checkpoint_once_the_mean_share_passes_its_bound():
@@ -652,3 +659,134 @@ def test_overruled_stop_stops_with_a_checkpoint_once_the_mean_share_passes_its_b
     assert [s.recent.maxlen for s in overruled_stop(on)] == [4]
     assert overruled_stop(OmegaConf.merge(on, {"constrained": False})) == []
     assert overruled_stop(OmegaConf.merge(on, {"stop_overruled": None})) == []
+
+
+def _regex_admits(rule: Rule, added: str) -> bool:
+    """:meth:`Rule.admits` by ``regex`` partial matching over the whole text since the anchor (what it
+    did before the automata): the reference the automata must equal."""
+    from physcene.train.constrained.grammar import _compiled, _extents_possible
+
+    if rule.pattern is None:
+        return False
+    text = rule.partial + added
+    if rule.choices:
+        after = rule.after_choice()
+        return any(c.startswith(text) or not rule.closed and text.startswith(c) and (
+            after is None or _compiled(after).fullmatch(text, partial=True, pos=len(c)) is not None)
+            for c in rule.choices)
+    if _compiled(rule.pattern).fullmatch(text, partial=True) is None:
+        return False
+    return not rule.ordered or _extents_possible(text, rule.ordered)
+
+
+def test_the_rules_automata_answer_what_regex_partial_matching_answers(records, tokenizer):
+    """A rule's check runs on a DFA of its pattern, built lazily, its state cached by the text since
+    the anchor (``train/constrained/automaton.py``). Along real completions and noisy ones (a random
+    token offered at every step, kept at every seventh), every rule admits exactly the tokens that
+    ``regex`` partial matching admits, and every rule's segment ends (``_Core.ends_in``) exactly where
+    ``regex`` finds its whole text (``_Core.complete``); and on every prefix of the rules' segments and
+    random characters after it (digits of other scripts, escapes, control characters), each pattern's
+    automaton is live and accepting exactly where ``regex`` matches partially and fully."""
+    import regex
+
+    from physcene.train.constrained import grammar
+    from physcene.train.constrained.automaton import automaton
+
+    gen = random.Random(3)
+    vocab = len(tokenizer)
+    texts = vocabulary(tokenizer).texts
+    checked = ended = 0
+    segments: dict[str, set[str]] = {}  # each regex pattern -> the partials it was checked on
+    for r in records[:3]:
+        ids = tokenizer(r["completion"], add_special_tokens=False)["input_ids"]
+        for noisy in (False, True):
+            proc = CTRCConstraint(tokenizer, [r["prompt"]])
+            rule = proc.advance_row(0, [])
+            for k, true in enumerate(ids):
+                offered = [gen.randrange(vocab) for _ in range(4)] + [true] if noisy else [true]
+                if rule is not None:
+                    for t in offered:
+                        assert rule.admits(texts[t]) == _regex_admits(rule, texts[t]), rule.partial
+                        checked += 1
+                    if rule.pattern and not rule.choices:
+                        segments.setdefault(rule.pattern, set()).add(rule.partial)
+                found = proc.anchors[0]
+                if isinstance(found, tuple) and found[1] is not None:  # the segment, then the true text
+                    core = found[1]
+                    true_text = r["completion"][found[0]:][:gen.randrange(400)]
+                    for partial in (proc.texts[0][found[0]:], true_text):
+                        assert core.ends_in(partial) == (core.complete(partial) is not None), partial
+                        ended += core.ends_in(partial)
+                token = offered[0] if noisy and k % 7 == 3 and rule is not None and rule.admits(
+                    texts[offered[0]]) else true
+                rule = proc.advance_row(0, [token])
+                if proc.finished[0]:
+                    break
+    assert checked > 2000 and ended > 50 and len(segments) >= 4
+    odd = ["\u0663", "\u00a0", "\x01", "\\", "u", "\u00e9", '"', "}", "\n", ".", "-", "0", "9", " ", ","]
+    for pattern, partials in segments.items():
+        for p in (pattern, grammar._then_anything(pattern)):
+            machine, reference = automaton(p), regex.compile(p)
+            for partial in partials:
+                for text in (partial, *(partial + c for c in gen.sample(odd, 4))):
+                    state = machine.advance(machine.start, text)
+                    assert machine.live[state] == (reference.fullmatch(text, partial=True) is not None), text
+                    assert machine.accepting[state] == (reference.fullmatch(text) is not None), text
+
+
+def test_the_last_anchor_read_from_the_last_lines_is_the_last_of_the_whole_tail(records):
+    """``last_anchor`` scans only the tail's last lines (``_last_match``: no anchor spans a line
+    break): at every prefix of real completions and of completions with random edits (line breaks,
+    quotes, full stops, keys and plan steps cut or inserted), through windows that cut a line at any
+    place, it finds the very match that a scan of the whole window finds last."""
+    from physcene.train.constrained import grammar
+
+    def scanned(tail: str):
+        matches = list(grammar.ANCHOR.finditer(tail))
+        return matches[-1] if matches else None
+
+    gen = random.Random(5)
+    pieces = ["\n", '"', ".", ":", '"category":', '"parent_id": "', "\n3. Place", " Place", "\n12. Place x.",
+              '"relation_type":', "2_tray_0", " on ", "\u0663"]
+    compared = found = 0
+    for r in records[:4]:
+        text = r["completion"]
+        noisy = "".join(c + (gen.choice(pieces) if gen.random() < 0.05 else "") for c in text)
+        for full in (text, noisy):
+            for end in range(1, len(full), 3):
+                tail = full[max(0, end - gen.choice([grammar._TAIL, 40, 97, 333])):end]
+                want, got = scanned(tail), grammar._last_match(tail)
+                assert (want and (want.span(), want.groupdict())) == (got and (got.span(), got.groupdict()))
+                compared += 1
+                found += got is not None
+    assert compared > 2000 and found > compared // 2
+
+
+def test_the_short_step_of_a_literal_rule_equals_admits_and_active_rule():
+    """``Rule.after`` of literal rules (one choice, several, one choice a prefix of another as
+    `` 3_comb_1`` of `` 3_comb_10``, closed, with words after a plan step's id) and of regex rules
+    gives what ``admits`` + ``active_rule`` give, for every prefix of every choice and the texts
+    that run past them."""
+    from physcene.train.constrained.grammar import _STEP_WORDS, _Core, _literal, active_rule
+
+    cores = [_literal(' "2_tray_0", "category":'),
+             _literal(' "1_mirror_0", "category":', ' "3_comb_0", "category":', ' "3_comb_1", "category":'),
+             _literal(" [0.0, 113.7, 0.0, 48.25]\n}\n", then_eos=True),
+             _Core(_STEP_WORDS, choices=(" 3_comb_1", " 3_comb_10", " 2_tray_0")),
+             _Core(_STEP_WORDS, choices=(" 1_mirror_0", " 2_tray_0")),
+             _literal(" 3_comb_1", " 3_comb_10, 11", " 2_tray_0"),  # complete inside a longer choice
+             _Core(r' -?(?:0|[1-9]\d{0,3})(?:\.\d{1,8})?\}')]
+    extra = ["", "x", " ", ".", " on the table.", " in 2_tray_0.", '"', ", ", "0", "1.", "9}", "\n"]
+    compared = 0
+    for core in cores:
+        texts = {c[:n] + e for c in (core.choices or (" 12.5}",)) for n in range(len(c) + 1) for e in extra}
+        for text in sorted(texts):
+            for cut in range(len(text) + 1):
+                rule = active_rule(text[:cut], core)
+                if rule is None or rule.pattern is None:
+                    continue
+                added = text[cut:]
+                want = active_rule(text, core, within=True) if rule.admits(added) else False
+                assert rule.after(added, core) == want, (core, text[:cut], added)
+                compared += 1
+    assert compared > 5000

@@ -37,13 +37,15 @@ most likely keep their relative probabilities.
 Why not a grammar library (``xgrammar``, ``outlines``, ``lm-format-enforcer``): a JSON schema can
 restrict ``instance_id`` to the listed ids, but "each id exactly once" and "a parent placed before
 its child" are not context-free in any compact form, and those are what a small model gets wrong.
-The rules here are a regular expression per anchor, matched with ``regex``'s partial matching
-(already a transformers dependency) against the text since the anchor.
+The rules here are a regular expression per anchor; the text since the anchor must stay a prefix of
+its language (``regex``'s partial matching, already a transformers dependency), which a lazily built
+DFA of the pattern answers at one move per token.
 
 One module per part: :mod:`~physcene.train.constrained.grammar` (the rules, derived from
-:mod:`physcene.ctrc.grammar`), :mod:`~physcene.train.constrained.processor` (:class:`CTRCConstraint`
-and its :class:`ConstraintStats`), :mod:`~physcene.train.constrained.sampling` (the warpers, the
-vocabulary index, the rejection draw).
+:mod:`physcene.ctrc.grammar`), :mod:`~physcene.train.constrained.automaton` (a rule's pattern as a
+DFA), :mod:`~physcene.train.constrained.processor` (:class:`CTRCConstraint` and its
+:class:`ConstraintStats`), :mod:`~physcene.train.constrained.sampling` (the warpers, the vocabulary
+index, the rejection draw).
 """
 
 from physcene.train.constrained.grammar import (

@@ -6,6 +6,7 @@ whitespace) and the prompt's **Object List** and **item_placement_zone**. The pa
 
 from __future__ import annotations
 
+import bisect
 import functools
 import json
 import math
@@ -65,9 +66,11 @@ from physcene.ctrc.grammar import (
 from physcene.ctrc.prompts import OBJECT_LIST_LABEL, ZONE_LABEL
 from physcene.ctrc.writer import json_line
 from physcene.layout import category_from_instance
+from physcene.train.constrained.automaton import automaton
 
-__all__ = ["ANCHOR", "PlannedEntry", "Rule", "active_rule", "constraint_rule", "last_anchor",
-           "listed_instance_ids", "may_end_anchor", "planned_entries", "prompt_zone", "within_rule"]
+__all__ = ["ANCHOR", "PlannedEntry", "Rule", "active_rule", "anchor_core", "constraint_rule", "entered_rule",
+           "find_anchor", "last_anchor", "listed_instance_ids", "may_end_anchor", "planned_entries",
+           "prompt_zone", "within_rule"]
 
 _OBJECT_LIST = re.compile(re.escape(OBJECT_LIST_LABEL) + r"([^\n]*)")
 _ZONE = re.compile(re.escape(ZONE_LABEL) + r"(\[[^\]\n]*\])")
@@ -146,9 +149,47 @@ class Rule(NamedTuple):
         if self.choices:
             return any(c.startswith(text) or not self.closed and text.startswith(c) and self._follows(text, c)
                        for c in self.choices)
-        if _compiled(self.pattern).fullmatch(text, partial=True) is None:
+        # the partial match of the pattern, as the state of its automaton after the text: the rule's
+        # text so far has its state cached (the last step kept it), so a step reads only the token
+        machine = automaton(self.pattern)
+        state = machine.state(text) if not self.partial else machine.step(machine.state(self.partial), added)
+        if not machine.live[state]:
             return False
+        machine.keep(text, state)
         return not self.ordered or _extents_possible(text, self.ordered)
+
+    def after(self, added: str, core: _Core | None) -> Rule | None | bool:
+        """The rule in force after ``added`` where this rule (of ``core``, from :func:`last_anchor`, its
+        ``partial`` the text since the anchor) admits it and no anchor ends inside it: what
+        ``admits`` + :func:`active_rule` give; False where the rule refuses ``added``. Under a regex
+        rule that does not end the completion one move of the pattern's automaton decides both: its
+        pattern is the core's then anything, so the state after the text is live where the rule
+        admits it and accepting where the segment is complete (free text follows: None)."""
+        if self.choices:
+            text = self.partial + added
+            if _inside_a_choice(text, self.choices):  # admitted, and no choice complete in it
+                return Rule(text, self.pattern, self.ordered, self.choices, self.closed)
+            choice = None if self.closed or self.pattern is None else _choice_before(text, self.choices)
+            if choice is not None:  # past its one choice (a plan step's id): the words after it
+                if self.pattern == _ANY:  # nothing follows the choice: the segment is complete
+                    return None
+                machine = automaton(self.pattern)  # the core's pattern then anything, after the choice
+                state = machine.state(text[len(choice):])
+                if not machine.live[state]:
+                    return False
+                return None if machine.accepting[state] else Rule(text, self.pattern, self.ordered,
+                                                                  self.choices)
+        if self.choices or self.closed or self.pattern is None:
+            return active_rule(self.partial + added, core, within=True) if self.admits(added) else False
+        machine = automaton(self.pattern)
+        state = machine.step(machine.state(self.partial), added)
+        if not machine.live[state]:
+            return False
+        text = self.partial + added
+        if self.ordered and not _extents_possible(text, self.ordered):
+            return False
+        machine.keep(text, state)
+        return None if machine.accepting[state] else Rule(text, self.pattern, self.ordered)
 
     def after_choice(self) -> str | None:
         """The regex the text after a complete choice must continue; None where anything may follow."""
@@ -156,7 +197,41 @@ class Rule(NamedTuple):
 
     def _follows(self, text: str, choice: str) -> bool:
         after = self.after_choice()
-        return after is None or _compiled(after).fullmatch(text, partial=True, pos=len(choice)) is not None
+        if after is None:
+            return True
+        machine = automaton(after)
+        return machine.live[machine.state(text[len(choice):])]
+
+
+def _inside_a_choice(text: str, choices: tuple[str, ...]) -> bool:
+    """Whether ``text`` is a proper prefix of one of ``choices`` and none of them is a prefix of it
+    (so a literal rule admits it and is not complete after it); False also where that is not
+    decided this way (one choice a prefix of another: the general test decides)."""
+    if len(choices) == 1:
+        return len(text) < len(choices[0]) and choices[0].startswith(text)
+    ordered, nested = _sorted_choices(choices)
+    if nested:
+        return False
+    i = bisect.bisect_left(ordered, text)
+    # no choice is a prefix of another, so none is a prefix of a proper prefix of one
+    return i < len(ordered) and len(ordered[i]) > len(text) and ordered[i].startswith(text)
+
+
+def _choice_before(text: str, choices: tuple[str, ...]) -> str | None:
+    """The choice that is a prefix of ``text`` where no choice is a prefix of another (then there is
+    at most one, and no choice starts with ``text`` unless it is that one); else None."""
+    ordered, nested = _sorted_choices(choices)
+    if nested:
+        return None
+    i = bisect.bisect_right(ordered, text) - 1  # the last choice up to text: the prefix, if any
+    return ordered[i] if i >= 0 and text.startswith(ordered[i]) else None
+
+
+@functools.lru_cache(maxsize=4096)
+def _sorted_choices(choices: tuple[str, ...]) -> tuple[list[str], bool]:
+    """A literal rule's choices in sorted order, and whether one of them is a prefix of another."""
+    ordered = sorted(choices)
+    return ordered, any(b.startswith(a) for a, b in zip(ordered, ordered[1:]))
 
 
 class _Core(NamedTuple):
@@ -170,6 +245,21 @@ class _Core(NamedTuple):
         anchor's rule takes over) unless the completion ends with it."""
         pattern = self.pattern if self.then_eos else _then_anything(self.pattern)
         return Rule(partial, pattern, self.ordered, self.choices, closed=self.then_eos)
+
+    def ends_in(self, partial: str) -> bool:
+        """Whether ``partial`` starts with all of the rule's text (:meth:`complete` is not None): the
+        automaton of the pattern then anything accepts ``partial`` (after a choice, what follows it)."""
+        if not self.choices:
+            machine = automaton(_then_anything(self.pattern))
+            return machine.accepting[machine.state(partial)]
+        for c in self.choices:
+            if partial.startswith(c):
+                if not self.pattern:
+                    return True
+                machine = automaton(_then_anything(self.pattern))
+                if machine.accepting[machine.state(partial[len(c):])]:
+                    return True
+        return False
 
     def complete(self, partial: str) -> int | None:
         """Where the rule's text ends if ``partial`` starts with all of it, else None."""
@@ -283,10 +373,29 @@ def active_rule(partial: str, core: _Core | None, within: bool = False) -> Rule 
     caller already knows ``partial`` continues the rule (its last token was checked against it)."""
     if core is None:
         return None
-    end = core.complete(partial)
-    if end is not None:  # the segment is complete
-        return Rule(partial, None) if core.then_eos and end == len(partial) else None
+    if core.then_eos:  # EOS only where the rule's text ends the partial exactly
+        end = core.complete(partial)
+        if end is not None:
+            return Rule(partial, None) if end == len(partial) else None
+    elif core.ends_in(partial):  # the segment is complete: free text until the next anchor
+        return None
     return core.prefix_rule(partial) if within or within_rule(partial, core) else None
+
+
+def entered_rule(partial: str, core: _Core | None) -> Rule | None | bool:
+    """:func:`active_rule` of ``partial``, the text since an anchor just written, where it continues
+    ``core``'s rule (:func:`within_rule`); else False. A regex rule that does not end the completion:
+    one state of its automaton decides both."""
+    if core is None:
+        return None
+    if core.choices or core.then_eos:
+        return active_rule(partial, core, within=True) if within_rule(partial, core) else False
+    pattern = _then_anything(core.pattern)
+    machine = automaton(pattern)
+    state = machine.state(partial)
+    if not machine.live[state] or core.ordered and not _extents_possible(partial, core.ordered):
+        return False
+    return None if machine.accepting[state] else Rule(partial, pattern, core.ordered)
 
 
 def within_rule(partial: str, core: _Core | None) -> bool:
@@ -301,13 +410,44 @@ def last_anchor(text: str, listed: Sequence[str] | None, zone: Sequence[float] |
     None: no anchor in the last ``_TAIL`` characters. The rule stays valid until the next anchor, so
     a decoder need not look for one again until a token that can end an anchor arrives.
     """
-    tail = text[-_TAIL:]
-    anchors = list(ANCHOR.finditer(tail))
-    if not anchors:
+    found = find_anchor(text)
+    if found is None:
         return None
-    anchor = anchors[-1]
-    position = len(text) - len(tail) + anchor.end()
+    position, anchor = found
     return position, _core(text[:position], anchor, listed, zone, follow_plan)
+
+
+def find_anchor(text: str) -> tuple[int, re.Match] | None:
+    """The search of :func:`last_anchor` without the rule: (where the last anchor ends, its match), or
+    None. The rule is a function of ``text`` up to there and the match's groups (:func:`anchor_core`)."""
+    tail = text[-_TAIL:]
+    anchor = _last_match(tail)
+    if anchor is None:
+        return None
+    return len(text) - len(tail) + anchor.end(), anchor
+
+
+def anchor_core(text: str, found: tuple[int, re.Match], listed: Sequence[str] | None,
+                zone: Sequence[float] | None = None, follow_plan: bool = True) -> _Core | None:
+    """The rule of the anchor :func:`find_anchor` found in ``text``."""
+    return _core(text[:found[0]], found[1], listed, zone, follow_plan)
+
+
+def _last_match(tail: str):
+    """The last of ``ANCHOR``'s matches in ``tail`` (scanned from its start), read from its last lines
+    only: a match holds a line break only as its first character, so none spans a line break and the
+    scan from the start tries a match at every line break; from there on it finds what a scan from that
+    line break finds (a match's look-ahead stops at the next line break, so it sees the same text when
+    the scan ends there)."""
+    end = len(tail)
+    while True:
+        start = max(tail.rfind(STEP_SEPARATOR, 0, end), 0)
+        anchor = None
+        for found in ANCHOR.finditer(tail, start, end):
+            anchor = found
+        if anchor is not None or start == 0:
+            return anchor
+        end = start
 
 
 class PlannedEntry(NamedTuple):
@@ -355,17 +495,16 @@ def _planned(plan: str, listed: tuple[str, ...]) -> tuple[PlannedEntry, ...] | N
 def _core(text: str, anchor, listed: Sequence[str] | None, zone: Sequence[float] | None,
           follow_plan: bool = True) -> _Core | None:
     """The rule of ``anchor``, the last anchor of ``text`` (which ends with it)."""
-    in_plan = LAYOUT_HEADER not in text  # the anchor lies in the plan
-    key = anchor.group("key")
-    if anchor.group("step") is not None or anchor.group("line") is not None:
-        if not in_plan or not listed:
+    key, step, line = anchor.group("key", "step", "line")
+    if step is not None or line is not None:
+        if LAYOUT_HEADER in text or not listed:  # the anchor lies in the layout, or no list
             return None
         placed = set(_PLACED_IN_PLAN.findall(text))
         left = [i for i in listed if i not in placed]
-        if anchor.group("step") is not None:  # an id left, then words without quotes or braces to the "."
+        if step is not None:  # an id left, then words without quotes or braces to the "."
             return _Core(_STEP_WORDS, choices=tuple(f" {i}" for i in left)) if left else None
         if left:
-            return _literal(STEP_SEPARATOR + step_start(int(anchor.group("line")) + 1))
+            return _literal(STEP_SEPARATOR + step_start(int(line) + 1))
         return _literal(_LAYOUT_START)
     if zone is not None and key in (ZONE_BBOX, ZONE):  # given by the prompt: copy it
         if key == ZONE_BBOX:  # the root entry: the zone with a zero height
@@ -379,9 +518,13 @@ def _core(text: str, anchor, listed: Sequence[str] | None, zone: Sequence[float]
         placed = set(_INSTANCE_IDS.findall(text))
         return _rotation_core(any(i not in placed for i in listed))
     ids = _INSTANCE_IDS.findall(text)
-    follow = key_text(next_key(key))
+    follow = _follow(key)
+    if key == CATEGORY:  # the id's own category: no plan needed
+        if not ids or ids[-1] == TABLE:
+            return None
+        return _choices_core((category_from_instance(ids[-1]),), follow)
     plan = planned_entries(text, listed) if follow_plan else None
-    planned = {e.iid: e for e in plan} if plan else {}
+    planned = _by_iid(plan) if plan else {}
     if key == INSTANCE_ID:
         if not ids:
             return _literal(VALUE_SPACE + f'"{TABLE}"' + _ROOT_KEYS)
@@ -390,10 +533,6 @@ def _core(text: str, anchor, listed: Sequence[str] | None, zone: Sequence[float]
         allowed = [i for i in listed if i not in ids]
         if plan and len(ids) - 1 < len(plan) and plan[len(ids) - 1].iid in allowed:
             allowed = [plan[len(ids) - 1].iid]  # the plan's next object (ids[0] is the root)
-    elif key == CATEGORY:
-        if not ids or ids[-1] == TABLE:
-            return None
-        allowed = [category_from_instance(ids[-1])]
     elif key == PARENT_ID:
         allowed = [TABLE, *[i for i in ids[:-1] if i != TABLE]]
         step = planned.get(ids[-1]) if ids else None
@@ -410,7 +549,25 @@ def _core(text: str, anchor, listed: Sequence[str] | None, zone: Sequence[float]
         return _relation_core(tuple(allowed), follow)
     if not allowed:
         return None
+    return _choices_core(tuple(allowed), follow)
+
+
+@functools.lru_cache(maxsize=4096)
+def _choices_core(allowed: tuple[str, ...], follow: str) -> _Core:
+    """The literal rule of one of the ``allowed`` JSON strings, then the key ``follow``."""
     return _literal(*(VALUE_SPACE + f'"{i}"' + follow for i in allowed))
+
+
+@functools.cache
+def _follow(key: str) -> str:
+    """The text of the key after ``key``'s value (``, "category":``)."""
+    return key_text(next_key(key))
+
+
+@functools.lru_cache(maxsize=1024)
+def _by_iid(plan: tuple[PlannedEntry, ...]) -> dict[str, PlannedEntry]:
+    """A plan's entries by id (read-only: shared by every rule of that plan)."""
+    return {e.iid: e for e in plan}
 
 
 @functools.cache

@@ -12,9 +12,13 @@ from dataclasses import dataclass, field
 import torch
 from transformers import LogitsProcessor, LogitsProcessorList, PreTrainedTokenizerBase
 
+from physcene.ctrc.grammar import PLACE
 from physcene.train.constrained.grammar import (
     Rule,
     active_rule,
+    anchor_core,
+    entered_rule,
+    find_anchor,
     last_anchor,
     listed_instance_ids,
     may_end_anchor,
@@ -84,6 +88,7 @@ class CTRCConstraint(LogitsProcessor):
         self.prompts = list(prompts)
         self.token_index = vocabulary(tokenizer)
         self.token_text = self.token_index.texts
+        self.may_end = self.token_index.may_end  # per token: whether it may end an anchor
         self.eos = tokenizer.eos_token_id
         self.listed = [listed_instance_ids(p) for p in prompts]
         self.zones = [prompt_zone(p) for p in prompts]
@@ -92,6 +97,9 @@ class CTRCConstraint(LogitsProcessor):
         # each row's last anchor (position, rule regex): looked for again only when a token that can
         # end an anchor arrives (_may_end_anchor), so a step costs O(1) regex work per row
         self.anchors: list = [_UNSET] * len(prompts)
+        # each row's anchor in force as (position, match groups) where the short step found it: a search
+        # that finds it again reuses its rule (None: found by the general step, not kept)
+        self.anchor_keys: list = [None] * len(prompts)
         # each row's texts since its anchor that the last step found inside the anchor's rule (the
         # tokens it allowed): the next step need not match the rule again for the one that came
         self.admitted: list[set[str]] = [set() for _ in prompts]
@@ -242,16 +250,57 @@ class CTRCConstraint(LogitsProcessor):
         """The common step of a row under a rule: when ``rule`` admits ``token`` and the token cannot
         end an anchor, it is appended here and the rule then in force returned (None: the rule's text
         is complete, free text follows), at one partial match instead of :meth:`allowed_tokens` +
-        :meth:`advance_row`, which come to the same rule; else False (nothing changed: the caller takes
-        the general path, which also counts and repairs a refusal)."""
+        :meth:`advance_row`, which come to the same rule; a token that may end an anchor at one anchor
+        search (:meth:`_advance_across_anchor`); else False (nothing changed: the caller takes the
+        general path, which also counts and repairs a refusal)."""
         added = self.token_text[token]
         if rule.pattern is None or not added or token == self.eos:
             return False
-        if may_end_anchor(self.texts[b], added) or not rule.admits(added):
-            return False
-        self._append(b, added)
+        if self.may_end[token] or self.texts[b].endswith(PLACE):
+            if may_end_anchor(self.texts[b], added):
+                return self._advance_across_anchor(b, rule, added)
         # the rule's partial is the text since its anchor (advance_row made it so): no slice of the text
-        return active_rule(rule.partial + added, self.anchors[b][1], within=True)
+        after = rule.after(added, self.anchors[b][1])
+        if after is not False:
+            self.texts[b] += added  # _append's, inline: the commonest step of all
+            if self.admitted[b]:
+                self.admitted[b] = set()
+            if self.ahead[b]:
+                self.ahead[b] = {}
+        return after
+
+    def _advance_across_anchor(self, b: int, rule: Rule, added: str) -> Rule | None | bool:
+        """The step of :meth:`advance_within_rule` for a token that may end an anchor: where ``rule``
+        admits it and it keeps inside the rule of any anchor it ends, it is appended and the rule then
+        in force returned, at one anchor search (what :meth:`allowed_tokens` + :meth:`advance_row`
+        decide with two); else False (nothing changed)."""
+        if not rule.admits(added):
+            return False
+        text = self.texts[b]
+        full = text + added
+        match = find_anchor(full)
+        key = None if match is None else (match[0], match[1].groups())
+        if key is None:
+            found = None
+        elif key == self.anchor_keys[b]:  # the anchor in force: its rule is a function of the same text
+            found = self.anchors[b]
+        else:
+            found = (match[0], anchor_core(full, match, self.listed[b], self.zones[b], self.follow_plan))
+        if found is None:
+            after = None
+        elif found[0] > len(text):  # the token ends an anchor: its text must continue the anchor's rule
+            after = entered_rule(full[found[0]:], found[1])
+            if after is False:
+                return False
+        else:
+            after = active_rule(full[found[0]:], found[1])
+        self.texts[b] = full
+        if self.admitted[b]:
+            self.admitted[b] = set()
+        if self.ahead[b]:
+            self.ahead[b] = {}
+        self.anchors[b], self.anchor_keys[b] = found, key
+        return after
 
     def advance_row(self, b: int, ids: Sequence[int]) -> Rule | None:
         """Append row ``b``'s new token ``ids`` to its text; the rule then in force (None: free text, or
@@ -268,6 +317,7 @@ class CTRCConstraint(LogitsProcessor):
         admitted, self.admitted[b] = self.admitted[b], set()
         ahead, self.ahead[b] = self.ahead[b], {}
         if searched:
+            self.anchor_keys[b] = None
             found = ahead.get(added, _UNSET)
             self.anchors[b] = (last_anchor(self.texts[b], self.listed[b], self.zones[b], self.follow_plan)
                                if found is _UNSET else found)

@@ -61,12 +61,13 @@ class OverlappedConstraint:
         stats = self.constraint.stats
         corrections: dict[int, int] = {}
         free_text, within_rule = self.constraint.advance_free_text, self.constraint.advance_within_rule
-        rules, accepted = self.rules, self.accepted
+        rules, accepted, finished, longest = self.rules, self.accepted, self.finished, self.max_new_tokens
         for b, token in enumerate(tokens):
-            if self.finished[b] or b in skip:
+            if finished[b] or b in skip:
                 continue
             rule = rules[b]
-            # most rows: free text, or a token inside the rule in force; neither ends an anchor
+            # most rows: free text, or a token the rule in force admits (one that ends an anchor too,
+            # at one anchor search); a refused one takes the general path below
             if rule is None:
                 kept = free_text(b, token)
             else:
@@ -76,7 +77,7 @@ class OverlappedConstraint:
                     rules[b] = ruled
             if kept:
                 accepted[b].append(token)
-                if len(accepted[b]) >= self.max_new_tokens:
+                if len(accepted[b]) >= longest:
                     self._finish(b)
                 continue
             chosen = self._choose(b, token, [t for t in candidates[b] if t >= 0], logits_row)
