@@ -70,7 +70,7 @@ from physcene.train.constrained.automaton import automaton
 
 __all__ = ["ANCHOR", "PlannedEntry", "Rule", "active_rule", "anchor_core", "constraint_rule", "entered_rule",
            "find_anchor", "last_anchor", "listed_instance_ids", "may_end_anchor", "planned_entries",
-           "prompt_zone", "within_rule"]
+           "prompt_zone", "token_may_end_anchor", "within_rule"]
 
 _OBJECT_LIST = re.compile(re.escape(OBJECT_LIST_LABEL) + r"([^\n]*)")
 _ZONE = re.compile(re.escape(ZONE_LABEL) + r"(\[[^\]\n]*\])")
@@ -149,14 +149,18 @@ class Rule(NamedTuple):
         if self.choices:
             return any(c.startswith(text) or not self.closed and text.startswith(c) and self._follows(text, c)
                        for c in self.choices)
-        # the partial match of the pattern, as the state of its automaton after the text: the rule's
-        # text so far has its state cached (the last step kept it), so a step reads only the token
-        machine = automaton(self.pattern)
-        state = machine.state(text) if not self.partial else machine.step(machine.state(self.partial), added)
+        machine, state = self._moved(added)
         if not machine.live[state]:
             return False
         machine.keep(text, state)
         return not self.ordered or _extents_possible(text, self.ordered)
+
+    def _moved(self, added: str):
+        """(the pattern's automaton, its state after ``partial`` + ``added``): the partial match of the
+        pattern as a state; the rule's text so far has its state cached (the last step kept it), so a
+        step reads only the token."""
+        machine = automaton(self.pattern)
+        return machine, machine.step(machine.state(self.partial), added)
 
     def after(self, added: str, core: _Core | None) -> Rule | None | bool:
         """The rule in force after ``added`` where this rule (of ``core``, from :func:`last_anchor`, its
@@ -181,8 +185,7 @@ class Rule(NamedTuple):
                                                                   self.choices)
         if self.choices or self.closed or self.pattern is None:
             return active_rule(self.partial + added, core, within=True) if self.admits(added) else False
-        machine = automaton(self.pattern)
-        state = machine.step(machine.state(self.partial), added)
+        machine, state = self._moved(added)
         if not machine.live[state]:
             return False
         text = self.partial + added
@@ -619,6 +622,16 @@ def _then_anything(pattern: str) -> str:
     """``pattern`` then anything: one string per pattern, so the rule of every step under it looks its
     compiled regex up by a string whose hash is already known."""
     return pattern + _ANY
+
+
+def token_may_end_anchor(added: str) -> bool:
+    """Whether a token's text ``added`` may end an anchor after some text (:func:`may_end_anchor` for
+    any ``text``): it holds a key's colon, a line break or a full stop, or it completes "Place" (holds
+    it, or starts with the rest of a "Place" whose start the text before it may end with: "e", "ce",
+    ... "Place")."""
+    if any(c in added for c in (KEY_COLON, STEP_SEPARATOR, STEP_END)) or PLACE in added:
+        return True
+    return any(PLACE[:-1].endswith(added[:j]) for j, c in enumerate(added[:len(PLACE)]) if c == PLACE[-1])
 
 
 def may_end_anchor(text: str, added: str) -> bool:

@@ -294,11 +294,7 @@ class CTRCConstraint(LogitsProcessor):
                 return False
         else:
             after = active_rule(full[found[0]:], found[1])
-        self.texts[b] = full
-        if self.admitted[b]:
-            self.admitted[b] = set()
-        if self.ahead[b]:
-            self.ahead[b] = {}
+        self._append(b, added)
         self.anchors[b], self.anchor_keys[b] = found, key
         return after
 

@@ -11,8 +11,7 @@ import weakref
 import torch
 from transformers import GenerationConfig, LogitsProcessorList, PreTrainedTokenizerBase
 
-from physcene.ctrc.grammar import KEY_COLON, PLACE, STEP_END, STEP_SEPARATOR
-from physcene.train.constrained.grammar import Rule, _compiled
+from physcene.train.constrained.grammar import Rule, _compiled, token_may_end_anchor
 
 __all__ = ["TokenIndex", "rejection_draw", "sampling_warpers", "vocabulary"]
 
@@ -108,7 +107,7 @@ class TokenIndex:
         self.texts = texts  # by token id
         # whether a token's text may end an anchor after some text (may_end_anchor); another only
         # after a text that ends with "Place"
-        self.may_end = [_may_end_anchor(text) for text in texts]
+        self.may_end = [token_may_end_anchor(text) for text in texts]
         self.by_text: dict[str, list[int]] = {}
         for t, text in enumerate(texts):
             if text:  # special tokens ("") fit no rule
@@ -183,15 +182,6 @@ class TokenIndex:
                 out.extend(self.by_text.get(trie[i], ()))
                 i += 1
         return torch.tensor(sorted(out), dtype=torch.long)
-
-
-def _may_end_anchor(text: str) -> bool:
-    """Whether a token's ``text`` may end an anchor after some text: it holds a key's colon, a line
-    break or a full stop, or it completes "Place" (holds it, or starts with the rest of a "Place"
-    whose start the text before it may end with: "e", "ce", ... "Place")."""
-    if any(c in text for c in (KEY_COLON, STEP_SEPARATOR, STEP_END)) or PLACE in text:
-        return True
-    return any(PLACE[:-1].endswith(text[:j]) for j, c in enumerate(text[:len(PLACE)]) if c == PLACE[-1])
 
 
 def vocabulary(tokenizer: PreTrainedTokenizerBase) -> TokenIndex:
