@@ -222,7 +222,7 @@ def pada_arguments(cfg, variant: str) -> PADAConfig:
         denoise_tto=_listed(p.get("denoise_tto", ["lambda_zone=100.0"])) or [],
         denoise_decimals=p.get("denoise_decimals"),
         learning_rate=float(p.learning_rate),
-        lr_scheduler_type=str(p.lr_scheduler_type),
+        **_schedule(p),
         num_train_epochs=float(p.epochs),
         max_steps=int(p.max_steps),
         per_device_train_batch_size=int(p.per_device_batch_size),
@@ -245,6 +245,22 @@ def pada_arguments(cfg, variant: str) -> PADAConfig:
         ddp_find_unused_parameters=False,
         **_precision(cfg),
     )
+
+
+def _schedule(p) -> dict:
+    """``pada.lr_scheduler_type`` and its arguments. ``pada.decay_steps: N`` holds the rate constant and
+    takes it down a cosine to 0 over the last N of ``pada.max_steps`` (transformers'
+    ``warmup_stable_decay``); a constant run resumed with it decays from where it stopped."""
+    kind, decay = str(p.lr_scheduler_type), p.get("decay_steps")
+    if decay is None:
+        return {"lr_scheduler_type": kind}
+    decay, steps = int(decay), int(p.max_steps)
+    if kind != "constant":
+        raise ValueError(f"pada.decay_steps={decay} decays a constant rate; "
+                         f"got pada.lr_scheduler_type={kind!r}")
+    if not 0 < decay <= steps:
+        raise ValueError(f"pada.decay_steps={decay} must be in 1..pada.max_steps ({steps})")
+    return {"lr_scheduler_type": "warmup_stable_decay", "lr_scheduler_kwargs": {"num_decay_steps": decay}}
 
 
 def reward_overrides(cfg, variant: str) -> list[str]:

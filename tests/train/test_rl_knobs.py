@@ -3,6 +3,8 @@
 
 from __future__ import annotations
 
+import math
+
 import pytest
 
 from physcene.commands.train import training_config
@@ -89,3 +91,46 @@ def test_the_prompt_pool_spreads_over_the_levels_that_fit():
     assert len(every) == len(records) and sum(c["picked"] for c in counts.values()) == 55
     with pytest.raises(ValueError, match="prompt pool: size and max_tokens must be >= 1"):
         prompt_pool(records, CharacterTokenizer(), size=0, max_tokens=10)
+
+
+def test_a_resumed_constant_run_decays_from_where_it_stopped(tmp_path):
+    """``pada.decay_steps``: the schedule the Trainer builds (its ``create_scheduler`` call) holds the
+    learning rate until ``max_steps - decay_steps`` and then takes it down a cosine to 0; loaded with a
+    constant run's scheduler state at step 6 (what a resume does), its next steps are the decay's, not a
+    restart."""
+    import torch
+    from transformers.optimization import get_scheduler
+
+    def scheduler(args, optimizer):  # transformers.Trainer.create_scheduler, as it calls it
+        return get_scheduler(args.lr_scheduler_type, optimizer=optimizer,
+                             num_warmup_steps=args.get_warmup_steps(args.max_steps),
+                             num_training_steps=args.max_steps,
+                             scheduler_specific_kwargs=args.lr_scheduler_kwargs)
+
+    def optimizer(lr):
+        return torch.optim.AdamW([torch.nn.Parameter(torch.zeros(2))], lr=lr)
+
+    constant = arguments(tmp_path, "pada.max_steps=6")
+    assert constant.lr_scheduler_type == "constant"
+    before = scheduler(constant, optimizer(constant.learning_rate))
+    for _ in range(6):
+        before.optimizer.step()
+        before.step()
+    decay = arguments(tmp_path, "pada.max_steps=10", "pada.decay_steps=4")
+    assert decay.lr_scheduler_kwargs == {"num_decay_steps": 4}
+    after = scheduler(decay, optimizer(decay.learning_rate))
+    after.load_state_dict(before.state_dict())
+    lr = decay.learning_rate
+    seen = [after.get_last_lr()[0]]
+    for _ in range(4):
+        after.optimizer.step()
+        after.step()
+        seen.append(after.get_last_lr()[0])
+    assert seen[0] == pytest.approx(lr)  # step 6: still the constant run's rate
+    assert seen[1:] == pytest.approx([lr * (1 + math.cos(math.pi * k / 4)) / 2 for k in (1, 2, 3, 4)])
+    assert seen[-1] == pytest.approx(0.0)
+    with pytest.raises(ValueError, match=r"pada.decay_steps=4 decays a constant rate; got "
+                                         r"pada.lr_scheduler_type='cosine'"):
+        arguments(tmp_path, "pada.max_steps=10", "pada.decay_steps=4", "pada.lr_scheduler_type=cosine")
+    with pytest.raises(ValueError, match=r"pada.decay_steps=12 must be in 1..pada.max_steps \(10\)"):
+        arguments(tmp_path, "pada.max_steps=10", "pada.decay_steps=12")
