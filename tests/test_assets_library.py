@@ -246,6 +246,33 @@ def test_cache_key_depends_on_content_and_settings():
     assert k != BakeCache.key(
         mesh.vertices, mesh.faces, resolution=64, n_points=512, seed=0, sign_method="parity"
     )
+    for weighting in ({"points_scale": (11.0, 8.0, 1.5)}, {"edge_angle_deg": 45.0}):  # the points' inputs
+        assert k != BakeCache.key(
+            mesh.vertices, mesh.faces, resolution=64, n_points=1024, seed=0, sign_method="parity", **weighting
+        )
+
+
+def test_slabs_share_one_bake_whichever_is_baked_first(tmp_path):
+    """Book, towel and phone are one box in the normalised frame: one cache entry, whose points are
+    weighed by the first of them in CATEGORY_PRIORS order (book), in every process and bake order.
+    Before, the entry held the points of whichever slab a machine baked first, so a scene's seating
+    (and the split synthesised from it) depended on what had been baked earlier."""
+    from physcene.assets.library import procedural_points_scale
+
+    assert procedural_points_scale("towel") == procedural_points_scale("phone") == tuple(
+        m / 2 for m in CATEGORY_PRIORS["book"].mean_cm)
+    assert procedural_points_scale("mug") == tuple(m / 2 for m in CATEGORY_PRIORS["mug"].mean_cm)
+    points = {}
+    for order in (("towel", "phone", "book"), ("book", "phone", "towel")):
+        cache = BakeCache(tmp_path / "-".join(order))
+        library = AssetLibrary(resolution=10, n_points=32, cache=cache)
+        library.add_procedural(order)
+        points[order] = {c: library.get(f"procedural:{c}").points for c in order}
+        assert len(list(cache.root.glob("*.npz"))) == 1
+    first, second = points.values()
+    for category in ("towel", "phone", "book"):
+        assert np.array_equal(first[category], second[category])
+        assert np.array_equal(first[category], first["book"])
 
 
 def test_corrupt_cache_entry_is_detected_and_rebaked(tmp_path, caplog):

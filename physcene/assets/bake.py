@@ -86,14 +86,20 @@ def bake_mesh_asset(
     device: str = "cpu",
     cache: BakeCache | None = None,
     edge_angle_deg: float = 30.0,
+    points_scale=None,
 ) -> Asset:
     """Bake ``mesh`` (any placement, z up, units of ``unit_cm`` cm) into an asset.
+
+    ``points_scale`` (3,): the half-extents that weigh the surface points' areas and edge lengths
+    (default: this mesh's own); the library passes one shared by every procedural category of the
+    same normalised shape (:func:`physcene.assets.procedural.points_scale`).
 
     A cache hit skips the Warp bake and the point sampling; the result is identical either way.
     """
     normalised, extents = normalise_mesh(mesh, name=asset_id)
     extents_cm = tuple(float(e) for e in extents * unit_cm)
     method = sign_method_for(normalised, device=device, name=asset_id)
+    scale = np.asarray(extents / 2 if points_scale is None else points_scale, dtype=np.float64)
     key = BakeCache.key(
         normalised.vertices,
         normalised.faces,
@@ -101,13 +107,15 @@ def bake_mesh_asset(
         n_points=n_points,
         seed=seed,
         sign_method=method,
+        points_scale=scale,
+        edge_angle_deg=edge_angle_deg,
     )
     entry = cache.load(key, resolution, n_points) if cache is not None else None
     if entry is None:
         where = cache.root if cache is not None else "no bake cache"
         sdf = _sdf_bake(asset_id, f"baking its SDF (not in {where})").bake_sdf(
             normalised.vertices, normalised.faces, resolution, sign_method=method, device=device)
-        points = surface_points(normalised, n_points, seed, scale=extents / 2, edge_angle_deg=edge_angle_deg)
+        points = surface_points(normalised, n_points, seed, scale=scale, edge_angle_deg=edge_angle_deg)
         if cache is not None:
             cache.store(key, sdf, points)
         entry = {"sdf": sdf, "points": points}

@@ -1,10 +1,11 @@
 """On-disk cache of baked assets: one ``<key>.npz`` per bake, keyed by a content hash.
 
 The key is the SHA-256 of the normalised mesh bytes (float32 vertices, int32 faces), the grid
-resolution, the point count and seed, the sign method and :data:`BAKE_VERSION` (bumped whenever
-the baking code changes its output). Entries are written to a temporary file in the same folder
-and ``os.replace``d into place (:func:`physcene.files.open_atomic`), so a reader never sees half
-an entry and an interrupted bake leaves nothing behind; an entry that does not load (truncated,
+resolution, the point count and seed, the sign method, the surface points' weighting and sharp-edge
+angle, and :data:`BAKE_VERSION` (bumped whenever the baking code changes its output). Entries are
+written to a temporary file in the same folder and ``os.replace``d into place
+(:func:`physcene.files.open_atomic`), so a reader never sees half an entry and an interrupted bake
+leaves nothing behind; an entry that does not load (truncated,
 bad zip, wrong arrays, non-finite values, another key) is deleted and baked again.
 
 Where: ``cache_dir`` when given (config ``assets.cache_dir``), else ``$PHYSCENE_CACHE/assets``,
@@ -50,13 +51,20 @@ class BakeCache:
         n_points: int,
         seed: int,
         sign_method: str,
+        points_scale=None,
+        edge_angle_deg: float = 30.0,
     ) -> str:
-        """The content hash of one bake."""
+        """The content hash of one bake. The surface points' weighting (``points_scale``, the
+        half-extents that weigh areas and edge lengths; None: the normalised frame) and sharp-edge
+        angle are part of it: two meshes with one normalised shape but other proportions sample
+        other points, and an entry must not hand one the other's."""
         h = hashlib.sha256()
         h.update(BAKE_VERSION.encode())
         h.update(np.ascontiguousarray(vertices, dtype=np.float32).tobytes())
         h.update(np.ascontiguousarray(faces, dtype=np.int32).tobytes())
         h.update(f"|{resolution}|{n_points}|{seed}|{sign_method}".encode())
+        scale = "none" if points_scale is None else np.asarray(points_scale, dtype=np.float64).tobytes().hex()
+        h.update(f"|{scale}|{float(edge_angle_deg)!r}".encode())
         return h.hexdigest()
 
     def path(self, key: str) -> Path:

@@ -24,20 +24,46 @@ from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import numpy as np
 import trimesh
 
 from physcene.assets.asset import Asset
-from physcene.assets.bake import bake_mesh_asset
+from physcene.assets.bake import bake_mesh_asset, normalise_mesh
 from physcene.assets.cache import BakeCache
 from physcene.assets.categories import CATEGORY_ALIASES, CATEGORY_PRIORS
 from physcene.assets.mesh_folder import load_mesh_file, normalise_category, scan_mesh_folder
 from physcene.assets.primitives import PRIMITIVES, primitive_asset
 from physcene.assets.procedural import procedural_mesh
 
-__all__ = ["AssetEntry", "AssetLibrary", "Retrieval", "default_library"]
+__all__ = ["AssetEntry", "AssetLibrary", "Retrieval", "default_library", "procedural_points_scale"]
 
 _log = logging.getLogger("physcene.assets")
 _SOURCE_RANK = {"folder": 0, "procedural": 1, "primitive": 2}
+
+
+@functools.cache
+def _procedural_shapes() -> dict[str, tuple[bytes, tuple[float, float, float]]]:
+    """Each procedural category's normalised mesh (float32 vertices + int32 faces, the bytes the
+    cache key hashes) and half-extents (cm), in :data:`CATEGORY_PRIORS` order."""
+    out = {}
+    for category in CATEGORY_PRIORS:
+        normalised, extents = normalise_mesh(procedural_mesh(category), name=f"procedural:{category}")
+        shape = (np.ascontiguousarray(normalised.vertices, dtype=np.float32).tobytes()
+                 + np.ascontiguousarray(normalised.faces, dtype=np.int32).tobytes())
+        out[category] = (shape, tuple(float(e) / 2 for e in extents))
+    return out
+
+
+def procedural_points_scale(category: str) -> tuple[float, float, float]:
+    """The half-extents (cm) that weigh the surface points of procedural ``category``: those of the
+    first category in :data:`CATEGORY_PRIORS` order with the same normalised mesh. The slabs (book,
+    phone, towel, toaster, ...) are one box in the normalised frame and share one bake, SDF and
+    points; naming its weighting here makes the points the same in every process, whichever slab
+    is baked first (they were the first baker's before, so a scene's seating and the engine's
+    points depended on what a machine had baked earlier)."""
+    shapes = _procedural_shapes()
+    shape = shapes[category][0]
+    return next(scale for other, scale in shapes.values() if other == shape)
 
 
 @dataclass(frozen=True)
@@ -185,6 +211,8 @@ class AssetLibrary:
                     device=self.device,
                     cache=self.cache,
                     edge_angle_deg=self.edge_angle_deg,
+                    points_scale=(procedural_points_scale(entry.category) if entry.kind == "procedural"
+                                  else None),
                 )
             self._baked[asset_id] = asset
             return asset
