@@ -35,6 +35,7 @@ def test_rows_are_scored_again_from_their_layouts(tmp_path):
         {k: truth[k] for k in ("scr", "acr", "qpr7", "judge_avg", "floating", "shrunk", "out_of_zone")}
     assert row["anchor_nll"] == 0.5 and row["layouts"] == str(layouts)  # what the layouts do not give
     assert rescore_table(table, root="/") == []  # scored with the same code: nothing moves
+    assert rescore_table(table, root="/", seed=1) == []  # no row of seed 1
     assert (tmp_path / "ablation.md").is_file()
 
 

@@ -28,11 +28,12 @@ _SCORED = ("scr", "acr", "qpr7", "qpr8", "qpr9", "judge_avg", "parse_rate", "flo
            "out_of_zone", "n", "by_level", "parse_error_kinds")
 
 
-def rescore_table(table: str | Path, out: str | Path | None = None, root: str | Path = ".") -> list[dict]:
-    """Score every row of ``table`` that names its layouts again; write the table to ``out`` (default:
-    in place). Returns one ``{name, seed, rl_steps, before, after}`` per row whose figures changed
-    (``before``/``after``: the changed figures). ``root``: what the rows' ``layouts`` paths are relative
-    to (the repository)."""
+def rescore_table(table: str | Path, out: str | Path | None = None, root: str | Path = ".",
+                  seed: int | None = None) -> list[dict]:
+    """Score every row of ``table`` that names its layouts again (``seed``: only that seed's rows);
+    write the table to ``out`` (default: in place). Returns one ``{name, seed, rl_steps, before,
+    after}`` per row whose figures changed (``before``/``after``: the changed figures). ``root``: what
+    the rows' ``layouts`` paths are relative to (the repository)."""
     from physcene.eval.harness import generate, make_judge, score_scenes
     from physcene.physics import PhysicsEngine
     from physcene.train.ablation import _load_split, check_ablation, table_row, write_ablation
@@ -48,7 +49,7 @@ def rescore_table(table: str | Path, out: str | Path | None = None, root: str | 
     changed = []
     for key in ("rows", "checkpoint_rows"):
         for row in data.get(key) or []:
-            if not row.get("layouts"):
+            if not row.get("layouts") or (seed is not None and int(row["seed"]) != seed):
                 continue
             path = Path(root) / row["layouts"]
             outputs = generate(items, f"file:{path}")
@@ -73,9 +74,10 @@ def main(argv=None) -> int:
     parser = argparse.ArgumentParser(prog=prog, description=__doc__.split("\n\n")[0])
     parser.add_argument("table", help="an ablation table (ablation.json) whose rows name their layouts")
     parser.add_argument("--out", help="where to write the rescored table (default: in place)")
+    parser.add_argument("--seed", type=int, help="only the rows of this seed (the others as they are)")
     parser.add_argument("--json", action="store_true", help="print the changed rows as JSON")
     args = parser.parse_args(argv)
-    changed = rescore_table(args.table, args.out)
+    changed = rescore_table(args.table, args.out, seed=args.seed)
     if args.json:
         print(json.dumps({"changed": changed, "command": shlex.join([prog, *(argv or sys.argv[1:])])},
                          indent=1))
