@@ -92,7 +92,7 @@ def bake_mesh_asset(
 
     ``points_scale`` (3,): the half-extents that weigh the surface points' areas and edge lengths
     (default: this mesh's own); the library passes one shared by every procedural category of the
-    same normalised shape (:func:`physcene.assets.procedural.points_scale`).
+    same normalised shape (:func:`physcene.assets.library.procedural_points_scale`).
 
     A cache hit skips the Warp bake and the point sampling; the result is identical either way.
     """

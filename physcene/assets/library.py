@@ -58,9 +58,8 @@ def procedural_points_scale(category: str) -> tuple[float, float, float]:
     """The half-extents (cm) that weigh the surface points of procedural ``category``: those of the
     first category in :data:`CATEGORY_PRIORS` order with the same normalised mesh. The slabs (book,
     phone, towel, toaster, ...) are one box in the normalised frame and share one bake, SDF and
-    points; naming its weighting here makes the points the same in every process, whichever slab
-    is baked first (they were the first baker's before, so a scene's seating and the engine's
-    points depended on what a machine had baked earlier)."""
+    points; naming its weighting here makes those points the same in every process, whichever slab
+    is baked first, and so the seating of a synthesised scene and the engine's measure with them."""
     shapes = _procedural_shapes()
     shape = shapes[category][0]
     return next(scale for other, scale in shapes.values() if other == shape)
