@@ -29,11 +29,12 @@ _SCORED = ("scr", "acr", "qpr7", "qpr8", "qpr9", "judge_avg", "parse_rate", "flo
 
 
 def rescore_table(table: str | Path, out: str | Path | None = None, root: str | Path = ".",
-                  seed: int | None = None) -> list[dict]:
+                  seed: int | None = None, device: str = "cpu") -> list[dict]:
     """Score every row of ``table`` that names its layouts again (``seed``: only that seed's rows);
     write the table to ``out`` (default: in place). Returns one ``{name, seed, rl_steps, before,
     after}`` per row whose figures changed (``before``/``after``: the changed figures). ``root``: what
-    the rows' ``layouts`` paths are relative to (the repository)."""
+    the rows' ``layouts`` paths are relative to (the repository); ``device``: the physics engine's (a
+    CPU and a GPU score can differ by a scene: score a table on the device its rows were scored on)."""
     from physcene.eval.harness import generate, make_judge, score_scenes
     from physcene.physics import PhysicsEngine
     from physcene.train.ablation import _load_split, check_ablation, table_row, write_ablation
@@ -45,7 +46,7 @@ def rescore_table(table: str | Path, out: str | Path | None = None, root: str | 
         raise ValueError(f"{table}: no test_split (name, seed, n) to score the rows on")
     items = _load_split(split)
     judge = make_judge("rule", [it.reference for it in items])
-    engine = PhysicsEngine(device="cpu")
+    engine = PhysicsEngine(device=device)
     changed = []
     for key in ("rows", "checkpoint_rows"):
         for row in data.get(key) or []:
@@ -75,9 +76,10 @@ def main(argv=None) -> int:
     parser.add_argument("table", help="an ablation table (ablation.json) whose rows name their layouts")
     parser.add_argument("--out", help="where to write the rescored table (default: in place)")
     parser.add_argument("--seed", type=int, help="only the rows of this seed (the others as they are)")
+    parser.add_argument("--device", default="cpu", help="the physics engine's device (default: cpu)")
     parser.add_argument("--json", action="store_true", help="print the changed rows as JSON")
     args = parser.parse_args(argv)
-    changed = rescore_table(args.table, args.out, seed=args.seed)
+    changed = rescore_table(args.table, args.out, seed=args.seed, device=args.device)
     if args.json:
         print(json.dumps({"changed": changed, "command": shlex.join([prog, *(argv or sys.argv[1:])])},
                          indent=1))
