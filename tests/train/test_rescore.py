@@ -22,14 +22,14 @@ def test_rows_are_scored_again_from_their_layouts(tmp_path):
     engine = PhysicsEngine(device="cpu")
     results = score_scenes(items, references, make_judge("rule", references), engine, progress=False)
     truth = table_row("reference", items, references, results, engine, seed=0, rl_steps=0)
-    stale = {**truth, "scr": 1.0 - truth["scr"], "judge_avg": 1.0, "layouts": str(layouts),
+    stale = {**truth, "scr": 0.3, "judge_avg": 1.0, "layouts": str(layouts),  # 0.3: no SCR of 4 scenes
              "anchor_nll": 0.5}
     table = tmp_path / "ablation.json"
     table.write_text(json.dumps({"rows": [stale], "checkpoint_rows": [], "gpu": "none", "commands": [],
                                  "test_split": SPLIT}))
     changed = rescore_table(table, root="/")
     assert [c["name"] for c in changed] == ["reference"]
-    assert changed[0]["before"]["scr"] == 1.0 - truth["scr"] and changed[0]["after"]["scr"] == truth["scr"]
+    assert changed[0]["before"]["scr"] == 0.3 and changed[0]["after"]["scr"] == truth["scr"]
     (row,) = json.loads(table.read_text())["rows"]
     assert {k: row[k] for k in ("scr", "acr", "qpr7", "judge_avg", "floating", "shrunk", "out_of_zone")} == \
         {k: truth[k] for k in ("scr", "acr", "qpr7", "judge_avg", "floating", "shrunk", "out_of_zone")}
