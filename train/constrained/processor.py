@@ -238,8 +238,8 @@ class CTRCConstraint(LogitsProcessor):
         return True
 
     def _append(self, b: int, added: str) -> None:
-        """Append ``added`` to row ``b``'s text where it ends no anchor: the last step's look-ahead and
-        admitted texts no longer apply."""
+        """Append ``added`` to row ``b``'s text without an anchor search (the caller keeps or sets the
+        row's anchor): the last step's look-ahead and admitted texts no longer apply."""
         self.texts[b] += added
         if self.admitted[b]:
             self.admitted[b] = set()
@@ -262,11 +262,7 @@ class CTRCConstraint(LogitsProcessor):
         # the rule's partial is the text since its anchor (advance_row made it so): no slice of the text
         after = rule.after(added, self.anchors[b][1])
         if after is not False:
-            self.texts[b] += added  # _append's, inline: the commonest step of all
-            if self.admitted[b]:
-                self.admitted[b] = set()
-            if self.ahead[b]:
-                self.ahead[b] = {}
+            self._append(b, added)
         return after
 
     def _advance_across_anchor(self, b: int, rule: Rule, added: str) -> Rule | None | bool:
