@@ -82,6 +82,12 @@ class PADAConfig(GRPOConfig):
                                         "(physcene.train.micro_batches): the step's gradient is the same "
                                         "sum (loss_type dapo), the padding's compute is not spent."})
 
+    joint_anchor_pass: bool = field(
+        default=False, metadata={"help": "Score a micro-batch's anchor rows in the policy's forward (one "
+                                         "forward and one backward instead of two each; the same loss and "
+                                         "gradient): half the update's kernel launches, which bound it on "
+                                         "a small model (docs/training.md)."})
+
     # --- extensions: not in the paper, each off by default ---
     mask_overruled: bool = field(
         default=True, metadata={"help": "Leave the tokens the CTRC constraint chose instead of the "
@@ -210,6 +216,7 @@ def pada_arguments(cfg, variant: str) -> PADAConfig:
         merge_adapters=bool(p.get("merge_adapters", False)),
         constraint_workers=int(p.get("constraint_workers", 0) or 0),
         length_grouping=bool(p.get("length_grouping", True)),
+        joint_anchor_pass=bool(p.get("joint_anchor_pass", False)),
         constrained_decoding=bool(p.get("constrained", False)),
         mask_overruled=bool(p.get("mask_overruled", True)),
         nonfinite_probe=int(p.get("nonfinite_probe", 0) or 0),

@@ -77,6 +77,7 @@ from physcene.train.targets import (
 __all__ = [
     "VARIANTS",
     "anchor_owners",
+    "anchor_rows",
     "NoAnchorsError",
     "AdaptiveKLCallback",
     "PADAConfig",
@@ -113,6 +114,16 @@ class NoAnchorsError(ValueError):
     """An anchor file in which no SFT output parsed: PADA and PADA* have nothing to pull toward."""
 
 
+def anchor_rows(inputs: dict) -> dict:
+    """The anchor CE's rows of a micro-batch (:data:`ANCHOR_ROW_KEYS`): those with a supervised anchor
+    token (:func:`anchor_owners`); ``inputs`` itself when every row has one."""
+    supervised = inputs["anchor_loss_mask"].any(dim=1)
+    if bool(supervised.all()):
+        return inputs
+    keep = supervised.nonzero().squeeze(1)
+    return {k: inputs[k].index_select(0, keep) for k in ANCHOR_ROW_KEYS}
+
+
 def pada_extensions(trainer: GRPOTrainer, args: PADAConfig) -> list[PADAExtension]:
     """The extensions ``args`` turns on, in the order they act on a round: the constraint's mask, the
     per-object credit, the denoising targets, the probe."""
@@ -146,6 +157,7 @@ class PADATrainer(GRPOTrainer):
         super().__init__(model, reward_funcs, args=args, **kwargs)
         self.anchor_alpha = float(args.anchor_alpha)
         self.extensions = pada_extensions(self, args) if extensions is None else list(extensions)
+        self._joint_anchor: dict | None = None  # joint_anchor_pass: the anchors the next policy pass scores
         self._round_prompts = None
         if getattr(self, "generation_config", None) is not None:  # HF generate (not vLLM)
             static = args.cache_implementation == "static"
@@ -213,11 +225,17 @@ class PADATrainer(GRPOTrainer):
                                            batch_size=None, compute_entropy=False, **kwargs):
         """TRL's, with ``length_grouping`` over chunks of rows of similar length (a round's rows sorted
         by their last used column first: the reference model's pass), each chunk cut to the columns its
-        rows use; the results padded back and returned in the rows' order. Image inputs go to TRL's."""
+        rows use; the results padded back and returned in the rows' order. Image inputs go to TRL's. The
+        policy's pass of a micro-batch under ``joint_anchor_pass`` takes its anchor rows along
+        (:meth:`_joint_pass`)."""
+        text_only = not any(v is not None for k, v in kwargs.items() if k != "compute_aux_loss")
+        pending, self._joint_anchor = self._joint_anchor, None
+        if pending is not None and text_only:
+            return self._joint_pass(pending, model, input_ids, attention_mask, logits_to_keep,
+                                    compute_entropy, kwargs)
         rows = input_ids.size(0)
         size = batch_size or rows
-        if not self.args.length_grouping or any(v is not None for k, v in kwargs.items()
-                                                 if k != "compute_aux_loss"):
+        if not self.args.length_grouping or not text_only:
             return super()._get_per_token_logps_and_entropies(
                 model, input_ids, attention_mask, logits_to_keep, batch_size, compute_entropy, **kwargs)
         columns = torch.arange(1, input_ids.size(1) + 1, device=input_ids.device)
@@ -245,6 +263,32 @@ class PADATrainer(GRPOTrainer):
             entropies = entropies[back] if entropies is not None else None
         return logps, entropies, (torch.stack(aux).mean() if aux else None)
 
+    def _joint_pass(self, pending: dict, model, input_ids, attention_mask, logits_to_keep: int,
+                    compute_entropy: bool, kwargs: dict):
+        """The policy's pass of a micro-batch with its anchor rows (``pending["rows"]``, the same prompts'
+        columns) appended: each part right-padded to the wider of completion and anchor, one forward;
+        the anchors' log-probabilities go to ``pending["logps"]``, the completions' are returned."""
+        anchors = pending["rows"]
+        anchor_width = anchors["anchor_ids"].size(1)
+        width = max(logits_to_keep, anchor_width)
+        pad = self._tokenizer.pad_token_id
+
+        def widened(ids, mask, keep):
+            return (torch.nn.functional.pad(ids, (0, width - keep), value=pad),
+                    torch.nn.functional.pad(mask, (0, width - keep), value=0))
+
+        ids, mask = widened(input_ids, attention_mask, logits_to_keep)
+        anchor_ids, anchor_mask = widened(
+            torch.cat([anchors["prompt_ids"], anchors["anchor_ids"]], dim=1),
+            torch.cat([anchors["prompt_mask"], anchors["anchor_attention_mask"]], dim=1), anchor_width)
+        logps, entropies, aux = self._get_per_token_logps_and_entropies(
+            model, torch.cat([ids, anchor_ids]), torch.cat([mask, anchor_mask]), width,
+            compute_entropy=compute_entropy, **kwargs)
+        rows = input_ids.size(0)
+        pending["logps"] = logps[rows:, :anchor_width]
+        return (logps[:rows, :logits_to_keep],
+                entropies[:rows, :logits_to_keep] if entropies is not None else None, aux)
+
     def _generate_and_score_completions(self, inputs):
         output = super()._generate_and_score_completions(inputs)
         for extension in self.extensions:
@@ -266,15 +310,17 @@ class PADATrainer(GRPOTrainer):
         output["anchor_tokens"] = output["anchor_loss_mask"].sum().float()  # 0-d: not split with the rows
         return output
 
-    def anchor_cross_entropy(self, model, inputs) -> torch.Tensor:
+    def anchor_cross_entropy(self, model, inputs, logps: torch.Tensor | None = None) -> torch.Tensor:
         """Mean token NLL of the anchors given their prompts, over the supervised anchor tokens (scalar):
         the forward runs on the rows with a supervised token only (a prompt's other completions repeat
-        its anchor with a zero loss mask, :func:`anchor_owners`)."""
-        supervised = inputs["anchor_loss_mask"].any(dim=1)
-        if not bool(supervised.all()):
-            keep = supervised.nonzero().squeeze(1)
-            inputs = {k: inputs[k].index_select(0, keep) for k in ANCHOR_ROW_KEYS}
-        nll, count = self.target_nll(model, inputs, "anchor")
+        its anchor with a zero loss mask, :func:`anchor_owners`). ``logps``: those rows' anchor
+        log-probabilities, already computed (``joint_anchor_pass``): no forward of its own."""
+        inputs = anchor_rows(inputs)
+        if logps is None:
+            nll, count = self.target_nll(model, inputs, "anchor")
+        else:
+            mask = inputs["anchor_loss_mask"].to(logps.dtype)
+            nll, count = -(logps * mask).sum(), mask.sum()
         return nll / count.clamp(min=1.0)
 
     def target_nll(self, model, inputs, name: str) -> tuple[torch.Tensor, torch.Tensor]:
@@ -295,7 +341,14 @@ class PADATrainer(GRPOTrainer):
         return loss
 
     def _compute_loss(self, model, inputs):
-        loss = super()._compute_loss(model, inputs)
+        joint = None
+        if self.args.joint_anchor_pass and self.anchor_alpha != 0.0 and "anchor_ids" in inputs \
+                and bool(inputs["anchor_loss_mask"].any()):
+            joint = self._joint_anchor = {"rows": anchor_rows(inputs), "logps": None}
+        try:
+            loss = super()._compute_loss(model, inputs)
+        finally:
+            self._joint_anchor = None
         for extension in self.extensions:
             extra = extension.extra_loss(self, model, inputs)
             if extra is not None:
@@ -305,7 +358,8 @@ class PADATrainer(GRPOTrainer):
         mode = "train" if self.model.training else "eval"
         count = inputs["anchor_loss_mask"].sum()
         has_anchor = count > 0
-        ce = self.anchor_cross_entropy(model, inputs) if has_anchor else loss.new_zeros(())
+        ce = (self.anchor_cross_entropy(model, inputs, logps=joint and joint["logps"]) if has_anchor
+              else loss.new_zeros(()))
         total = inputs.get("anchor_tokens")
         if mode == "train" and total is not None:
             # this micro-batch's share of the round's anchor tokens, per optimizer step of the round: the

@@ -365,6 +365,19 @@ def test_flex_attention_runs_inside_cuda_graphs(records, tokenizer):
 
 
 @pytest.mark.slow
+def test_bench_pada_times_the_joint_anchor_pass_beside_the_separate_one(capsys):
+    import json
+
+    from physcene.cli import main
+
+    assert main(["bench", "pada", "--config", "tiny", "--tokens", "8", "--steps", "1", "--caches", "fast",
+                 "--joint-anchor-pass", "off", "on", "--json", "--set", "pada.global_batch_size=4",
+                 "pada.per_device_batch_size=2", "pada.num_generations=2"]) == 0
+    r = json.loads(capsys.readouterr().out)
+    assert set(r["caches"]) == {"fast", "fast joint"}
+    assert all(v["steps_timed"] == 1 and v["update_s"] > 0 for v in r["caches"].values())
+
+
 def test_bench_pada_times_whole_steps(capsys, tmp_path):
     """``physcene bench pada`` at tiny sizes: one timed step per cache, split into its parts, and the
     profiled step's tables, its figures written beside them first."""

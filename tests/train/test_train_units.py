@@ -147,6 +147,43 @@ def test_pada_anchor_term_has_gradient(tokenizer, tmp_path):
     assert grad is not None and grad.abs().sum() > 0
 
 
+@pytest.mark.parametrize("wider", ["anchors", "completions"])
+def test_the_joint_anchor_pass_gives_the_same_loss_and_gradient_in_one_forward(tokenizer, tmp_path, wider):
+    batch = _controlled_batch(tokenizer)
+    batch["anchor_loss_mask"][1] = 0  # a prompt's repeated completion: no anchor row of its own
+    if wider == "completions":  # completions past the anchors' width: the anchors are the padded part
+        g = torch.Generator().manual_seed(2)
+        extra = torch.randint(2, len(tokenizer), (4, 48), generator=g)
+        batch["completion_ids"] = torch.cat([batch["completion_ids"], extra], 1)
+        ones = torch.ones(4, 48, dtype=torch.long)
+        batch["completion_mask"] = torch.cat([batch["completion_mask"], ones], 1)
+        batch["completion_mask"][1, 3:] = 0
+        batch["num_items_in_batch"] = batch["completion_mask"].sum()
+    assert (batch["completion_ids"].size(1) > batch["anchor_ids"].size(1)) == (wider == "completions")
+    seen = {}
+    for joint in (False, True):
+        trainer = _trainer(tokenizer, tmp_path / str(joint), alpha=0.1)
+        trainer.args.joint_anchor_pass = joint
+        # no dropout; float64: in float32 TRL's fused LM head rounds the same rows differently in another
+        # batch (up to ~2e-3 of a gradient's norm on this model), in float64 the two agree to ~1e-8
+        model = trainer.model.eval().to(torch.float64)
+        forwards = []
+        hook = model.register_forward_hook(lambda *_, calls=forwards: calls.append(1))
+        loss = trainer._compute_loss(model, {k: v.double() if v.is_floating_point() else v
+                                             for k, v in batch.items()})
+        hook.remove()
+        loss.backward()
+        grads = {n: p.grad.clone() for n, p in model.named_parameters() if p.grad is not None}
+        seen[joint] = (loss.item(), grads, len(forwards), trainer._metrics["eval"]["anchor_ce"][-1])
+    (loss0, grads0, forwards0, ce0), (loss1, grads1, forwards1, ce1) = seen[False], seen[True]
+    assert (forwards0, forwards1) == (2, 1)
+    assert ce1 == pytest.approx(ce0, rel=1e-9) and ce0 > 1.0
+    assert loss1 == pytest.approx(loss0, rel=1e-9, abs=1e-12)
+    assert grads0.keys() == grads1.keys() and grads0
+    for name, grad in grads0.items():
+        assert (grads1[name] - grad).norm() <= 1e-6 * grad.norm(), name
+
+
 def test_grpo_variant_has_alpha_zero_and_ignores_anchors(tokenizer, tmp_path):
     cfg = load_config("train_tiny")
     assert pada_arguments(cfg, "grpo").anchor_alpha == 0.0

@@ -4,6 +4,7 @@ trainer, on a randomly initialised model of a training config.
     physcene bench pada --device cuda --config small --tokens 2304 --steps 3 --json
     physcene bench pada --device cuda --config small --caches fast dynamic --constrained
     physcene bench pada --device cuda --config small --caches fast+fused+cudnn --merge-adapters off on
+    physcene bench pada --device cuda --config small --caches fast+fused+cudnn --joint-anchor-pass off on
     physcene bench pada --device cpu --config tiny --tokens 16 --set pada.global_batch_size=4 \\
         pada.per_device_batch_size=2 pada.num_generations=2
 
@@ -15,7 +16,8 @@ optimiser steps (the first, which captures graphs and allocates, is not counted)
 median seconds per step split into generation (``time/generate_s``), reward (the reward function's
 calls) and the rest (log-probabilities, loss, backward, optimiser: ``update``). ``--merge-adapters off
 on`` times each fast cache also with the LoRA adapters merged for decoding (``pada.merge_adapters``;
-row ``<cache> merged``), one after the other in the same process.
+row ``<cache> merged``), and ``--joint-anchor-pass off on`` each with the anchors scored in the policy's
+forward (``pada.joint_anchor_pass``; row ``... joint``), one after the other in the same process.
 """
 
 from __future__ import annotations
@@ -54,6 +56,9 @@ def add_arguments(parser) -> None:
                         help="decode each fast cache's groups with the LoRA adapters as they are (off) "
                              "and/or merged into a copy of the weights (on: pada.merge_adapters, row "
                              "'<cache> merged')")
+    parser.add_argument("--joint-anchor-pass", nargs="+", choices=["off", "on"], default=["off"],
+                        help="score each micro-batch's anchors in their own forward (off) and/or in the "
+                             "policy's (on: pada.joint_anchor_pass, row '<cache> joint'), in turn")
     parser.add_argument("--variant", default="pada", choices=["pada", "pada_star", "grpo"])
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--profile", default=None, metavar="DIR",
@@ -79,18 +84,20 @@ def run(args) -> dict:
     result = {"target": "pada", "device": device_name(device), "config": args.config, "variant": args.variant,
               "model": args.model or "random weights", "tokens": args.tokens,
               "until_eos": bool(args.until_eos), "constrained": bool(args.constrained), "caches": {}}
-    runs = [(cache, merge == "on") for cache in args.caches for merge in dict.fromkeys(args.merge_adapters)
-            if merge == "off" or cache.startswith("fast")]
+    runs = [(cache, merge == "on", joint == "on") for cache in args.caches
+            for merge in dict.fromkeys(args.merge_adapters) if merge == "off" or cache.startswith("fast")
+            for joint in dict.fromkeys(args.joint_anchor_pass)]
     if not runs:
         raise ValueError("--merge-adapters on merges for the fast decoder: give a fast cache in --caches")
-    for cache, merge in runs:
+    for cache, merge, joint in runs:
         with tempfile.TemporaryDirectory() as tmp:
             cfg = load_config(f"train_{args.config}", [
                 f"output_dir={tmp}", f"pada.max_completion_length={args.tokens}", f"pada.cache={cache}",
                 f"pada.constrained={str(bool(args.constrained)).lower()}", "pada.save_steps=1000000",
-                f"pada.merge_adapters={str(merge).lower()}",
+                f"pada.merge_adapters={str(merge).lower()}", f"pada.joint_anchor_pass={str(joint).lower()}",
                 "pada.logging_steps=1", *args.config_set, *getattr(args, "overrides", [])])
-            row = result["caches"][f"{cache} merged" if merge else cache] = _time_steps(cfg, args, device)
+            name = f"{cache}{' merged' if merge else ''}{' joint' if joint else ''}"
+            row = result["caches"][name] = _time_steps(cfg, args, device)
         result.update({k: row.pop(k) for k in ("global_batch", "num_generations", "parameters")})
     return result
 
@@ -193,7 +200,8 @@ def _time_steps(cfg, args, device: torch.device) -> dict:
     if profiler is not None:
         # the timings first: reading a long step's events back takes minutes, and a command's time
         # limit that cuts it still leaves the step's figures
-        name = f"pada_{cfg.pada.cache}{'_merged' if cfg.pada.get('merge_adapters') else ''}"
+        name = (f"pada_{cfg.pada.cache}{'_merged' if cfg.pada.get('merge_adapters') else ''}"
+                f"{'_joint' if cfg.pada.get('joint_anchor_pass') else ''}")
         timing = Path(args.profile) / f"{name}.json"
         timing.parent.mkdir(parents=True, exist_ok=True)
         timing.write_text(json.dumps(row, indent=1) + "\n")
