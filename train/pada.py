@@ -358,8 +358,12 @@ class PADATrainer(GRPOTrainer):
         mode = "train" if self.model.training else "eval"
         count = inputs["anchor_loss_mask"].sum()
         has_anchor = count > 0
-        ce = (self.anchor_cross_entropy(model, inputs, logps=joint and joint["logps"]) if has_anchor
-              else loss.new_zeros(()))
+        if not has_anchor:
+            ce = loss.new_zeros(())
+        elif joint is not None and joint["logps"] is not None:
+            ce = self.anchor_cross_entropy(model, inputs, logps=joint["logps"])
+        else:
+            ce = self.anchor_cross_entropy(model, inputs)
         total = inputs.get("anchor_tokens")
         if mode == "train" and total is not None:
             # this micro-batch's share of the round's anchor tokens, per optimizer step of the round: the
