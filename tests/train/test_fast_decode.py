@@ -364,7 +364,6 @@ def test_flex_attention_runs_inside_cuda_graphs(records, tokenizer):
     assert all(len(row) == 96 or row[-1] == tokenizer.eos_token_id for row in cudnn.tokens)
 
 
-@pytest.mark.slow
 def test_bench_pada_times_the_joint_anchor_pass_beside_the_separate_one(capsys):
     import json
 
@@ -378,6 +377,7 @@ def test_bench_pada_times_the_joint_anchor_pass_beside_the_separate_one(capsys):
     assert all(v["steps_timed"] == 1 and v["update_s"] > 0 for v in r["caches"].values())
 
 
+@pytest.mark.slow
 def test_bench_pada_times_whole_steps(capsys, tmp_path):
     """``physcene bench pada`` at tiny sizes: one timed step per cache, split into its parts, and the
     profiled step's tables, its figures written beside them first."""
