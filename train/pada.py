@@ -314,7 +314,8 @@ class PADATrainer(GRPOTrainer):
         """Mean token NLL of the anchors given their prompts, over the supervised anchor tokens (scalar):
         the forward runs on the rows with a supervised token only (a prompt's other completions repeat
         its anchor with a zero loss mask, :func:`anchor_owners`). ``logps``: those rows' anchor
-        log-probabilities, already computed (``joint_anchor_pass``): no forward of its own."""
+        log-probabilities, already computed (``joint_anchor_pass``, which passes those rows as ``inputs``):
+        no forward of its own."""
         inputs = anchor_rows(inputs)
         if logps is None:
             nll, count = self.target_nll(model, inputs, "anchor")
@@ -361,7 +362,7 @@ class PADATrainer(GRPOTrainer):
         if not has_anchor:
             ce = loss.new_zeros(())
         elif joint is not None and joint["logps"] is not None:
-            ce = self.anchor_cross_entropy(model, inputs, logps=joint["logps"])
+            ce = self.anchor_cross_entropy(model, joint["rows"], logps=joint["logps"])  # rows chosen once
         else:
             ce = self.anchor_cross_entropy(model, inputs)
         total = inputs.get("anchor_tokens")
