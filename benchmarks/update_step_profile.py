@@ -2,7 +2,7 @@
 reference model's pass, as TRL's GRPO trainer runs them, with the settings that could make them cheaper.
 
     python benchmarks/update_step_profile.py [--config small] [--rows 32] [--prompt 180] [--completion 512]
-        [--variants trl no-dropout bf16-adapters compile] [--out FILE]
+        [--variants trl no-dropout bf16-adapters uncast-inputs compile] [--out FILE]
 
 Builds a random-weight model of ``--config`` (bf16, its tokenizer's vocabulary) with TRL's fused LM
 head (``add_fused_lm_head``: per-token log-probabilities and entropies without the full logits, as
@@ -20,7 +20,9 @@ tokens (the padding of each row drawn up to 40 % of the prompt) and ``--completi
 
 Variants: ``trl`` (the trainer's settings: LoRA dropout of the config, adapters in float32, PEFT's
 default), ``no-dropout`` (LoRA dropout 0), ``bf16-adapters`` (the adapters' weights in bf16 too),
-``compile`` (``torch.compile`` of the ``trl`` model's forward, ``dynamic=True``). The summed kernel time
+``uncast-inputs`` (``trl`` with the adapters reading their inputs as autocast gives them, bf16, instead of
+PEFT's cast to their float32 weights: ``pada.adapter_input_cast=false``, over the forward and the
+backward), ``compile`` (``torch.compile`` of the ``trl`` model's forward, ``dynamic=True``). The summed kernel time
 against ``policy_ms`` says whether the pass is bound by its kernels or by the host launching them.
 """
 
@@ -33,7 +35,7 @@ import time
 
 import torch
 
-VARIANTS = ("trl", "no-dropout", "bf16-adapters", "compile")
+VARIANTS = ("trl", "no-dropout", "bf16-adapters", "uncast-inputs", "compile")
 
 
 def _model(config: str, variant: str, device: torch.device):
@@ -129,10 +131,22 @@ def _kernels(fn) -> dict:
 
 
 def profile(variant: str, args) -> dict:
+    from peft.helpers import disable_input_dtype_casting
+
     device = torch.device(args.device)
     model, forward, vocab = _model(args.config, variant, device)
     batch = _batch(args.rows, args.prompt, args.completion, vocab, device)
     row: dict = {}
+    # uncast-inputs: the switch held over every pass of this variant (the reference pass has no adapters)
+    with disable_input_dtype_casting(model, active=variant == "uncast-inputs"):
+        _profile_passes(model, forward, batch, args, row)
+    if device.type == "cuda":
+        row["max_memory_gib"] = torch.cuda.max_memory_allocated() / 2**30
+        torch.cuda.reset_peak_memory_stats()
+    return row
+
+
+def _profile_passes(model, forward, batch: dict, args, row: dict) -> None:
     try:
         def policy():
             _policy_pass(forward, batch, args.completion)
@@ -142,12 +156,26 @@ def profile(variant: str, args) -> dict:
         row["ref_ms"] = _median_ms(lambda: _ref_pass(model, forward, batch, args.completion),
                                    args.repeat, args.warmup)
         row.update(_kernels(policy))
+        row["adapter_input_dtypes"] = _adapter_input_dtypes(model, lambda: _policy_pass(forward, batch,
+                                                                                      args.completion))
+        model.zero_grad(set_to_none=True)
     except Exception as error:  # noqa: BLE001 - a variant that fails (a compile error) is a figure too
         row["error"] = f"{type(error).__name__}: {error}"[:500]
-    if device.type == "cuda":
-        row["max_memory_gib"] = torch.cuda.max_memory_allocated() / 2**30
-        torch.cuda.reset_peak_memory_stats()
-    return row
+
+
+def _adapter_input_dtypes(model, fn) -> list[str]:
+    """The dtypes the LoRA A matrices read during ``fn`` (float32: PEFT cast them; bfloat16: as autocast
+    gives them)."""
+    seen, hooks = set(), []
+    for name, module in model.named_modules():
+        if name.endswith("lora_A.default"):
+            hooks.append(module.register_forward_pre_hook(lambda _, a: seen.add(str(a[0].dtype))))
+    try:
+        fn()
+    finally:
+        for hook in hooks:
+            hook.remove()
+    return sorted(seen)
 
 
 def main() -> None:

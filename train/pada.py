@@ -31,11 +31,13 @@ from __future__ import annotations
 
 import logging
 import time
+from contextlib import ExitStack
 from pathlib import Path
 
 import torch
 from accelerate import PartialState
 from omegaconf import OmegaConf
+from peft.helpers import disable_input_dtype_casting
 from trl import GRPOTrainer
 
 from physcene.reward.trl import PhysicsRewardFunction
@@ -158,6 +160,7 @@ class PADATrainer(GRPOTrainer):
         self.anchor_alpha = float(args.anchor_alpha)
         self.extensions = pada_extensions(self, args) if extensions is None else list(extensions)
         self._joint_anchor: dict | None = None  # joint_anchor_pass: the anchors the next policy pass scores
+        self._backward_scope: ExitStack | None = None  # inside training_step: contexts held through the backward
         self._round_prompts = None
         if getattr(self, "generation_config", None) is not None:  # HF generate (not vLLM)
             static = args.cache_implementation == "static"
@@ -336,12 +339,29 @@ class PADATrainer(GRPOTrainer):
         return -(logps * mask).sum(), mask.sum()
 
     def training_step(self, model, inputs, num_items_in_batch=None):
-        loss = super().training_step(model, inputs, num_items_in_batch)
+        with ExitStack() as self._backward_scope:  # what _compute_loss sets for its backward too
+            try:
+                loss = super().training_step(model, inputs, num_items_in_batch)
+            finally:
+                self._backward_scope = None
         for extension in self.extensions:
             extension.after_backward(self, model)
         return loss
 
     def _compute_loss(self, model, inputs):
+        # adapter_input_cast=False under mixed precision: each LoRA adapter reads its input as autocast
+        # gives it (bf16) in the policy's and the anchors' forwards, instead of PEFT's cast to the
+        # adapter's float32 weights that autocast undoes for the matmul; inside training_step the switch
+        # lasts through the backward (a forward recomputed by gradient checkpointing reads them so too)
+        uncast = not self.args.adapter_input_cast and (self.args.bf16 or self.args.fp16)
+        if uncast and self._backward_scope is not None:
+            self._backward_scope.enter_context(disable_input_dtype_casting(model))
+            uncast = False
+        with disable_input_dtype_casting(model, active=uncast):
+            return self._objective(model, inputs)
+
+    def _objective(self, model, inputs):
+        """GRPO loss + α · CE(anchor) of a micro-batch, with the extensions' extra terms."""
         joint = None
         if self.args.joint_anchor_pass and self.anchor_alpha != 0.0 and "anchor_ids" in inputs \
                 and bool(inputs["anchor_loss_mask"].any()):

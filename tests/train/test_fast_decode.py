@@ -377,6 +377,21 @@ def test_bench_pada_times_the_joint_anchor_pass_beside_the_separate_one(capsys):
     assert all(v["steps_timed"] == 1 and v["update_s"] > 0 for v in r["caches"].values())
 
 
+def test_bench_pada_times_uncast_adapter_inputs_beside_the_cast_ones(capsys):
+    import json
+
+    from physcene.cli import main
+
+    assert main(["bench", "pada", "--config", "tiny", "--tokens", "8", "--steps", "1", "--caches", "fast",
+                 "--adapter-input-cast", "on", "off", "--json", "--set", "pada.global_batch_size=4",
+                 "pada.per_device_batch_size=2", "pada.num_generations=2"]) == 0
+    r = json.loads(capsys.readouterr().out)
+    assert set(r["caches"]) == {"fast", "fast uncast"}
+    assert all(v["steps_timed"] == 1 and v["update_s"] > 0 for v in r["caches"].values())
+    # a CPU trains in float32: nothing to leave uncast (on a GPU's bf16 the row says True)
+    assert [v["adapter_inputs_uncast"] for v in r["caches"].values()] == [False, False]
+
+
 @pytest.mark.slow
 def test_bench_pada_times_whole_steps(capsys, tmp_path):
     """``physcene bench pada`` at tiny sizes: one timed step per cache, split into its parts, and the

@@ -8,6 +8,7 @@ from types import SimpleNamespace
 import pytest
 import torch
 from datasets import Dataset
+from peft import LoraConfig
 
 from physcene.config import load_config
 from physcene.train.constrained_rollouts import mask_overruled
@@ -182,6 +183,90 @@ def test_the_joint_anchor_pass_gives_the_same_loss_and_gradient_in_one_forward(t
     assert grads0.keys() == grads1.keys() and grads0
     for name, grad in grads0.items():
         assert (grads1[name] - grad).norm() <= 1e-6 * grad.norm(), name
+
+
+def _mixed_precision_trainer(tokenizer, tmp_path, cast: bool, **args) -> PADATrainer:
+    """A PADA trainer of a bf16 model with float32 LoRA adapters (PEFT's default) and no LoRA dropout,
+    under bf16 mixed precision on the CPU (accelerate's CPU autocast)."""
+    torch.manual_seed(0)
+    arch = dict(hidden_size=32, intermediate_size=64, num_hidden_layers=1, num_attention_heads=2,
+                num_key_value_heads=1, head_dim=16, max_position_embeddings=512)
+    model = build_scratch_model(arch, tokenizer).to(torch.bfloat16)
+    config = PADAConfig(output_dir=str(tmp_path), anchor_alpha=0.1, beta=0.0, num_generations=2,
+                        per_device_train_batch_size=4, max_completion_length=8, use_cpu=True, bf16=True,
+                        report_to="none", logging_steps=1, save_strategy="no", adapter_input_cast=cast,
+                        **args)
+    dataset = Dataset.from_list([{"prompt": "Instruction: place a pen.", "anchor": ANCHOR}] * 4)
+    lora = LoraConfig(r=4, lora_alpha=8, lora_dropout=0.0, target_modules=["q_proj", "v_proj", "gate_proj"])
+    return PADATrainer(model, reward_funcs=[lambda prompts, completions, **kw: [float(len(c)) for c in completions]],
+                       args=config, train_dataset=dataset, processing_class=tokenizer, peft_config=lora)
+
+
+def _adapter_input_dtypes(model) -> tuple[list, list]:
+    """(hooks, the dtypes each LoRA A matrix reads in a forward with gradient: the loss's, not sampling's)."""
+    seen, hooks = [], []
+    for name, module in model.named_modules():
+        if name.endswith("lora_A.default"):
+            hooks.append(module.register_forward_pre_hook(
+                lambda _, args: seen.append(args[0].dtype) if torch.is_grad_enabled() else None))
+    return hooks, seen
+
+
+def test_adapters_that_read_the_autocast_inputs_give_the_same_loss_and_gradient(tokenizer, tmp_path):
+    batch = _controlled_batch(tokenizer)
+    seen = {}
+    for cast in (True, False):
+        trainer = _mixed_precision_trainer(tokenizer, tmp_path / str(cast), cast)
+        model = trainer.model.eval()
+        hooks, dtypes = _adapter_input_dtypes(model)
+        with torch.autocast("cpu", dtype=torch.bfloat16):
+            loss = trainer._compute_loss(model, batch)
+        loss.backward()
+        for hook in hooks:
+            hook.remove()
+        grads = {n: p.grad.clone() for n, p in model.named_parameters() if p.grad is not None}
+        flags = {m.cast_input_dtype_enabled for m in model.modules() if hasattr(m, "cast_input_dtype_enabled")}
+        seen[cast] = (loss, grads, set(dtypes), flags)
+    (loss0, grads0, dtypes0, flags0), (loss1, grads1, dtypes1, flags1) = seen[True], seen[False]
+    # PEFT's cast: the adapters read float32; without it, the bf16 that autocast gives every matmul
+    assert dtypes0 == {torch.float32} and dtypes1 == {torch.bfloat16}
+    assert flags0 == flags1 == {True}  # the switch lives only for the loss's forwards
+    assert torch.equal(loss0, loss1) and loss0.item() > 0.1
+    assert grads0.keys() == grads1.keys() and any("lora_A" in n for n in grads0)
+    assert all(g.dtype == torch.float32 for n, g in grads0.items() if "lora_" in n)
+    for name, grad in grads0.items():
+        assert torch.equal(grad, grads1[name]), name
+
+
+def test_a_mixed_precision_pada_step_with_uncast_adapter_inputs_trains_as_with_the_cast(tokenizer, tmp_path):
+    steps = {}
+    for cast in (True, False):
+        # TRL's default gradient checkpointing: the backward recomputes each layer's forward
+        trainer = _mixed_precision_trainer(tokenizer, tmp_path / str(cast), cast, max_steps=1,
+                                           learning_rate=1e-2, seed=3, gradient_checkpointing=True)
+        before = {n: p.detach().clone() for n, p in trainer.model.named_parameters() if p.requires_grad}
+        hooks, dtypes = _adapter_input_dtypes(trainer.model)
+        trainer.train()
+        for hook in hooks:
+            hook.remove()
+        after = {n: p.detach().clone() for n, p in trainer.model.named_parameters() if p.requires_grad}
+        log = trainer.state.log_history[0]
+        steps[cast] = (before, after, set(dtypes), log["loss"], log["grad_norm"], log["anchor_ce"])
+    (before0, after0, dtypes0, *log0), (before1, after1, dtypes1, *log1) = steps[True], steps[False]
+    assert dtypes0 == {torch.float32} and dtypes1 == {torch.bfloat16}  # the trainer's autocast was on
+    assert log0 == log1 and log0[2] > 1.0
+    assert all(torch.equal(before0[n], before1[n]) for n in before0)
+    assert all(torch.equal(after0[n], after1[n]) for n in after0)
+    assert sum(not torch.equal(before0[n], after0[n]) for n in before0) >= len(before0) // 2  # it trained
+    flags = {m.cast_input_dtype_enabled for m in trainer.model.modules() if hasattr(m, "cast_input_dtype_enabled")}
+    assert flags == {True}  # PEFT's cast is back for sampling and saving
+
+
+def test_adapter_input_cast_is_read_from_the_yaml():
+    cfg = load_config("train_tiny")
+    assert pada_arguments(cfg, "pada").adapter_input_cast is True
+    cfg.pada.adapter_input_cast = False
+    assert pada_arguments(cfg, "pada").adapter_input_cast is False
 
 
 def test_grpo_variant_has_alpha_zero_and_ignores_anchors(tokenizer, tmp_path):

@@ -5,6 +5,7 @@ trainer, on a randomly initialised model of a training config.
     physcene bench pada --device cuda --config small --caches fast dynamic --constrained
     physcene bench pada --device cuda --config small --caches fast+fused+cudnn --merge-adapters off on
     physcene bench pada --device cuda --config small --caches fast+fused+cudnn --joint-anchor-pass off on
+    physcene bench pada --device cuda --config small --caches fast+fused+cudnn --adapter-input-cast on off
     physcene bench pada --device cpu --config tiny --tokens 16 --set pada.global_batch_size=4 \\
         pada.per_device_batch_size=2 pada.num_generations=2
 
@@ -17,7 +18,9 @@ median seconds per step split into generation (``time/generate_s``), reward (the
 calls) and the rest (log-probabilities, loss, backward, optimiser: ``update``). ``--merge-adapters off
 on`` times each fast cache also with the LoRA adapters merged for decoding (``pada.merge_adapters``;
 row ``<cache> merged``), and ``--joint-anchor-pass off on`` each with the anchors scored in the policy's
-forward (``pada.joint_anchor_pass``; row ``... joint``), one after the other in the same process.
+forward (``pada.joint_anchor_pass``; row ``... joint``), and ``--adapter-input-cast on off`` each with
+the LoRA adapters reading their bf16 inputs uncast (``pada.adapter_input_cast=false``; row ``...
+uncast``), one after the other in the same process.
 """
 
 from __future__ import annotations
@@ -59,6 +62,10 @@ def add_arguments(parser) -> None:
     parser.add_argument("--joint-anchor-pass", nargs="+", choices=["off", "on"], default=["off"],
                         help="score each micro-batch's anchors in their own forward (off) and/or in the "
                              "policy's (on: pada.joint_anchor_pass, row '<cache> joint'), in turn")
+    parser.add_argument("--adapter-input-cast", nargs="+", choices=["on", "off"], default=["on"],
+                        help="the LoRA adapters' inputs cast to their float32 weights as PEFT does (on) "
+                             "and/or read as bf16 autocast gives them (off: pada.adapter_input_cast=false, "
+                             "row '<cache> uncast'), in turn")
     parser.add_argument("--variant", default="pada", choices=["pada", "pada_star", "grpo"])
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--profile", default=None, metavar="DIR",
@@ -84,19 +91,21 @@ def run(args) -> dict:
     result = {"target": "pada", "device": device_name(device), "config": args.config, "variant": args.variant,
               "model": args.model or "random weights", "tokens": args.tokens,
               "until_eos": bool(args.until_eos), "constrained": bool(args.constrained), "caches": {}}
-    runs = [(cache, merge == "on", joint == "on") for cache in args.caches
+    runs = [(cache, merge == "on", joint == "on", cast == "on") for cache in args.caches
             for merge in dict.fromkeys(args.merge_adapters) if merge == "off" or cache.startswith("fast")
-            for joint in dict.fromkeys(args.joint_anchor_pass)]
+            for joint in dict.fromkeys(args.joint_anchor_pass)
+            for cast in dict.fromkeys(args.adapter_input_cast)]
     if not runs:
         raise ValueError("--merge-adapters on merges for the fast decoder: give a fast cache in --caches")
-    for cache, merge, joint in runs:
+    for cache, merge, joint, cast in runs:
         with tempfile.TemporaryDirectory() as tmp:
             cfg = load_config(f"train_{args.config}", [
                 f"output_dir={tmp}", f"pada.max_completion_length={args.tokens}", f"pada.cache={cache}",
                 f"pada.constrained={str(bool(args.constrained)).lower()}", "pada.save_steps=1000000",
                 f"pada.merge_adapters={str(merge).lower()}", f"pada.joint_anchor_pass={str(joint).lower()}",
-                "pada.logging_steps=1", *args.config_set, *getattr(args, "overrides", [])])
-            name = f"{cache}{' merged' if merge else ''}{' joint' if joint else ''}"
+                f"pada.adapter_input_cast={str(cast).lower()}", "pada.logging_steps=1", *args.config_set,
+                *getattr(args, "overrides", [])])
+            name = f"{cache}{' merged' if merge else ''}{' joint' if joint else ''}{'' if cast else ' uncast'}"
             row = result["caches"][name] = _time_steps(cfg, args, device)
         result.update({k: row.pop(k) for k in ("global_batch", "num_generations", "parameters")})
     return result
@@ -193,7 +202,9 @@ def _time_steps(cfg, args, device: torch.device) -> dict:
            "merged_projections": int(max(merged, default=0)),
            "path": ("cuda_graphs" if graphs and min(graphs) == 1.0 else "eager") if graphs else "hf_generate",
            "global_batch": pada_args.per_device_train_batch_size * pada_args.gradient_accumulation_steps,
-           "num_generations": pada_args.num_generations, "parameters": count_parameters(model)}
+           "num_generations": pada_args.num_generations, "parameters": count_parameters(model),
+           # the adapters read their inputs uncast only under mixed precision (a GPU's bf16)
+           "adapter_inputs_uncast": not pada_args.adapter_input_cast and (pada_args.bf16 or pada_args.fp16)}
     if device.type == "cuda":
         row["max_memory_gib"] = torch.cuda.max_memory_allocated(device) / 2**30
         torch.cuda.reset_peak_memory_stats(device)
@@ -201,7 +212,8 @@ def _time_steps(cfg, args, device: torch.device) -> dict:
         # the timings first: reading a long step's events back takes minutes, and a command's time
         # limit that cuts it still leaves the step's figures
         name = (f"pada_{cfg.pada.cache}{'_merged' if cfg.pada.get('merge_adapters') else ''}"
-                f"{'_joint' if cfg.pada.get('joint_anchor_pass') else ''}")
+                f"{'_joint' if cfg.pada.get('joint_anchor_pass') else ''}"
+                f"{'' if cfg.pada.get('adapter_input_cast', True) else '_uncast'}")
         timing = Path(args.profile) / f"{name}.json"
         timing.parent.mkdir(parents=True, exist_ok=True)
         timing.write_text(json.dumps(row, indent=1) + "\n")
