@@ -95,7 +95,7 @@ def record(args: argparse.Namespace) -> None:
                        batch_size=len(prompts), do_sample=True, temperature=args.temperature, seed=args.seed,
                        cache=args.cache, constrained=True, report=report)
     result = report[0]
-    trace = {"model": str(model_path), "prompts": prompts, "max_new_tokens": args.max_new_tokens,
+    trace = {"model": str(Path(model_path).resolve()), "prompts": prompts, "max_new_tokens": args.max_new_tokens,
              "temperature": args.temperature, "eos": [tokenizer.eos_token_id], "calls": calls,
              "tokens": result.tokens, "steps": result.steps, "seed": seeds[0] if seeds else None,
              "repairs": result.repairs,
@@ -161,12 +161,22 @@ def _equal(result: dict) -> bool:
     return result["differing_calls"] == 0 and result["same_tokens"] and not result["logits_not_recorded"]
 
 
+def load_trace(path: str) -> dict:
+    """A recorded trace, its model folder made absolute (a trace recorded with a relative path is read
+    from the repository's root, where another revision's worktree replays it too)."""
+    trace = torch.load(path, weights_only=False)
+    model = Path(trace["model"])
+    if not model.is_absolute() and (ROOT / model).is_dir():
+        trace["model"] = str(ROOT / model)
+    return trace
+
+
 def replay_rounds(trace_path: str, rounds: int, workers: int = 0) -> list[dict]:
     """``rounds`` replays after one untimed (the rule patterns compiled, the vocabulary's index built:
     what a PADA run has from its second round on)."""
     from physcene.train.models import load_tokenizer
 
-    trace = torch.load(trace_path, weights_only=False)
+    trace = load_trace(trace_path)
     tokenizer = load_tokenizer(trace["model"])
     replay_once(trace, tokenizer, workers)
     return [replay_once(trace, tokenizer, workers) for _ in range(rounds)]
@@ -194,7 +204,7 @@ def rounds_at(checkout: Path, trace: str, rounds: int, workers: int = 0) -> list
 
 def replay(args: argparse.Namespace) -> None:
     args.trace = str(Path(args.trace).resolve())
-    trace = torch.load(args.trace, weights_only=False)
+    trace = load_trace(args.trace)
     steps, rows = len(trace["calls"]), len(trace["prompts"])
     versions = {"working tree": (ROOT, 0)}
     versions.update({f"working tree, {k} workers": (ROOT, k) for k in args.workers})
@@ -241,7 +251,7 @@ def profile(args: argparse.Namespace) -> dict:
 
     from physcene.train.models import load_tokenizer
 
-    trace = torch.load(args.trace, weights_only=False)
+    trace = load_trace(args.trace)
     tokenizer = load_tokenizer(trace["model"])
     replay_once(trace, tokenizer)
     profiler = cProfile.Profile()
@@ -337,7 +347,7 @@ def score(args: argparse.Namespace) -> None:
     reward = PhysicsReward(RewardConfig.load(list(args.set)))
     rows = {}
     for path in args.traces:
-        trace = torch.load(path, weights_only=False)
+        trace = load_trace(path)
         tokenizer = load_tokenizer(trace["model"])
         texts = [tokenizer.decode(row, skip_special_tokens=True) for row in trace["tokens"]]
         metrics = {k: float(v) for k, v in reward.score(texts).metrics.items()}

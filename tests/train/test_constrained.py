@@ -790,3 +790,51 @@ def test_the_short_step_of_a_literal_rule_equals_admits_and_active_rule():
                 assert rule.after(added, core) == want, (core, text[:cut], added)
                 compared += 1
     assert compared > 5000
+
+
+def _extents_by_reading_the_whole_array(text: str, pairs) -> bool:
+    """The definition :func:`_extents_possible` answers (reading every value of the array at each call)."""
+    from physcene.train.constrained.grammar import _ARRAY_START, _largest
+
+    m = _ARRAY_START.match(text)
+    if m is None:
+        return True
+    values = [v.strip() for v in m.group(1).split(",")]
+    n_done = len(values) if m.group(2) else len(values) - 1  # the last one is still being written
+    for lo, hi in pairs:
+        if lo == n_done == len(values) - 1 and values[lo] and not values[lo].startswith("-"):
+            if float(values[lo].rstrip(".")) >= _largest(""):
+                return False
+            continue
+        if lo >= n_done or hi > n_done or hi >= len(values):
+            continue
+        low = float(values[lo])
+        if hi < n_done:
+            if not float(values[hi]) > low:
+                return False
+        elif not _largest(values[hi]) > low:
+            return False
+    return True
+
+
+def test_the_extents_read_from_cached_finished_values_equal_reading_the_whole_array():
+    """Every prefix of random boxes and zones (numbers of either sign, some maxes below their mins,
+    some mins too large for any max), as the rule admits them character by character or not."""
+    from physcene.train.constrained.grammar import _ORDERED, RELATIVE_BBOX, ZONE, _extents_possible
+
+    rng = random.Random(3)
+
+    def number() -> str:
+        whole = rng.choice(["0", "5", "12", "-3", "9999", "-0"])
+        return whole + rng.choice(["", ".", ".5", ".25", ".99999999"])
+
+    checked = 0
+    for key, size in ((RELATIVE_BBOX, 6), (ZONE, 4)):
+        pairs = _ORDERED[key]
+        for _ in range(150):
+            array = " [" + ", ".join(number() for _ in range(size)) + "], \"next\": 1"
+            for end in range(len(array) + 1):
+                text = array[:end]
+                assert _extents_possible(text, pairs) == _extents_by_reading_the_whole_array(text, pairs), text
+                checked += 1
+    assert checked > 5000

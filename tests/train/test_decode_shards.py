@@ -194,3 +194,31 @@ def test_streams_samples_one_round_under_each_reads_setting(tmp_path, records, t
     assert all(r["steps"] > 0 and r["seconds"] > 0 for rows in summary["rounds"].values() for r in rows)
     assert json.loads(out.read_text())["median"].keys() == {"own stream", "decoding stream"}
     assert "same tokens: True" in capsys.readouterr().out
+
+
+def test_the_exponential_race_draws_what_multinomial_draws():
+    """A refused row's fresh draw (:func:`exponential_race`) is the token ``torch.multinomial`` draws
+    from the same generator state, for dense and sparse distributions (most tokens refused), and its
+    frequencies are the distribution's."""
+    from physcene.train.decode.overlap import exponential_race
+
+    g = torch.Generator().manual_seed(0)
+    generator, reference = torch.Generator(), torch.Generator()
+    counts = torch.zeros(8)
+    for trial in range(300):
+        logits = torch.randn(512, generator=g) * 3.0
+        if trial % 2:  # a few allowed tokens, the rest -inf (probability 0)
+            keep = torch.randperm(512, generator=g)[:3]
+            logits = torch.full_like(logits, float("-inf")).index_copy_(0, keep, logits[keep])
+        probs = logits.softmax(-1)
+        seed = 1000 + trial
+        generator.manual_seed(seed)
+        reference.manual_seed(seed)
+        token = exponential_race(probs, generator)
+        assert token == int(torch.multinomial(probs, 1, generator=reference))
+        assert probs[token] > 0
+    p = torch.tensor([0.4, 0.3, 0.1, 0.1, 0.05, 0.05, 0.0, 0.0])
+    for seed in range(4000):
+        counts[exponential_race(p, generator.manual_seed(seed))] += 1
+    assert counts[6:].sum() == 0
+    assert ((counts / 4000 - p).abs() <= 4 * (p * (1 - p) / 4000).sqrt() + 1e-3).all(), counts

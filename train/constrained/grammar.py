@@ -284,26 +284,43 @@ def _literal(*strings: str, then_eos: bool = False) -> _Core:
 
 def _extents_possible(text: str, pairs) -> bool:
     """Whether the JSON number array that ``text`` starts (`` [1.5, 2``) can still end with every
-    max above its min: a finished max must exceed its min, a max being written must be able to."""
+    max above its min: a finished max must exceed its min, a max being written must be able to. The
+    values before the last comma are read once per array prefix (cached), so a step reads only the
+    value being written."""
     m = _ARRAY_START.match(text)
     if m is None:
         return True
-    values = [v.strip() for v in m.group(1).split(",")]
-    n_done = len(values) if m.group(2) else len(values) - 1  # the last one is still being written
+    body = m.group(1)
+    if m.group(2):  # closed: every value finished (the same body at each step after the "]")
+        return _finished_extents(body, pairs)
+    head, comma, last = body.rpartition(",")
+    done, ok = _finished_values(head, pairs) if comma else ((), True)
+    if not ok:
+        return False
+    last = last.strip()
+    n_done = len(done)  # the last value, at index n_done, is being written
     for lo, hi in pairs:
-        if lo == n_done == len(values) - 1 and values[lo] and not values[lo].startswith("-"):
-            if float(values[lo].rstrip(".")) >= _largest(""):  # a min no max can exceed (9999.99999999)
+        if lo == n_done:  # a min being written: one no max can exceed (9999.99999999)
+            if last and not last.startswith("-") and float(last.rstrip(".")) >= _largest(""):
                 return False
-            continue
-        if lo >= n_done or hi > n_done or hi >= len(values):
-            continue
-        low = float(values[lo])
-        if hi < n_done:
-            if not float(values[hi]) > low:
-                return False
-        elif not _largest(values[hi]) > low:
+        elif hi == n_done and not _largest(last) > done[lo]:
             return False
     return True
+
+
+@functools.lru_cache(maxsize=4096)
+def _finished_values(head: str, pairs) -> tuple[tuple[float, ...], bool]:
+    """The finished values of an array (``head``: its text before the last comma) and whether each of
+    their (min, max) pairs has max > min."""
+    done = tuple(float(v) for v in head.split(","))
+    return done, all(done[hi] > done[lo] for lo, hi in pairs if hi < len(done))
+
+
+@functools.lru_cache(maxsize=4096)
+def _finished_extents(body: str, pairs) -> bool:
+    """Whether every (min, max) pair of a closed array's values (``body``: its text inside the
+    brackets) has max > min."""
+    return _finished_values(body, pairs)[1]
 
 
 def _largest(prefix: str) -> float:

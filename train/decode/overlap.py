@@ -20,7 +20,17 @@ import torch
 
 from physcene.train.constrained import CTRCConstraint
 
-__all__ = ["OverlappedConstraint"]
+__all__ = ["OverlappedConstraint", "exponential_race"]
+
+
+def exponential_race(probs: torch.Tensor, generator: torch.Generator) -> int:
+    """One token drawn from ``probs`` (1-d, non-negative, not all 0): the index of the largest
+    ``probs / q`` with ``q ~ Exp(1)`` drawn per token from ``generator`` (the exponential race: token
+    ``i`` wins with probability ``probs[i] / sum(probs)``). It is the draw ``torch.multinomial(probs, 1,
+    generator=generator)`` makes (the same random numbers, in the same order), without its checks of
+    the distribution, which read three scalars back from the tensor."""
+    q = torch.empty_like(probs).exponential_(1, generator=generator)
+    return int(torch.div(probs, q).argmax())
 
 
 class OverlappedConstraint:
@@ -42,6 +52,7 @@ class OverlappedConstraint:
         self.finished = [False] * rows
         self.rules = [constraint.advance_row(b, []) for b in range(rows)]
         self.open = rows
+        self.generator = torch.Generator()  # reseeded for each fresh draw (_redraw)
 
     def done(self) -> bool:
         """Every row has its EOS or its ``max_new_tokens`` tokens."""
@@ -133,14 +144,15 @@ class OverlappedConstraint:
                 c.stats.refused_draws += n
                 return t
         c.stats.refused_draws += min(len(candidates), c.redraws)
-        row = logits_row(b).float()
-        allowed = c.allowed_in_vocabulary(b, rule, row[None], torch.isfinite(row).cpu())
+        # the row's logits come to the host once: the scan, the warpers and the draw run there (on a GPU
+        # each would be a few launches and a wait, in the middle of the decoding steps)
+        row = logits_row(b).cpu().float()
+        allowed = c.allowed_in_vocabulary(b, rule, row[None], torch.isfinite(row))
         if not allowed:
             return token
-        restricted = torch.full_like(row, float("-inf"))
-        index = torch.tensor(allowed, device=row.device)
-        restricted[index] = row[index]
-        probs = self.warpers(None, restricted[None]).softmax(dim=-1).cpu()
+        index = torch.tensor(allowed)
+        restricted = torch.full_like(row, float("-inf")).index_copy_(0, index, row[index])
+        probs = self.warpers(None, restricted[None])[0].softmax(dim=-1)
         # a draw of its own per (call, row, position): the same token however the rows are shared out
-        generator = torch.Generator().manual_seed(hash((self.seed, self.row_ids[b], position)) & (2**63 - 1))
-        return int(torch.multinomial(probs, 1, generator=generator).item())
+        self.generator.manual_seed(hash((self.seed, self.row_ids[b], position)) & (2**63 - 1))
+        return exponential_race(probs, self.generator)
