@@ -233,10 +233,19 @@ def replay(args: argparse.Namespace) -> None:
         print(f"{name:>26}: {1e3 * statistics.median(times) / steps:6.3f} ms per step of {rows} rows "
               f"(median of {len(times)}; min {min(times):.3f} s, median {statistics.median(times):.3f} s "
               f"for {steps} steps); equal to the recording: {equal}")
-    base = summary["versions"]["working tree"]["median_s"]
-    for name in summary["versions"]:
-        if name != "working tree":
-            print(f"{name} / working tree: {summary['versions'][name]['median_s'] / base:.3f} of the time")
+    # each interleaved round's working-tree time over the other version's: a slow drift of the machine's
+    # speed hits both rounds of a pair alike, so their spread says whether a difference is beyond the noise
+    ours = [r["seconds"] for r in results["working tree"]]
+    for name, version in summary["versions"].items():
+        if name == "working tree":
+            continue
+        paired = [a / b["seconds"] for a, b in zip(ours, version["rounds"])]
+        version["working_tree_over_this"] = {"median_of_medians": summary["versions"]["working tree"]["median_s"]
+                                             / version["median_s"], "per_round": paired,
+                                             "per_round_median": statistics.median(paired)}
+        print(f"working tree / {name}: {version['working_tree_over_this']['median_of_medians']:.3f} of the time "
+              f"(medians); per interleaved round {statistics.median(paired):.3f}, "
+              f"{min(paired):.3f}-{max(paired):.3f} over {len(paired)} rounds")
     if args.json:
         Path(args.json).write_text(json.dumps(summary, indent=1) + "\n")
 
