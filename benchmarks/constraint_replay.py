@@ -95,7 +95,8 @@ def record(args: argparse.Namespace) -> None:
                        batch_size=len(prompts), do_sample=True, temperature=args.temperature, seed=args.seed,
                        cache=args.cache, constrained=True, report=report)
     result = report[0]
-    trace = {"model": str(Path(model_path).resolve()), "prompts": prompts, "max_new_tokens": args.max_new_tokens,
+    trace = {"model": str(Path(model_path).resolve()), "prompts": prompts,
+             "max_new_tokens": args.max_new_tokens,
              "temperature": args.temperature, "eos": [tokenizer.eos_token_id], "calls": calls,
              "tokens": result.tokens, "steps": result.steps, "seed": seeds[0] if seeds else None,
              "repairs": result.repairs,
@@ -240,10 +241,10 @@ def replay(args: argparse.Namespace) -> None:
         if name == "working tree":
             continue
         paired = [a / b["seconds"] for a, b in zip(ours, version["rounds"])]
-        version["working_tree_over_this"] = {"median_of_medians": summary["versions"]["working tree"]["median_s"]
-                                             / version["median_s"], "per_round": paired,
+        medians = summary["versions"]["working tree"]["median_s"] / version["median_s"]
+        version["working_tree_over_this"] = {"median_of_medians": medians, "per_round": paired,
                                              "per_round_median": statistics.median(paired)}
-        print(f"working tree / {name}: {version['working_tree_over_this']['median_of_medians']:.3f} of the time "
+        print(f"working tree / {name}: {medians:.3f} of the time "
               f"(medians); per interleaved round {statistics.median(paired):.3f}, "
               f"{min(paired):.3f}-{max(paired):.3f} over {len(paired)} rounds")
     if args.json:

@@ -22,7 +22,8 @@ Variants: ``trl`` (the trainer's settings: LoRA dropout of the config, adapters 
 default), ``no-dropout`` (LoRA dropout 0), ``bf16-adapters`` (the adapters' weights in bf16 too),
 ``uncast-inputs`` (``trl`` with the adapters reading their inputs as autocast gives them, bf16, instead of
 PEFT's cast to their float32 weights: ``pada.adapter_input_cast=false``, over the forward and the
-backward), ``compile`` (``torch.compile`` of the ``trl`` model's forward, ``dynamic=True``). The summed kernel time
+backward), ``compile`` (``torch.compile`` of the ``trl`` model's forward, ``dynamic=True``). The summed
+kernel time
 against ``policy_ms`` says whether the pass is bound by its kernels or by the host launching them.
 """
 

@@ -17,8 +17,8 @@ if __name__ == "kernels":
     _paths = [p for p in sys.path if os.path.abspath(p or os.curdir) != _root]
     _spec = importlib.machinery.PathFinder.find_spec("kernels", _paths)
     if _spec is None or _spec.loader is None:
-        raise ImportError(f"{os.path.dirname(os.path.abspath(__file__))} is physcene.kernels (import it under "
-                          "that name); no installed top-level package 'kernels' was found")
+        raise ImportError(f"{os.path.dirname(os.path.abspath(__file__))} is physcene.kernels (import it "
+                          "under that name); no installed top-level package 'kernels' was found")
     _module = importlib.util.module_from_spec(_spec)
     sys.modules["kernels"] = _module
     _spec.loader.exec_module(_module)

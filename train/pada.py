@@ -160,7 +160,8 @@ class PADATrainer(GRPOTrainer):
         self.anchor_alpha = float(args.anchor_alpha)
         self.extensions = pada_extensions(self, args) if extensions is None else list(extensions)
         self._joint_anchor: dict | None = None  # joint_anchor_pass: the anchors the next policy pass scores
-        self._backward_scope: ExitStack | None = None  # inside training_step: contexts held through the backward
+        # inside training_step: the contexts _compute_loss holds through the backward
+        self._backward_scope: ExitStack | None = None
         self._round_prompts = None
         if getattr(self, "generation_config", None) is not None:  # HF generate (not vLLM)
             static = args.cache_implementation == "static"

@@ -22,7 +22,8 @@ def _hub_kernels_installed() -> bool:
 
 
 def test_the_top_level_name_kernels_is_the_installed_package_from_the_root():
-    done = _run_in_root("import kernels, physcene.kernels as own; print(kernels.__file__); print(own.__file__)")
+    done = _run_in_root("import kernels, physcene.kernels as own; "
+                        "print(kernels.__file__); print(own.__file__)")
     if _hub_kernels_installed():
         assert done.returncode == 0, done.stderr
         hub, own = done.stdout.split()

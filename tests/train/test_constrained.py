@@ -835,6 +835,7 @@ def test_the_extents_read_from_cached_finished_values_equal_reading_the_whole_ar
             array = " [" + ", ".join(number() for _ in range(size)) + "], \"next\": 1"
             for end in range(len(array) + 1):
                 text = array[:end]
-                assert _extents_possible(text, pairs) == _extents_by_reading_the_whole_array(text, pairs), text
+                expected = _extents_by_reading_the_whole_array(text, pairs)
+                assert _extents_possible(text, pairs) == expected, text
                 checked += 1
     assert checked > 5000

@@ -198,8 +198,17 @@ def _mixed_precision_trainer(tokenizer, tmp_path, cast: bool, **args) -> PADATra
                         **args)
     dataset = Dataset.from_list([{"prompt": "Instruction: place a pen.", "anchor": ANCHOR}] * 4)
     lora = LoraConfig(r=4, lora_alpha=8, lora_dropout=0.0, target_modules=["q_proj", "v_proj", "gate_proj"])
-    return PADATrainer(model, reward_funcs=[lambda prompts, completions, **kw: [float(len(c)) for c in completions]],
-                       args=config, train_dataset=dataset, processing_class=tokenizer, peft_config=lora)
+
+    def reward(prompts, completions, **kw):
+        return [float(len(c)) for c in completions]
+
+    return PADATrainer(model, reward_funcs=[reward], args=config, train_dataset=dataset,
+                       processing_class=tokenizer, peft_config=lora)
+
+
+def _cast_flags(model) -> set[bool]:
+    """PEFT's input-cast switch of every LoRA layer of ``model``."""
+    return {m.cast_input_dtype_enabled for m in model.modules() if hasattr(m, "cast_input_dtype_enabled")}
 
 
 def _adapter_input_dtypes(model) -> tuple[list, list]:
@@ -225,7 +234,7 @@ def test_adapters_that_read_the_autocast_inputs_give_the_same_loss_and_gradient(
         for hook in hooks:
             hook.remove()
         grads = {n: p.grad.clone() for n, p in model.named_parameters() if p.grad is not None}
-        flags = {m.cast_input_dtype_enabled for m in model.modules() if hasattr(m, "cast_input_dtype_enabled")}
+        flags = _cast_flags(model)
         seen[cast] = (loss, grads, set(dtypes), flags)
     (loss0, grads0, dtypes0, flags0), (loss1, grads1, dtypes1, flags1) = seen[True], seen[False]
     # PEFT's cast: the adapters read float32; without it, the bf16 that autocast gives every matmul
@@ -258,8 +267,7 @@ def test_a_mixed_precision_pada_step_with_uncast_adapter_inputs_trains_as_with_t
     assert all(torch.equal(before0[n], before1[n]) for n in before0)
     assert all(torch.equal(after0[n], after1[n]) for n in after0)
     assert sum(not torch.equal(before0[n], after0[n]) for n in before0) >= len(before0) // 2  # it trained
-    flags = {m.cast_input_dtype_enabled for m in trainer.model.modules() if hasattr(m, "cast_input_dtype_enabled")}
-    assert flags == {True}  # PEFT's cast is back for sampling and saving
+    assert _cast_flags(trainer.model) == {True}  # PEFT's cast is back for sampling and saving
 
 
 def test_adapter_input_cast_is_read_from_the_yaml():

@@ -105,7 +105,8 @@ def run(args) -> dict:
                 f"pada.merge_adapters={str(merge).lower()}", f"pada.joint_anchor_pass={str(joint).lower()}",
                 f"pada.adapter_input_cast={str(cast).lower()}", "pada.logging_steps=1", *args.config_set,
                 *getattr(args, "overrides", [])])
-            name = f"{cache}{' merged' if merge else ''}{' joint' if joint else ''}{'' if cast else ' uncast'}"
+            name = (f"{cache}{' merged' if merge else ''}{' joint' if joint else ''}"
+                    f"{'' if cast else ' uncast'}")
             row = result["caches"][name] = _time_steps(cfg, args, device)
         result.update({k: row.pop(k) for k in ("global_batch", "num_generations", "parameters")})
     return result
