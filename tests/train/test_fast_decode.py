@@ -364,32 +364,22 @@ def test_flex_attention_runs_inside_cuda_graphs(records, tokenizer):
     assert all(len(row) == 96 or row[-1] == tokenizer.eos_token_id for row in cudnn.tokens)
 
 
-def test_bench_pada_times_the_joint_anchor_pass_beside_the_separate_one(capsys):
+@pytest.mark.parametrize("switch, rows", [(["--joint-anchor-pass", "off", "on"], {"fast", "fast joint"}),
+                                          (["--adapter-input-cast", "on", "off"], {"fast", "fast uncast"})])
+def test_bench_pada_times_a_setting_beside_its_default(capsys, switch, rows):
+    """``--joint-anchor-pass off on`` and ``--adapter-input-cast on off``: one row each, in turn."""
     import json
 
     from physcene.cli import main
 
     assert main(["bench", "pada", "--config", "tiny", "--tokens", "8", "--steps", "1", "--caches", "fast",
-                 "--joint-anchor-pass", "off", "on", "--json", "--set", "pada.global_batch_size=4",
-                 "pada.per_device_batch_size=2", "pada.num_generations=2"]) == 0
+                 *switch, "--json", "--set", "pada.global_batch_size=4", "pada.per_device_batch_size=2",
+                 "pada.num_generations=2"]) == 0
     r = json.loads(capsys.readouterr().out)
-    assert set(r["caches"]) == {"fast", "fast joint"}
+    assert set(r["caches"]) == rows
     assert all(v["steps_timed"] == 1 and v["update_s"] > 0 for v in r["caches"].values())
-
-
-def test_bench_pada_times_uncast_adapter_inputs_beside_the_cast_ones(capsys):
-    import json
-
-    from physcene.cli import main
-
-    assert main(["bench", "pada", "--config", "tiny", "--tokens", "8", "--steps", "1", "--caches", "fast",
-                 "--adapter-input-cast", "on", "off", "--json", "--set", "pada.global_batch_size=4",
-                 "pada.per_device_batch_size=2", "pada.num_generations=2"]) == 0
-    r = json.loads(capsys.readouterr().out)
-    assert set(r["caches"]) == {"fast", "fast uncast"}
-    assert all(v["steps_timed"] == 1 and v["update_s"] > 0 for v in r["caches"].values())
-    # a CPU trains in float32: nothing to leave uncast (on a GPU's bf16 the row says True)
-    assert [v["adapter_inputs_uncast"] for v in r["caches"].values()] == [False, False]
+    # a CPU trains in float32: nothing to leave uncast (on a GPU's bf16 the uncast row says True)
+    assert not any(v["adapter_inputs_uncast"] for v in r["caches"].values())
 
 
 @pytest.mark.slow
