@@ -283,16 +283,16 @@ def _literal(*strings: str, then_eos: bool = False) -> _Core:
 
 
 def _extents_possible(text: str, pairs) -> bool:
-    """Whether the JSON number array that ``text`` starts (`` [1.5, 2``) can still end with every
-    max above its min: a finished max must exceed its min, a max being written must be able to. The
-    values before the last comma are read once per array prefix (cached), so a step reads only the
-    value being written."""
+    """Whether the JSON number array that ``text`` starts (`` [1.5, 2``, a prefix the array's pattern
+    admits) can still end with every max above its min: a finished max must exceed its min, a max being
+    written must be able to. The values before the last comma (all of them once the array is closed)
+    are read once per array prefix (cached), so a step reads only the value being written."""
     m = _ARRAY_START.match(text)
     if m is None:
         return True
     body = m.group(1)
     if m.group(2):  # closed: every value finished (the same body at each step after the "]")
-        return _finished_extents(body, pairs)
+        return _finished_values(body, pairs)[1]
     head, comma, last = body.rpartition(",")
     done, ok = _finished_values(head, pairs) if comma else ((), True)
     if not ok:
@@ -310,17 +310,10 @@ def _extents_possible(text: str, pairs) -> bool:
 
 @functools.lru_cache(maxsize=4096)
 def _finished_values(head: str, pairs) -> tuple[tuple[float, ...], bool]:
-    """The finished values of an array (``head``: its text before the last comma) and whether each of
-    their (min, max) pairs has max > min."""
+    """The finished values of an array (``head``: its text before the last comma, or inside its closed
+    brackets) and whether each of their (min, max) pairs has max > min."""
     done = tuple(float(v) for v in head.split(","))
     return done, all(done[hi] > done[lo] for lo, hi in pairs if hi < len(done))
-
-
-@functools.lru_cache(maxsize=4096)
-def _finished_extents(body: str, pairs) -> bool:
-    """Whether every (min, max) pair of a closed array's values (``body``: its text inside the
-    brackets) has max > min."""
-    return _finished_values(body, pairs)[1]
 
 
 def _largest(prefix: str) -> float:
