@@ -2,9 +2,9 @@
 
 This folder installs as ``physcene.kernels``. Run from the repository's root (``python -m pytest``,
 ``python -c``), Python also finds it as a top-level ``kernels``: a name that belongs to Hugging Face's
-hub-kernels package, which transformers (>= 5.2x requires it) imports at start-up. Imported under that
-name, this module hands the import to the installed package, so the root on ``sys.path`` does not
-shadow it.
+hub-kernels package, which transformers imports at start-up when it is installed (5.25 requires it).
+Imported under that name, this module hands the import to the installed package, so the root on
+``sys.path`` does not shadow it.
 """
 
 if __name__ == "kernels":
