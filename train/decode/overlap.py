@@ -122,11 +122,11 @@ class OverlappedConstraint:
             seen = set(candidates)
             rest = [t for t, v in zip(top.tolist(), values.tolist()) if v > float("-inf") and t not in seen]
             allowed = c.allowed_tokens(b, rule, rest)
-        if not allowed:
-            allowed = c.allowed_in_vocabulary(b, rule, row[None], torch.isfinite(row).cpu())
-            if allowed:
-                host = row.cpu()
-                allowed = [max(allowed, key=lambda t: float(host[t]))]
+        if not allowed:  # the row on the host once: its finite tokens, then the best allowed one
+            host = row.cpu()
+            allowed = c.allowed_in_vocabulary(b, rule, host[None], torch.isfinite(host))
+            if allowed:  # the first of equal bests, as max() over the ascending ids
+                allowed = [allowed[int(host[torch.tensor(allowed)].argmax())]]
         if not allowed:  # nothing in the vocabulary continues the rule: leave it to the parser
             return token
         c.stats.masked_steps += 1
