@@ -10,14 +10,17 @@
 #   forced        random weights, 512 x 2048 forced tokens: HF static, fast, fast+cudnn, fast+fused+cudnn
 #   trained       the trained base, rows stopping at EOS, compared up to it: HF static, fast, fast+fused+cudnn
 #   exact         HF static and fast+cudnn, both with torch's cuDNN attention allowed (same kernel: same ids?)
+#   exact_forced  the same pair on random weights, 512 x 2048 forced tokens (the acceptance's setting)
 #   constrained   the trained base under the CTRC constraint: fast, fast+fused+cudnn
 #   pada_forced   whole PADA steps, random weights, rollouts forced to 2,304 tokens: fast, fast+fused+cudnn
 #   pada_natural  whole PADA steps from the trained base, rollouts of the lengths it writes (at most 2,304),
 #                 the last step profiled (OUT/pada_<cache>.txt)
+#   pada_switches whole PADA steps at the RL runs' settings (the trained base under the constraint, T = 0.7,
+#                 merged adapters): the anchors' own pass or the joint one, PEFT's adapter input cast or not
 set -euo pipefail
 OUT=${1:-runs/rollout_speed}
 MODEL=${MODEL:-small-sft}
-PARTS=${PARTS:-"forced trained exact constrained pada_forced pada_natural"}
+PARTS=${PARTS:-"forced trained exact exact_forced constrained pada_forced pada_natural pada_switches"}
 mkdir -p "$OUT"
 want() { [[ " $PARTS " == *" $1 "* ]]; }
 gen="physcene bench generate --device cuda --batch 512 --tokens 2048 --repeat 1"
@@ -27,8 +30,12 @@ want forced && $gen --config small --variants static fast fast+cudnn fast+fused+
 want trained && $gen --model "$MODEL" --until-eos --variants static fast fast+fused+cudnn --out "$OUT/trained.json"
 want exact && $gen --model "$MODEL" --until-eos --cudnn-attention --variants static fast+cudnn \
   --out "$OUT/exact_cudnn.json"
+want exact_forced && $gen --config small --cudnn-attention --variants static fast+cudnn \
+  --out "$OUT/exact_cudnn_forced.json"
 want constrained && $gen --model "$MODEL" --constrained --variants fast fast+fused+cudnn --out "$OUT/constrained.json"
 want pada_forced && $pada --caches fast fast+fused+cudnn --profile "$OUT/forced" > "$OUT/pada_forced.json"
 want pada_natural && $pada --model "$MODEL" --until-eos --caches fast+fused+cudnn --profile "$OUT" \
   > "$OUT/pada_natural.json"
+want pada_switches && $pada --model "$MODEL" --until-eos --constrained --caches fast+fused+cudnn --merge-adapters on \
+  --joint-anchor-pass off on --adapter-input-cast on off --set pada.temperature=0.7 > "$OUT/pada_switches.json"
 echo "figures in $OUT"
