@@ -222,3 +222,37 @@ def test_the_exponential_race_draws_what_multinomial_draws():
         counts[exponential_race(p, generator.manual_seed(seed))] += 1
     assert counts[6:].sum() == 0
     assert ((counts / 4000 - p).abs() <= 4 * (p * (1 - p) / 4000).sqrt() + 1e-3).all(), counts
+
+
+def test_a_refused_rows_fresh_draw_runs_nothing_on_its_logits_device(records, tokenizer):
+    """A sampled row whose token and copied candidates are all refused reads its logits to the host once
+    (``.cpu()``) and scans, warps and draws there: on a GPU no kernel and no further wait is queued in
+    the middle of the decoding steps. The row's logits are handed over as a tensor that records every
+    torch call made on it, and whose ``.cpu()`` is a plain tensor, as a device's host copy is."""
+    from physcene.train.decode.overlap import OverlappedConstraint
+
+    calls: list[str] = []
+
+    class Logits(torch.Tensor):
+        @classmethod
+        def __torch_function__(cls, func, types, args=(), kwargs=None):
+            calls.append(getattr(func, "__name__", str(func)))
+            with torch._C.DisableTorchFunctionSubclass():
+                out = func(*args, **(kwargs or {}))
+            # the host copy is a plain tensor (on a CPU .cpu() returns the tensor itself)
+            return out.as_subclass(torch.Tensor) if calls[-1] == "cpu" else out
+
+    r = records[0]
+    cut = r["completion"].index('"relation_type":') + len('"relation_type":')
+    warpers = sampling_warpers(GenerationConfig(do_sample=True, temperature=0.7, top_k=0))
+    constraint = CTRCConstraint(tokenizer, [r["prompt"]], greedy=False, warpers=warpers)
+    check = OverlappedConstraint(constraint, max_new_tokens=4096, eos=[tokenizer.eos_token_id], warpers=warpers)
+    for t in tokenizer(r["completion"][:cut], add_special_tokens=False)["input_ids"]:
+        assert check.check([t], [[-1] * 8], set(), lambda b: None) == {}  # the reference text: all kept
+    rule = check.rules[0]
+    refused = [t for t in range(len(tokenizer)) if not constraint.allowed_tokens(0, rule, [t])][:9]
+    logits = torch.randn(len(tokenizer), generator=torch.Generator().manual_seed(0)).as_subclass(Logits)
+    corrections = check.check([refused[0]], [refused[1:]], set(), lambda b: logits)
+    assert calls == ["cpu"]  # the one read; everything after it ran on the host copy
+    (token,) = corrections.values()
+    assert constraint.allowed_tokens(0, rule, [token]) and constraint.stats.refused_draws == 8
