@@ -246,7 +246,8 @@ def test_a_refused_rows_fresh_draw_runs_nothing_on_its_logits_device(records, to
     cut = r["completion"].index('"relation_type":') + len('"relation_type":')
     warpers = sampling_warpers(GenerationConfig(do_sample=True, temperature=0.7, top_k=0))
     constraint = CTRCConstraint(tokenizer, [r["prompt"]], greedy=False, warpers=warpers)
-    check = OverlappedConstraint(constraint, max_new_tokens=4096, eos=[tokenizer.eos_token_id], warpers=warpers)
+    check = OverlappedConstraint(constraint, max_new_tokens=4096, eos=[tokenizer.eos_token_id],
+                                 warpers=warpers)
     for t in tokenizer(r["completion"][:cut], add_special_tokens=False)["input_ids"]:
         assert check.check([t], [[-1] * 8], set(), lambda b: None) == {}  # the reference text: all kept
     rule = check.rules[0]
