@@ -365,9 +365,11 @@ def test_flex_attention_runs_inside_cuda_graphs(records, tokenizer):
 
 
 @pytest.mark.parametrize("switch, rows", [(["--joint-anchor-pass", "off", "on"], {"fast", "fast joint"}),
-                                          (["--adapter-input-cast", "on", "off"], {"fast", "fast uncast"})])
+                                          (["--adapter-input-cast", "on", "off"], {"fast", "fast uncast"}),
+                                          (["--constrained"], {"fast"})])
 def test_bench_pada_times_a_setting_beside_its_default(capsys, switch, rows):
-    """``--joint-anchor-pass off on`` and ``--adapter-input-cast on off``: one row each, in turn."""
+    """``--joint-anchor-pass off on`` and ``--adapter-input-cast on off``: one row each, in turn;
+    ``--constrained``: the row's host check, of its generation."""
     import json
 
     from physcene.cli import main
@@ -380,6 +382,9 @@ def test_bench_pada_times_a_setting_beside_its_default(capsys, switch, rows):
     assert all(v["steps_timed"] == 1 and v["update_s"] > 0 for v in r["caches"].values())
     # a CPU trains in float32: nothing to leave uncast (on a GPU's bf16 the uncast row says True)
     assert not any(v["adapter_inputs_uncast"] for v in r["caches"].values())
+    for v in r["caches"].values():  # the constraint's host check, a part of the generation's time
+        check = v["host_check_s"]
+        assert 0 < check < v["generate_s"] if "--constrained" in switch else check == 0.0
 
 
 @pytest.mark.slow

@@ -14,8 +14,9 @@ The settings are ``configs/train_<config>.yaml``'s ``pada`` section (global batc
 rollout forced to that length (``min_new_tokens``: a random model would stop anywhere). The anchors
 are the synthetic records' reference completions. Each ``--caches`` entry trains ``1 + --steps``
 optimiser steps (the first, which captures graphs and allocates, is not counted) and reports the
-median seconds per step split into generation (``time/generate_s``), reward (the reward function's
-calls) and the rest (log-probabilities, loss, backward, optimiser: ``update``). ``--merge-adapters off
+median seconds per step split into generation (``time/generate_s``; of it, the constraint's host check
+``host_check_s``), reward (the reward function's calls) and the rest (log-probabilities, loss, backward,
+optimiser: ``update``). ``--merge-adapters off
 on`` times each fast cache also with the LoRA adapters merged for decoding (``pada.merge_adapters``;
 row ``<cache> merged``), and ``--joint-anchor-pass off on`` each with the anchors scored in the policy's
 forward (``pada.joint_anchor_pass``; row ``... joint``), and ``--adapter-input-cast on off`` each with
@@ -189,6 +190,7 @@ def _time_steps(cfg, args, device: torch.device) -> dict:
                if "completions/mean_length" in h]
     graphs = [h["time/decode_graphs"] for h in history if "time/decode_graphs" in h]
     merged = [h["time/decode_merged_projections"] for h in history if "time/decode_merged_projections" in h]
+    host_check = [h["time/decode_host_check_s"] for h in history if "time/decode_host_check_s" in h]
     rounds = max(len(reward_seconds) // max(len(step_seconds), 1), 1)  # reward calls per step
     per_step_reward = [sum(reward_seconds[i * rounds:(i + 1) * rounds]) for i in range(len(step_seconds))]
     timed = slice(1, None)  # the first step captures graphs and allocates
@@ -196,6 +198,8 @@ def _time_steps(cfg, args, device: torch.device) -> dict:
     gen = statistics.median(generate[timed]) if len(generate) > 1 else None
     rew = statistics.median(per_step_reward[timed])
     row = {"seconds_per_step": total, "generate_s": gen, "reward_s": rew,
+           # the fast decoder's constraint check on the host, of generate_s (0: no constraint; None: HF)
+           "host_check_s": statistics.median(host_check[timed]) if len(host_check) > 1 else None,
            "update_s": total - (gen or 0.0) - rew, "steps_timed": len(step_seconds) - 1,
            "first_step_s": step_seconds[0], "all_steps_s": step_seconds,
            "completion_tokens_mean": statistics.mean(m for m, _ in lengths) if lengths else None,
