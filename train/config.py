@@ -140,6 +140,12 @@ class PADAConfig(GRPOConfig):
         metadata={"help": "configs/tto.yaml overrides for the denoising repair (key=value; the zone "
                           "weighed 10x, train/denoise.py); its device is the reward engine's."})
 
+    @property
+    def adapter_inputs_uncast(self) -> bool:
+        """Whether the LoRA adapters read their inputs as autocast gives them: ``adapter_input_cast`` off,
+        under bf16/fp16 mixed precision (without it there is nothing to leave uncast)."""
+        return not self.adapter_input_cast and bool(self.bf16 or self.fp16)
+
     def __post_init__(self):
         # The messages name the YAML key (pada.<field>): the fields are the pada: section's keys.
         scale = {True: "group", False: "none"}.get(self.scale_rewards, self.scale_rewards)

@@ -354,10 +354,10 @@ class PADATrainer(GRPOTrainer):
         # gives it (bf16) in the policy's and the anchors' forwards, instead of PEFT's cast to the
         # adapter's float32 weights that autocast undoes for the matmul; inside training_step the switch
         # lasts through the backward (a forward recomputed by gradient checkpointing reads them so too)
-        uncast = not self.args.adapter_input_cast and (self.args.bf16 or self.args.fp16)
+        uncast = self.args.adapter_inputs_uncast
         if uncast and self._backward_scope is not None:
             self._backward_scope.enter_context(disable_input_dtype_casting(model))
-            uncast = False
+            return self._objective(model, inputs)
         with disable_input_dtype_casting(model, active=uncast):
             return self._objective(model, inputs)
 

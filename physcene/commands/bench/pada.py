@@ -209,7 +209,7 @@ def _time_steps(cfg, args, device: torch.device) -> dict:
            "global_batch": pada_args.per_device_train_batch_size * pada_args.gradient_accumulation_steps,
            "num_generations": pada_args.num_generations, "parameters": count_parameters(model),
            # the adapters read their inputs uncast only under mixed precision (a GPU's bf16)
-           "adapter_inputs_uncast": not pada_args.adapter_input_cast and (pada_args.bf16 or pada_args.fp16)}
+           "adapter_inputs_uncast": pada_args.adapter_inputs_uncast}
     if device.type == "cuda":
         row["max_memory_gib"] = torch.cuda.max_memory_allocated(device) / 2**30
         torch.cuda.reset_peak_memory_stats(device)
