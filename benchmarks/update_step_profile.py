@@ -76,7 +76,7 @@ def _batch(rows: int, prompt: int, completion: int, vocab: int, device: torch.de
     labels = ids.masked_fill(mask == 0, -100)
     labels[:, :-completion] = -100
     return {"input_ids": ids.to(device), "attention_mask": mask.to(device), "labels": labels.to(device),
-            "advantages": torch.randn(rows, 1, generator=g).to(device)}
+            "advantages": torch.randn(rows, 1, generator=g).to(device), "vocab": vocab}
 
 
 def _policy_pass(forward, batch: dict, completion: int) -> None:
@@ -153,10 +153,22 @@ def _profile_passes(model, forward, batch: dict, args, row: dict) -> None:
             _policy_pass(forward, batch, args.completion)
             model.zero_grad(set_to_none=True)
 
+        start = time.perf_counter()
+        policy()
+        _sync()
+        row["first_call_s"] = time.perf_counter() - start  # a compiled variant: its compile
         row["policy_ms"] = _median_ms(policy, args.repeat, args.warmup)
         row["ref_ms"] = _median_ms(lambda: _ref_pass(model, forward, batch, args.completion),
                                    args.repeat, args.warmup)
         row.update(_kernels(policy))
+        # another length, as the next micro-batch of a round has: does its first call compile again?
+        other = _batch(args.rows, args.prompt, args.completion + 37, batch["vocab"], batch["input_ids"].device,
+                       seed=1)
+        start = time.perf_counter()
+        _policy_pass(forward, other, args.completion + 37)
+        model.zero_grad(set_to_none=True)
+        _sync()
+        row["other_length_first_call_s"] = time.perf_counter() - start
         row["adapter_input_dtypes"] = _adapter_input_dtypes(model, lambda: _policy_pass(forward, batch,
                                                                                       args.completion))
         model.zero_grad(set_to_none=True)
