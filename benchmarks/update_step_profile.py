@@ -162,8 +162,8 @@ def _profile_passes(model, forward, batch: dict, args, row: dict) -> None:
                                    args.repeat, args.warmup)
         row.update(_kernels(policy))
         # another length, as the next micro-batch of a round has: does its first call compile again?
-        other = _batch(args.rows, args.prompt, args.completion + 37, batch["vocab"], batch["input_ids"].device,
-                       seed=1)
+        other = _batch(args.rows, args.prompt, args.completion + 37, batch["vocab"],
+                       batch["input_ids"].device, seed=1)
         start = time.perf_counter()
         _policy_pass(forward, other, args.completion + 37)
         model.zero_grad(set_to_none=True)

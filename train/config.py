@@ -97,6 +97,17 @@ class PADAConfig(GRPOConfig):
                                         "dropout, at two casts fewer per adapted projection; it acts only "
                                         "under bf16/fp16 mixed precision (docs/training.md)."})
 
+    compile_update: bool = field(
+        default=False, metadata={"help": "Run the update's forwards (the policy's, the reference model's, "
+                                         "the anchors') through torch.compile with dynamic shapes, so a "
+                                         "micro-batch of another length does not compile again and the "
+                                         "backward is compiled with its forward: far fewer kernel launches "
+                                         "(docs/training.md). The first step pays the compile; the LoRA "
+                                         "dropout draws other random numbers than eager."})
+    compile_backend: str = field(
+        default="inductor", metadata={"help": "torch.compile's backend for compile_update (inductor; "
+                                              "aot_eager traces without generating kernels)."})
+
     # --- extensions: not in the paper, each off by default ---
     mask_overruled: bool = field(
         default=True, metadata={"help": "Leave the tokens the CTRC constraint chose instead of the "
@@ -175,6 +186,13 @@ class PADAConfig(GRPOConfig):
         workers = self.constraint_workers
         if not (isinstance(workers, int) and not isinstance(workers, bool) and workers >= 0):
             raise ValueError(f"pada.constraint_workers must be an integer >= 0, got {workers!r}")
+        if self.compile_update:
+            import torch
+
+            backends = torch._dynamo.list_backends(exclude_tags=())
+            if self.compile_backend not in backends:
+                raise ValueError(f"pada.compile_backend must be one of torch.compile's backends {backends}, "
+                                 f"got {self.compile_backend!r}")
         if self.nonfinite_probe < 0:
             raise ValueError(f"pada.nonfinite_probe must be >= 0, got {self.nonfinite_probe}")
         for key, check in (("object_credit_scope", object_credit_scope_checked),
@@ -233,6 +251,8 @@ def pada_arguments(cfg, variant: str) -> PADAConfig:
         length_grouping=bool(p.get("length_grouping", True)),
         joint_anchor_pass=bool(p.get("joint_anchor_pass", False)),
         adapter_input_cast=bool(p.get("adapter_input_cast", True)),
+        compile_update=bool(p.get("compile_update", False)),
+        compile_backend=str(p.get("compile_backend", "inductor")),
         constrained_decoding=bool(p.get("constrained", False)),
         mask_overruled=bool(p.get("mask_overruled", True)),
         nonfinite_probe=int(p.get("nonfinite_probe", 0) or 0),

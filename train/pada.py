@@ -163,6 +163,7 @@ class PADATrainer(GRPOTrainer):
         # inside training_step: the contexts _compute_loss holds through the backward
         self._backward_scope: ExitStack | None = None
         self._round_prompts = None
+        self._compiled: dict[int, torch.nn.Module] = {}  # compile_update: each model's compiled forward
         if getattr(self, "generation_config", None) is not None:  # HF generate (not vLLM)
             static = args.cache_implementation == "static"
             prompts = self.train_dataset["prompt"] if static else ()
@@ -225,13 +226,27 @@ class PADATrainer(GRPOTrainer):
                                                       self.current_gradient_accumulation_steps)
         return trimmed(self._buffered_inputs[self._step % self.args.steps_per_generation])
 
+    def update_forward(self, model):
+        """``model``, or with ``compile_update`` its forward through ``torch.compile`` (dynamic shapes: the
+        micro-batches' lengths vary; one compiled module per model, sharing its parameters). The
+        update's passes (the policy's, the reference model's under ``disable_adapter``, the anchors')
+        call it; sampling and saving see ``model`` as it is."""
+        if not self.args.compile_update or isinstance(model, torch._dynamo.eval_frame.OptimizedModule):
+            return model
+        compiled = self._compiled.get(id(model))
+        if compiled is None or compiled._orig_mod is not model:
+            compiled = self._compiled[id(model)] = torch.compile(model, dynamic=True,
+                                                                 backend=self.args.compile_backend)
+        return compiled
+
     def _get_per_token_logps_and_entropies(self, model, input_ids, attention_mask, logits_to_keep,
                                            batch_size=None, compute_entropy=False, **kwargs):
         """TRL's, with ``length_grouping`` over chunks of rows of similar length (a round's rows sorted
         by their last used column first: the reference model's pass), each chunk cut to the columns its
         rows use; the results padded back and returned in the rows' order. Image inputs go to TRL's. The
         policy's pass of a micro-batch under ``joint_anchor_pass`` takes its anchor rows along
-        (:meth:`_joint_pass`)."""
+        (:meth:`_joint_pass`). With ``compile_update`` the forwards are compiled (:meth:`update_forward`)."""
+        model = self.update_forward(model)
         text_only = not any(v is not None for k, v in kwargs.items() if k != "compute_aux_loss")
         pending, self._joint_anchor = self._joint_anchor, None
         if pending is not None and text_only:

@@ -364,21 +364,26 @@ def test_flex_attention_runs_inside_cuda_graphs(records, tokenizer):
     assert all(len(row) == 96 or row[-1] == tokenizer.eos_token_id for row in cudnn.tokens)
 
 
-@pytest.mark.parametrize("switch, rows", [(["--joint-anchor-pass", "off", "on"], {"fast", "fast joint"}),
-                                          (["--adapter-input-cast", "on", "off"], {"fast", "fast uncast"}),
-                                          (["--constrained"], {"fast"})])
+@pytest.mark.parametrize("switch, rows", [
+    (["--joint-anchor-pass", "off", "on"], {"fast", "fast joint"}),
+    (["--adapter-input-cast", "on", "off"], {"fast", "fast uncast"}),
+    (["--constrained"], {"fast"}),
+    # aot_eager: the compiled passes traced without generating kernels (inductor's compile takes minutes here)
+    pytest.param(["--compile-update", "off", "on"], {"fast", "fast compiled"}, marks=pytest.mark.slow)])
 def test_bench_pada_times_a_setting_beside_its_default(capsys, switch, rows):
-    """``--joint-anchor-pass off on`` and ``--adapter-input-cast on off``: one row each, in turn;
-    ``--constrained``: the row's host check, of its generation."""
+    """``--joint-anchor-pass off on``, ``--adapter-input-cast on off`` and ``--compile-update off on``: one
+    row each, in turn; ``--constrained``: the row's host check, of its generation."""
     import json
 
     from physcene.cli import main
 
     assert main(["bench", "pada", "--config", "tiny", "--tokens", "8", "--steps", "1", "--caches", "fast",
                  *switch, "--json", "--set", "pada.global_batch_size=4", "pada.per_device_batch_size=2",
-                 "pada.num_generations=2"]) == 0
+                 "pada.num_generations=2", "pada.compile_backend=aot_eager"]) == 0
     r = json.loads(capsys.readouterr().out)
     assert set(r["caches"]) == rows
+    compiled = [n.endswith(" compiled") for n in r["caches"]]
+    assert [v["compile_update"] for v in r["caches"].values()] == compiled
     assert all(v["steps_timed"] == 1 and v["update_s"] > 0 for v in r["caches"].values())
     # a CPU trains in float32: nothing to leave uncast (on a GPU's bf16 the uncast row says True)
     assert not any(v["adapter_inputs_uncast"] for v in r["caches"].values())

@@ -21,7 +21,8 @@ on`` times each fast cache also with the LoRA adapters merged for decoding (``pa
 row ``<cache> merged``), and ``--joint-anchor-pass off on`` each with the anchors scored in the policy's
 forward (``pada.joint_anchor_pass``; row ``... joint``), and ``--adapter-input-cast on off`` each with
 the LoRA adapters reading their bf16 inputs uncast (``pada.adapter_input_cast=false``; row ``...
-uncast``), one after the other in the same process.
+uncast``), and ``--compile-update off on`` each with the update's forwards compiled
+(``pada.compile_update``; row ``... compiled``), one after the other in the same process.
 """
 
 from __future__ import annotations
@@ -67,6 +68,10 @@ def add_arguments(parser) -> None:
                         help="the LoRA adapters' inputs cast to their float32 weights as PEFT does (on) "
                              "and/or read as bf16 autocast gives them (off: pada.adapter_input_cast=false, "
                              "row '<cache> uncast'), in turn")
+    parser.add_argument("--compile-update", nargs="+", choices=["off", "on"], default=["off"],
+                        help="the update's forwards eager (off) and/or through torch.compile with dynamic "
+                             "shapes (on: pada.compile_update, row '<cache> compiled'; the warm-up step "
+                             "pays the compile), in turn")
     parser.add_argument("--variant", default="pada", choices=["pada", "pada_star", "grpo"])
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--profile", default=None, metavar="DIR",
@@ -92,22 +97,24 @@ def run(args) -> dict:
     result = {"target": "pada", "device": device_name(device), "config": args.config, "variant": args.variant,
               "model": args.model or "random weights", "tokens": args.tokens,
               "until_eos": bool(args.until_eos), "constrained": bool(args.constrained), "caches": {}}
-    runs = [(cache, merge == "on", joint == "on", cast == "on") for cache in args.caches
+    runs = [(cache, merge == "on", joint == "on", cast == "on", compiled == "on") for cache in args.caches
             for merge in dict.fromkeys(args.merge_adapters) if merge == "off" or cache.startswith("fast")
             for joint in dict.fromkeys(args.joint_anchor_pass)
-            for cast in dict.fromkeys(args.adapter_input_cast)]
+            for cast in dict.fromkeys(args.adapter_input_cast)
+            for compiled in dict.fromkeys(args.compile_update)]
     if not runs:
         raise ValueError("--merge-adapters on merges for the fast decoder: give a fast cache in --caches")
-    for cache, merge, joint, cast in runs:
+    for cache, merge, joint, cast, compiled in runs:
         with tempfile.TemporaryDirectory() as tmp:
             cfg = load_config(f"train_{args.config}", [
                 f"output_dir={tmp}", f"pada.max_completion_length={args.tokens}", f"pada.cache={cache}",
                 f"pada.constrained={str(bool(args.constrained)).lower()}", "pada.save_steps=1000000",
                 f"pada.merge_adapters={str(merge).lower()}", f"pada.joint_anchor_pass={str(joint).lower()}",
-                f"pada.adapter_input_cast={str(cast).lower()}", "pada.logging_steps=1", *args.config_set,
+                f"pada.adapter_input_cast={str(cast).lower()}",
+                f"pada.compile_update={str(compiled).lower()}", "pada.logging_steps=1", *args.config_set,
                 *getattr(args, "overrides", [])])
             name = (f"{cache}{' merged' if merge else ''}{' joint' if joint else ''}"
-                    f"{'' if cast else ' uncast'}")
+                    f"{'' if cast else ' uncast'}{' compiled' if compiled else ''}")
             row = result["caches"][name] = _time_steps(cfg, args, device)
         result.update({k: row.pop(k) for k in ("global_batch", "num_generations", "parameters")})
     return result
@@ -209,7 +216,8 @@ def _time_steps(cfg, args, device: torch.device) -> dict:
            "global_batch": pada_args.per_device_train_batch_size * pada_args.gradient_accumulation_steps,
            "num_generations": pada_args.num_generations, "parameters": count_parameters(model),
            # the adapters read their inputs uncast only under mixed precision (a GPU's bf16)
-           "adapter_inputs_uncast": pada_args.adapter_inputs_uncast}
+           "adapter_inputs_uncast": pada_args.adapter_inputs_uncast,
+           "compile_update": pada_args.compile_update}
     if device.type == "cuda":
         row["max_memory_gib"] = torch.cuda.max_memory_allocated(device) / 2**30
         torch.cuda.reset_peak_memory_stats(device)
@@ -218,7 +226,8 @@ def _time_steps(cfg, args, device: torch.device) -> dict:
         # limit that cuts it still leaves the step's figures
         name = (f"pada_{cfg.pada.cache}{'_merged' if cfg.pada.get('merge_adapters') else ''}"
                 f"{'_joint' if cfg.pada.get('joint_anchor_pass') else ''}"
-                f"{'' if cfg.pada.get('adapter_input_cast', True) else '_uncast'}")
+                f"{'' if cfg.pada.get('adapter_input_cast', True) else '_uncast'}"
+                f"{'_compiled' if cfg.pada.get('compile_update') else ''}")
         timing = Path(args.profile) / f"{name}.json"
         timing.parent.mkdir(parents=True, exist_ok=True)
         timing.write_text(json.dumps(row, indent=1) + "\n")
