@@ -17,10 +17,12 @@
 #                 the last step profiled (OUT/pada_<cache>.txt)
 #   pada_switches whole PADA steps at the RL runs' settings (the trained base under the constraint, T = 0.7,
 #                 merged adapters): the anchors' own pass or the joint one, PEFT's adapter input cast or not
+#   pada_compiled whole PADA steps as pada_switches with the joint pass: the update's forwards eager or compiled
+#                 (pada.compile_update; the warm-up step pays the compile), without and with the constraint
 set -euo pipefail
 OUT=${1:-runs/rollout_speed}
 MODEL=${MODEL:-small-sft}
-PARTS=${PARTS:-"forced trained exact exact_forced constrained pada_forced pada_natural pada_switches"}
+PARTS=${PARTS:-"forced trained exact exact_forced constrained pada_forced pada_natural pada_switches pada_compiled"}
 mkdir -p "$OUT"
 want() { [[ " $PARTS " == *" $1 "* ]]; }
 gen="physcene bench generate --device cuda --batch 512 --tokens 2048 --repeat 1"
@@ -38,4 +40,10 @@ want pada_natural && $pada --model "$MODEL" --until-eos --caches fast+fused+cudn
   > "$OUT/pada_natural.json"
 want pada_switches && $pada --model "$MODEL" --until-eos --constrained --caches fast+fused+cudnn --merge-adapters on \
   --joint-anchor-pass off on --adapter-input-cast on off --set pada.temperature=0.7 > "$OUT/pada_switches.json"
+if want pada_compiled; then
+  for c in "" --constrained; do
+    $pada --model "$MODEL" --until-eos $c --caches fast+fused+cudnn --merge-adapters on --joint-anchor-pass on \
+      --compile-update off on --set pada.temperature=0.7 > "$OUT/pada_compiled${c:+_constrained}.json"
+  done
+fi
 echo "figures in $OUT"
