@@ -186,25 +186,30 @@ def test_the_joint_anchor_pass_gives_the_same_loss_and_gradient_in_one_forward(t
         assert (grads1[name] - grad).norm() <= 1e-6 * grad.norm(), name
 
 
-def _mixed_precision_trainer(tokenizer, tmp_path, cast: bool, **args) -> PADATrainer:
-    """A PADA trainer of a bf16 model with float32 LoRA adapters (PEFT's default) and no LoRA dropout,
-    under bf16 mixed precision on the CPU (accelerate's CPU autocast)."""
+def _lora_trainer(tokenizer, tmp_path, bf16: bool = False, beta: float = 0.04, **args) -> PADATrainer:
+    """A PADA trainer of a scratch model (bf16 weights under bf16 mixed precision, else float32) with
+    LoRA adapters and no LoRA dropout; ``args`` go to its :class:`PADAConfig`."""
     torch.manual_seed(0)
     arch = dict(hidden_size=32, intermediate_size=64, num_hidden_layers=1, num_attention_heads=2,
                 num_key_value_heads=1, head_dim=16, max_position_embeddings=512)
-    model = build_scratch_model(arch, tokenizer).to(torch.bfloat16)
-    config = PADAConfig(output_dir=str(tmp_path), anchor_alpha=0.1, beta=0.0, num_generations=2,
-                        per_device_train_batch_size=4, max_completion_length=8, use_cpu=True, bf16=True,
-                        report_to="none", logging_steps=1, save_strategy="no", adapter_input_cast=cast,
-                        **args)
+    model = build_scratch_model(arch, tokenizer)
+    config = PADAConfig(output_dir=str(tmp_path), anchor_alpha=0.1, beta=beta, num_generations=2,
+                        per_device_train_batch_size=4, max_completion_length=8, use_cpu=True, bf16=bf16,
+                        report_to="none", logging_steps=1, save_strategy="no", **args)
     dataset = Dataset.from_list([{"prompt": "Instruction: place a pen.", "anchor": ANCHOR}] * 4)
     lora = LoraConfig(r=4, lora_alpha=8, lora_dropout=0.0, target_modules=["q_proj", "v_proj", "gate_proj"])
 
     def reward(prompts, completions, **kw):
         return [float(len(c)) for c in completions]
 
-    return PADATrainer(model, reward_funcs=[reward], args=config, train_dataset=dataset,
-                       processing_class=tokenizer, peft_config=lora)
+    return PADATrainer(model.to(torch.bfloat16) if bf16 else model, reward_funcs=[reward], args=config,
+                       train_dataset=dataset, processing_class=tokenizer, peft_config=lora)
+
+
+def _mixed_precision_trainer(tokenizer, tmp_path, cast: bool, **args) -> PADATrainer:
+    """A PADA trainer of a bf16 model with float32 LoRA adapters (PEFT's default) and no LoRA dropout,
+    under bf16 mixed precision on the CPU (accelerate's CPU autocast)."""
+    return _lora_trainer(tokenizer, tmp_path, bf16=True, beta=0.0, adapter_input_cast=cast, **args)
 
 
 def _cast_flags(model) -> set[bool]:
@@ -284,26 +289,6 @@ def _counting_backend(name: str):
     return counter
 
 
-def _lora_trainer(tokenizer, tmp_path, compiled: bool, backend: str = "aot_eager", **args) -> PADATrainer:
-    """A float32 PADA trainer of a scratch model with LoRA adapters (no dropout) and the KL term on."""
-    torch.manual_seed(0)
-    arch = dict(hidden_size=32, intermediate_size=64, num_hidden_layers=1, num_attention_heads=2,
-                num_key_value_heads=1, head_dim=16, max_position_embeddings=512)
-    model = build_scratch_model(arch, tokenizer)
-    config = PADAConfig(output_dir=str(tmp_path), anchor_alpha=0.1, beta=0.04, num_generations=2,
-                        per_device_train_batch_size=4, max_completion_length=8, use_cpu=True,
-                        report_to="none", logging_steps=1, save_strategy="no", compile_update=compiled,
-                        compile_backend=backend, **args)
-    dataset = Dataset.from_list([{"prompt": "Instruction: place a pen.", "anchor": ANCHOR}] * 4)
-    lora = LoraConfig(r=4, lora_alpha=8, lora_dropout=0.0, target_modules=["q_proj", "v_proj", "gate_proj"])
-
-    def reward(prompts, completions, **kw):
-        return [float(len(c)) for c in completions]
-
-    return PADATrainer(model, reward_funcs=[reward], args=config, train_dataset=dataset,
-                       processing_class=tokenizer, peft_config=lora)
-
-
 def test_the_compiled_update_passes_give_eager_loss_gradient_and_reference_at_any_length(tokenizer, tmp_path):
     counter = _counting_backend("physcene_test_update_counter")
     short = _controlled_batch(tokenizer)
@@ -315,8 +300,8 @@ def test_the_compiled_update_passes_give_eager_loss_gradient_and_reference_at_an
     long["num_items_in_batch"] = long["completion_mask"].sum()
     seen, frames = {}, []
     for compiled in (False, True):
-        trainer = _lora_trainer(tokenizer, tmp_path / str(compiled), compiled,
-                                backend="physcene_test_update_counter")
+        trainer = _lora_trainer(tokenizer, tmp_path / str(compiled), compile_update=compiled,
+                                compile_backend="physcene_test_update_counter")
         model = trainer.model.eval()
         rows = []
         for batch in (short, long):
@@ -360,8 +345,9 @@ def test_a_pada_step_with_compiled_update_passes_trains_as_eager(tokenizer, tmp_
     steps = {}
     for compiled in (False, True):
         # gradient checkpointing off: the configs' setting
-        trainer = _lora_trainer(tokenizer, tmp_path / str(compiled), compiled, max_steps=1,
-                                learning_rate=1e-2, seed=3, gradient_checkpointing=False)
+        trainer = _lora_trainer(tokenizer, tmp_path / str(compiled), compile_update=compiled,
+                                compile_backend="aot_eager", max_steps=1, learning_rate=1e-2, seed=3,
+                                gradient_checkpointing=False)
         before = {n: p.detach().clone() for n, p in trainer.model.named_parameters() if p.requires_grad}
         kept = _GradientsBeforeTheStep(trainer.model)
         trainer.add_callback(kept)
