@@ -28,6 +28,7 @@ uncast``), and ``--compile-update off on`` each with the update's forwards compi
 from __future__ import annotations
 
 import contextlib
+import itertools
 import json
 import statistics
 import sys
@@ -40,6 +41,11 @@ import torch
 from physcene.commands.bench.timing import BenchTarget, device_name
 
 __all__ = ["TARGET"]
+
+# the pada switches timed in turn (--merge-adapters ..., each "on" / "off"): pada key -> (the word a row's
+# name gets, the value that gets it); merge_adapters first (a row of a cache other than fast skips "on")
+SWITCHES = {"merge_adapters": ("merged", "on"), "joint_anchor_pass": ("joint", "on"),
+            "adapter_input_cast": ("uncast", "off"), "compile_update": ("compiled", "on")}
 
 
 def add_arguments(parser) -> None:
@@ -97,30 +103,27 @@ def run(args) -> dict:
     result = {"target": "pada", "device": device_name(device), "config": args.config, "variant": args.variant,
               "model": args.model or "random weights", "tokens": args.tokens,
               "until_eos": bool(args.until_eos), "constrained": bool(args.constrained), "caches": {}}
-    runs = [(cache, merge == "on", joint == "on", cast == "on", compiled == "on") for cache in args.caches
-            for merge in dict.fromkeys(args.merge_adapters) if merge == "off" or cache.startswith("fast")
-            for joint in dict.fromkeys(args.joint_anchor_pass)
-            for cast in dict.fromkeys(args.adapter_input_cast)
-            for compiled in dict.fromkeys(args.compile_update)]
+    runs = [(cache, dict(zip(SWITCHES, values))) for cache in args.caches
+            for values in itertools.product(*(dict.fromkeys(getattr(args, key)) for key in SWITCHES))
+            if values[0] == "off" or cache.startswith("fast")]  # merge_adapters: the fast decoder's
     if not runs:
         raise ValueError("--merge-adapters on merges for the fast decoder: give a fast cache in --caches")
-    for cache, merge, joint, cast, compiled in runs:
+    for cache, settings in runs:
         with tempfile.TemporaryDirectory() as tmp:
             cfg = load_config(f"train_{args.config}", [
                 f"output_dir={tmp}", f"pada.max_completion_length={args.tokens}", f"pada.cache={cache}",
                 f"pada.constrained={str(bool(args.constrained)).lower()}", "pada.save_steps=1000000",
-                f"pada.merge_adapters={str(merge).lower()}", f"pada.joint_anchor_pass={str(joint).lower()}",
-                f"pada.adapter_input_cast={str(cast).lower()}",
-                f"pada.compile_update={str(compiled).lower()}", "pada.logging_steps=1", *args.config_set,
-                *getattr(args, "overrides", [])])
-            name = (f"{cache}{' merged' if merge else ''}{' joint' if joint else ''}"
-                    f"{'' if cast else ' uncast'}{' compiled' if compiled else ''}")
-            row = result["caches"][name] = _time_steps(cfg, args, device)
+                *(f"pada.{key}={str(value == 'on').lower()}" for key, value in settings.items()),
+                "pada.logging_steps=1", *args.config_set, *getattr(args, "overrides", [])])
+            name = cache + "".join(f" {word}" for key, (word, marked) in SWITCHES.items()
+                                   if settings[key] == marked)
+            row = result["caches"][name] = _time_steps(cfg, args, device, name)
         result.update({k: row.pop(k) for k in ("global_batch", "num_generations", "parameters")})
     return result
 
 
-def _time_steps(cfg, args, device: torch.device) -> dict:
+def _time_steps(cfg, args, device: torch.device, name: str) -> dict:
+    """The timed steps of one row (``name``: its name in the result, which names its profile files too)."""
     from transformers import TrainerCallback
 
     from physcene.artifacts import resolve_model
@@ -224,14 +227,11 @@ def _time_steps(cfg, args, device: torch.device) -> dict:
     if profiler is not None:
         # the timings first: reading a long step's events back takes minutes, and a command's time
         # limit that cuts it still leaves the step's figures
-        name = (f"pada_{cfg.pada.cache}{'_merged' if cfg.pada.get('merge_adapters') else ''}"
-                f"{'_joint' if cfg.pada.get('joint_anchor_pass') else ''}"
-                f"{'' if cfg.pada.get('adapter_input_cast', True) else '_uncast'}"
-                f"{'_compiled' if cfg.pada.get('compile_update') else ''}")
-        timing = Path(args.profile) / f"{name}.json"
+        stem = "pada_" + name.replace(" ", "_")
+        timing = Path(args.profile) / f"{stem}.json"
         timing.parent.mkdir(parents=True, exist_ok=True)
         timing.write_text(json.dumps(row, indent=1) + "\n")
-        row["profile"] = _write_profile(profiler, Path(args.profile) / f"{name}.txt", device)
+        row["profile"] = _write_profile(profiler, Path(args.profile) / f"{stem}.txt", device)
     return row
 
 
