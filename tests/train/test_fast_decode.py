@@ -390,6 +390,8 @@ def test_bench_pada_times_a_setting_beside_its_default(capsys, switch, rows):
     for v in r["caches"].values():  # the constraint's host check, a part of the generation's time
         check = v["host_check_s"]
         assert 0 < check < v["generate_s"] if "--constrained" in switch else check == 0.0
+        if "--constrained" in switch:  # where the check went: its scans of the vocabulary, its refusals
+            assert 0 <= v["constraint_scan_s"] <= check and v["vocabulary_scans"] >= 0 <= v["refused_draws"]
 
 
 @pytest.mark.slow

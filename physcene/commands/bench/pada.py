@@ -201,6 +201,8 @@ def _time_steps(cfg, args, device: torch.device, name: str) -> dict:
     graphs = [h["time/decode_graphs"] for h in history if "time/decode_graphs" in h]
     merged = [h["time/decode_merged_projections"] for h in history if "time/decode_merged_projections" in h]
     host_check = [h["time/decode_host_check_s"] for h in history if "time/decode_host_check_s" in h]
+    # where the constraint's check went: rows that fell back to the vocabulary, and the draws it refused
+    constraint = {key: [h[log] for h in history if log in h] for key, log in CONSTRAINT_LOGS.items()}
     rounds = max(len(reward_seconds) // max(len(step_seconds), 1), 1)  # reward calls per step
     per_step_reward = [sum(reward_seconds[i * rounds:(i + 1) * rounds]) for i in range(len(step_seconds))]
     timed = slice(1, None)  # the first step captures graphs and allocates
@@ -210,6 +212,7 @@ def _time_steps(cfg, args, device: torch.device, name: str) -> dict:
     row = {"seconds_per_step": total, "generate_s": gen, "reward_s": rew,
            # the fast decoder's constraint check on the host, of generate_s (0: no constraint; None: HF)
            "host_check_s": statistics.median(host_check[timed]) if len(host_check) > 1 else None,
+           **{key: statistics.median(values[timed]) for key, values in constraint.items() if len(values) > 1},
            "update_s": total - (gen or 0.0) - rew, "steps_timed": len(step_seconds) - 1,
            "first_step_s": step_seconds[0], "all_steps_s": step_seconds,
            "completion_tokens_mean": statistics.mean(m for m, _ in lengths) if lengths else None,
@@ -234,6 +237,11 @@ def _time_steps(cfg, args, device: torch.device, name: str) -> dict:
         row["profile"] = _write_profile(profiler, Path(args.profile) / f"{stem}.txt", device)
     return row
 
+
+# the constraint's counters of a round (train.constrained_rollouts logs them), medians of the timed steps
+CONSTRAINT_LOGS = {"constraint_scan_s": "time/constraint_scan_s",
+                   "vocabulary_scans": "constraint/vocabulary_scans",
+                   "refused_draws": "constraint/refused_draws"}
 
 # the trainer's methods a profiled step labels (record_function ranges named "pada/<method>")
 PROFILED_PARTS = ("_generate", "_generate_and_score_completions", "_get_per_token_logps_and_entropies",
