@@ -193,7 +193,9 @@ def worktree(rev: str, folder: Path) -> Path:
 
 def rounds_at(checkout: Path, trace: str, rounds: int, workers: int = 0) -> list[dict]:
     """``rounds`` replays with the code of ``checkout`` (its physcene first on the path)."""
-    env = dict(os.environ, PYTHONPATH=str(checkout))
+    # the checkout's code first, then whatever the caller's path holds (wheels installed beside the tree)
+    path = [str(checkout), *filter(None, [os.environ.get("PYTHONPATH")])]
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join(path))
     code = (f"import json, sys; sys.path.insert(0, {str(ROOT / 'benchmarks')!r}); "
             "import constraint_replay as c; "
             f"print(json.dumps(c.replay_rounds({trace!r}, {rounds}, {workers})))")
