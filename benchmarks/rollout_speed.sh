@@ -18,7 +18,8 @@
 #   pada_switches whole PADA steps at the RL runs' settings (the trained base under the constraint, T = 0.7,
 #                 merged adapters): the anchors' own pass or the joint one, PEFT's adapter input cast or not
 #   pada_compiled whole PADA steps as pada_switches with the joint pass: the update's forwards eager or compiled
-#                 (pada.compile_update; the warm-up step pays the compile), without and with the constraint
+#                 (pada.compile_update; the warm-up step pays the compile, 4-7 minutes), without and with the
+#                 constraint, then 10 compiled steps under the constraint
 set -euo pipefail
 OUT=${1:-runs/rollout_speed}
 MODEL=${MODEL:-small-sft}
@@ -41,9 +42,12 @@ want pada_natural && $pada --model "$MODEL" --until-eos --caches fast+fused+cudn
 want pada_switches && $pada --model "$MODEL" --until-eos --constrained --caches fast+fused+cudnn --merge-adapters on \
   --joint-anchor-pass off on --adapter-input-cast on off --set pada.temperature=0.7 > "$OUT/pada_switches.json"
 if want pada_compiled; then
-  for c in "" --constrained; do
-    $pada --model "$MODEL" --until-eos $c --caches fast+fused+cudnn --merge-adapters on --joint-anchor-pass on \
-      --compile-update off on --set pada.temperature=0.7 > "$OUT/pada_compiled${c:+_constrained}.json"
+  compiled="$pada --model $MODEL --until-eos --caches fast+fused+cudnn --merge-adapters on --joint-anchor-pass on \
+    --set pada.temperature=0.7"
+  for c in "" --constrained; do  # side by side, 3 timed steps each
+    $compiled $c --steps 3 --compile-update off on > "$OUT/pada_compiled${c:+_constrained}.json"
   done
+  # the constrained step swings with its rollouts: 10 timed steps of the compiled one
+  $compiled --constrained --steps 10 --compile-update on > "$OUT/pada_compiled_constrained_10.json"
 fi
 echo "figures in $OUT"
