@@ -110,4 +110,4 @@ def test_interrupted_synth_then_rerun_writes_the_same_files(tmp_path):
 
 def test_interrupted_eval_then_rerun_writes_the_same_files(tmp_path):
     # relative out=: report.md quotes the command, which must read the same in both folders
-    _interrupt_then_rerun(tmp_path, ["eval", "n=6", "render=2", "out=out"], marker="synthesise test")
+    _interrupt_then_rerun(tmp_path, ["eval", "n=6", "render=1", "out=out"], marker="synthesise test")
