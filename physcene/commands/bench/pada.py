@@ -15,7 +15,8 @@ rollout forced to that length (``min_new_tokens``: a random model would stop any
 are the synthetic records' reference completions. Each ``--caches`` entry trains ``1 + --steps``
 optimiser steps (the first, which captures graphs and allocates, is not counted) and reports the
 median seconds per step split into generation (``time/generate_s``; of it, the constraint's host check
-``host_check_s``), reward (the reward function's calls) and the rest (log-probabilities, loss, backward,
+``host_check_s``, with the counters of where it went: ``constraint_scan_s``, ``vocabulary_scans``,
+``refused_draws``), reward (the reward function's calls) and the rest (log-probabilities, loss, backward,
 optimiser: ``update``). ``--merge-adapters off
 on`` times each fast cache also with the LoRA adapters merged for decoding (``pada.merge_adapters``;
 row ``<cache> merged``), and ``--joint-anchor-pass off on`` each with the anchors scored in the policy's
@@ -46,6 +47,12 @@ __all__ = ["TARGET"]
 # name gets, the value that gets it); merge_adapters first (a row of a cache other than fast skips "on")
 SWITCHES = {"merge_adapters": ("merged", "on"), "joint_anchor_pass": ("joint", "on"),
             "adapter_input_cast": ("uncast", "off"), "compile_update": ("compiled", "on")}
+
+
+# the constraint's counters of a round (train.constrained_rollouts logs them), medians of the timed steps
+CONSTRAINT_LOGS = {"constraint_scan_s": "time/constraint_scan_s",
+                   "vocabulary_scans": "constraint/vocabulary_scans",
+                   "refused_draws": "constraint/refused_draws"}
 
 
 def add_arguments(parser) -> None:
@@ -237,11 +244,6 @@ def _time_steps(cfg, args, device: torch.device, name: str) -> dict:
         row["profile"] = _write_profile(profiler, Path(args.profile) / f"{stem}.txt", device)
     return row
 
-
-# the constraint's counters of a round (train.constrained_rollouts logs them), medians of the timed steps
-CONSTRAINT_LOGS = {"constraint_scan_s": "time/constraint_scan_s",
-                   "vocabulary_scans": "constraint/vocabulary_scans",
-                   "refused_draws": "constraint/refused_draws"}
 
 # the trainer's methods a profiled step labels (record_function ranges named "pada/<method>")
 PROFILED_PARTS = ("_generate", "_generate_and_score_completions", "_get_per_token_logps_and_entropies",
