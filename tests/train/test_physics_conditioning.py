@@ -77,7 +77,7 @@ def test_a_conditioned_sft_checkpoint_asks_for_collision_free_layouts_when_it_ge
     assert read_run_info(plain)["physics_conditioned"] is False
 
 
-def test_physcene_data_measure_writes_each_records_measured_physics(tmp_path):
+def test_physcene_data_measure_writes_each_records_measured_physics(tmp_path, capsys):
     """The field agrees with the split's own measure (per-scene penetrating pairs) on a synthesised split."""
     from physcene.data.benchmark import synthesize
     from physcene.eval.metrics import measure_reference
@@ -102,10 +102,12 @@ def test_physcene_data_measure_writes_each_records_measured_physics(tmp_path):
     assert all((r["reference_physics"]["deepest_cm"] > 0) != r["reference_physics"]["collision_free"]
                for r in measured)
     assert f"{sum(n == 0 for n in pairs['per_scene_pairs'])} collision-free" in done.stdout
+    # bad input: one error line and exit status 2 (in this process: the command's checks come first)
+    from physcene.cli import main
+
     bad = tmp_path / "bad.jsonl"
     bad.write_text(json.dumps({"id": "x", "prompt": "p"}) + "\n")
-    done = subprocess.run([*cli, str(bad), "--out", str(tmp_path / "o.jsonl")], capture_output=True,
-                          text=True)
-    assert done.returncode == 2 and f"{bad}:1: a record needs a 'layout'" in done.stderr
-    done = subprocess.run([*cli, str(src), "--out", str(src)], capture_output=True, text=True)
-    assert done.returncode == 2 and "is the records file itself" in done.stderr
+    assert main(["data", "measure", str(bad), "--out", str(tmp_path / "o.jsonl")]) == 2
+    assert f"{bad}:1: a record needs a 'layout'" in capsys.readouterr().err
+    assert main(["data", "measure", str(src), "--out", str(src)]) == 2
+    assert "is the records file itself" in capsys.readouterr().err
