@@ -2,7 +2,7 @@
 reference model's pass, as TRL's GRPO trainer runs them, with the settings that could make them cheaper.
 
     python benchmarks/update_step_profile.py [--config small] [--rows 32] [--prompt 180] [--completion 512]
-        [--variants trl no-dropout bf16-adapters uncast-inputs compile] [--out FILE]
+        [--variants trl no-dropout bf16-adapters uncast-inputs compile compile-layers] [--out FILE]
 
 Builds a random-weight model of ``--config`` (bf16, its tokenizer's vocabulary) with TRL's fused LM
 head (``add_fused_lm_head``: per-token log-probabilities and entropies without the full logits, as
@@ -22,8 +22,9 @@ Variants: ``trl`` (the trainer's settings: LoRA dropout of the config, adapters 
 default), ``no-dropout`` (LoRA dropout 0), ``bf16-adapters`` (the adapters' weights in bf16 too),
 ``uncast-inputs`` (``trl`` with the adapters reading their inputs as autocast gives them, bf16, instead of
 PEFT's cast to their float32 weights: ``pada.adapter_input_cast=false``, over the forward and the
-backward), ``compile`` (``torch.compile`` of the ``trl`` model's forward, ``dynamic=True``). The summed
-kernel time
+backward), ``compile`` (``torch.compile`` of the ``trl`` model's forward, ``dynamic=True``),
+``compile-layers`` (each decoder layer's forward compiled instead, one function for every layer:
+``pada.compile_scope=layers``). The summed kernel time
 against ``policy_ms`` says whether the pass is bound by its kernels or by the host launching them.
 """
 
@@ -36,7 +37,7 @@ import time
 
 import torch
 
-VARIANTS = ("trl", "no-dropout", "bf16-adapters", "uncast-inputs", "compile")
+VARIANTS = ("trl", "no-dropout", "bf16-adapters", "uncast-inputs", "compile", "compile-layers")
 
 
 def _model(config: str, variant: str, device: torch.device):
@@ -62,6 +63,12 @@ def _model(config: str, variant: str, device: torch.device):
             if "lora_" in name:
                 p.data = p.data.to(torch.bfloat16)
     forward = torch.compile(model, dynamic=True) if variant == "compile" else model
+    if variant == "compile-layers":  # pada.compile_scope=layers: each decoder layer's forward compiled
+        from physcene.train.decode import compiled_layers, text_model
+
+        def forward(**kwargs):
+            with compiled_layers(text_model(model), dynamic=True):
+                return model(**kwargs)
     return model, forward, vocab
 
 

@@ -30,6 +30,8 @@ VARIANTS = {"pada": ("anchor", False), "pada_star": ("anchor_raw", True), "grpo"
 # paper's GRPO), of the whole generation batch, or none. With G = 4 and few clean rollouts per group,
 # group scaling spends ~70 % of the advantage mass ranking colliding rollouts by depth; batch ~1.4 %.
 SCALE_REWARDS = ("group", "batch", "none")
+# what pada.compile_update compiles: the whole forward, or each decoder layer's (regional compilation)
+COMPILE_SCOPES = ("model", "layers")
 
 
 @dataclass(kw_only=True)
@@ -107,6 +109,11 @@ class PADAConfig(GRPOConfig):
     compile_backend: str = field(
         default="inductor", metadata={"help": "torch.compile's backend for compile_update (inductor; "
                                               "aot_eager traces without generating kernels)."})
+    compile_scope: str = field(
+        default="model", metadata={"help": "What compile_update compiles: 'model' (the whole forward, one "
+                                           "graph) or 'layers' (each decoder layer's forward, one compiled "
+                                           "function shared by every layer: regional compilation, a "
+                                           "layer's compile time instead of the model's)."})
 
     # --- extensions: not in the paper, each off by default ---
     mask_overruled: bool = field(
@@ -186,6 +193,9 @@ class PADAConfig(GRPOConfig):
         workers = self.constraint_workers
         if not (isinstance(workers, int) and not isinstance(workers, bool) and workers >= 0):
             raise ValueError(f"pada.constraint_workers must be an integer >= 0, got {workers!r}")
+        if self.compile_scope not in COMPILE_SCOPES:
+            raise ValueError(f"pada.compile_scope must be one of {COMPILE_SCOPES}, "
+                             f"got {self.compile_scope!r}")
         if self.compile_update:
             import torch
 
@@ -253,6 +263,7 @@ def pada_arguments(cfg, variant: str) -> PADAConfig:
         adapter_input_cast=bool(p.get("adapter_input_cast", True)),
         compile_update=bool(p.get("compile_update", False)),
         compile_backend=str(p.get("compile_backend", "inductor")),
+        compile_scope=str(p.get("compile_scope", "model")),
         constrained_decoding=bool(p.get("constrained", False)),
         mask_overruled=bool(p.get("mask_overruled", True)),
         nonfinite_probe=int(p.get("nonfinite_probe", 0) or 0),

@@ -29,6 +29,7 @@ at 0.04 and is adapted by :class:`~physcene.train.kl.AdaptiveKLCallback`.
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import time
 from contextlib import ExitStack
@@ -49,6 +50,7 @@ from physcene.train.constrained_rollouts import (
     fast_rollouts,
     generate_with_processors,
 )
+from physcene.train.decode import compiled_layers, text_model
 from physcene.train.denoise import Denoise
 from physcene.train.diagnostics import NonfiniteProbe
 from physcene.train.extension import PADAExtension
@@ -230,8 +232,10 @@ class PADATrainer(GRPOTrainer):
         """``model``, or with ``compile_update`` its forward through ``torch.compile`` (dynamic shapes: the
         micro-batches' lengths vary; one compiled module per model, sharing its parameters). The
         update's passes (the policy's, the reference model's under ``disable_adapter``, the anchors')
-        call it; sampling and saving see ``model`` as it is."""
-        if not self.args.compile_update or isinstance(model, torch._dynamo.eval_frame.OptimizedModule):
+        call it; sampling and saving see ``model`` as it is. With ``compile_scope: layers`` the model
+        stays as it is here and :meth:`update_layers` compiles its decoder layers instead."""
+        if (not self.args.compile_update or self.args.compile_scope != "model"
+                or isinstance(model, torch._dynamo.eval_frame.OptimizedModule)):
             return model
         compiled = self._compiled.get(id(model))
         if compiled is None or compiled._orig_mod is not model:
@@ -239,14 +243,29 @@ class PADATrainer(GRPOTrainer):
                                                                  backend=self.args.compile_backend)
         return compiled
 
+    def update_layers(self, model):
+        """With ``compile_update`` and ``compile_scope: layers``, a context in which ``model``'s decoder
+        layers run their compiled forward (:func:`~physcene.train.decode.fuse.compiled_layers`: dynamic
+        shapes, ``compile_backend``); else no change. The update's passes run in it; sampling, the fast
+        decoder's own fused layers and saving run outside it."""
+        if not (self.args.compile_update and self.args.compile_scope == "layers"):
+            return contextlib.nullcontext()
+        return compiled_layers(text_model(model), dynamic=True, backend=self.args.compile_backend)
+
     def _get_per_token_logps_and_entropies(self, model, input_ids, attention_mask, logits_to_keep,
                                            batch_size=None, compute_entropy=False, **kwargs):
+        with self.update_layers(model):
+            return self._update_pass(self.update_forward(model), input_ids, attention_mask, logits_to_keep,
+                                     batch_size, compute_entropy, **kwargs)
+
+    def _update_pass(self, model, input_ids, attention_mask, logits_to_keep, batch_size=None,
+                     compute_entropy=False, **kwargs):
         """TRL's, with ``length_grouping`` over chunks of rows of similar length (a round's rows sorted
         by their last used column first: the reference model's pass), each chunk cut to the columns its
         rows use; the results padded back and returned in the rows' order. Image inputs go to TRL's. The
         policy's pass of a micro-batch under ``joint_anchor_pass`` takes its anchor rows along
-        (:meth:`_joint_pass`). With ``compile_update`` the forwards are compiled (:meth:`update_forward`)."""
-        model = self.update_forward(model)
+        (:meth:`_joint_pass`). With ``compile_update`` the forwards are compiled (:meth:`update_forward`,
+        :meth:`update_layers`)."""
         text_only = not any(v is not None for k, v in kwargs.items() if k != "compute_aux_loss")
         pending, self._joint_anchor = self._joint_anchor, None
         if pending is not None and text_only:

@@ -13,6 +13,8 @@ from transformers import TrainerCallback
 
 from physcene.config import load_config
 from physcene.train.constrained_rollouts import mask_overruled
+from physcene.train.decode import text_model
+from physcene.train.decode.fuse import decoder_layers
 from physcene.train.models import build_scratch_model, count_parameters
 from physcene.train.pada import (
     AdaptiveKLCallback,
@@ -186,11 +188,13 @@ def test_the_joint_anchor_pass_gives_the_same_loss_and_gradient_in_one_forward(t
         assert (grads1[name] - grad).norm() <= 1e-6 * grad.norm(), name
 
 
-def _lora_trainer(tokenizer, tmp_path, bf16: bool = False, beta: float = 0.04, **args) -> PADATrainer:
-    """A PADA trainer of a scratch model (bf16 weights under bf16 mixed precision, else float32) with
-    LoRA adapters and no LoRA dropout; ``args`` go to its :class:`PADAConfig`."""
+def _lora_trainer(tokenizer, tmp_path, bf16: bool = False, beta: float = 0.04, layers: int = 1,
+                  **args) -> PADATrainer:
+    """A PADA trainer of a scratch model of ``layers`` decoder layers (bf16 weights under bf16 mixed
+    precision, else float32) with LoRA adapters and no LoRA dropout; ``args`` go to its
+    :class:`PADAConfig`."""
     torch.manual_seed(0)
-    arch = dict(hidden_size=32, intermediate_size=64, num_hidden_layers=1, num_attention_heads=2,
+    arch = dict(hidden_size=32, intermediate_size=64, num_hidden_layers=layers, num_attention_heads=2,
                 num_key_value_heads=1, head_dim=16, max_position_embeddings=512)
     model = build_scratch_model(arch, tokenizer)
     config = PADAConfig(output_dir=str(tmp_path), anchor_alpha=0.1, beta=beta, num_generations=2,
@@ -280,17 +284,25 @@ def _counting_backend(name: str):
     """A torch.compile backend registered as ``name`` that counts the frames Dynamo captures and runs
     their graphs eagerly (Dynamo's capture, guards and dynamic shapes without AOTAutograd's trace, which
     triples this test's time: the slow whole-step test below runs aot_eager)."""
-    from torch._dynamo.backends.registry import _BACKENDS, register_backend
+    from torch._dynamo.backends import registry
+    from torch._dynamo.backends.registry import register_backend
     from torch._dynamo.testing import CompileCounterWithBackend
 
     counter = CompileCounterWithBackend("eager")
-    _BACKENDS.pop(name, None)
+    for names in (registry._BACKENDS, getattr(registry, "_COMPILER_FNS", {})):  # a name registered before
+        names.pop(name, None)
     register_backend(compiler_fn=counter, name=name)
     return counter
 
 
-def test_the_compiled_update_passes_give_eager_loss_gradient_and_reference_at_any_length(tokenizer, tmp_path):
-    counter = _counting_backend("physcene_test_update_counter")
+@pytest.mark.parametrize("scope", ["model", "layers"])
+def test_the_compiled_update_passes_give_eager_loss_gradient_and_reference_at_any_length(tokenizer, tmp_path,
+                                                                                        scope):
+    """``compile_update`` with either ``compile_scope``: the reference log-probabilities, the loss and every
+    gradient of eager's at two lengths, the second compiling nothing new; ``layers`` (a model of two
+    layers) compiles one function for both layers and leaves no layer patched after a pass."""
+    backend = f"physcene_test_update_counter_{scope}"
+    counter = _counting_backend(backend)
     short = _controlled_batch(tokenizer)
     long = {k: v.clone() if torch.is_tensor(v) else v for k, v in short.items()}
     g = torch.Generator().manual_seed(2)
@@ -301,7 +313,8 @@ def test_the_compiled_update_passes_give_eager_loss_gradient_and_reference_at_an
     seen, frames = {}, []
     for compiled in (False, True):
         trainer = _lora_trainer(tokenizer, tmp_path / str(compiled), compile_update=compiled,
-                                compile_backend="physcene_test_update_counter")
+                                compile_backend=backend, compile_scope=scope,
+                                layers=2 if scope == "layers" else 1)
         model = trainer.model.eval()
         rows = []
         for batch in (short, long):
@@ -318,10 +331,14 @@ def test_the_compiled_update_passes_give_eager_loss_gradient_and_reference_at_an
             rows.append((ref, loss.detach(), grads))
             frames.append(counter.frame_count)
         seen[compiled] = (rows, set(trainer._compiled) == {id(model)})
-    assert (seen[False][1], seen[True][1]) == (False, True)  # one compiled module, of the model itself
+        assert all("forward" not in vars(layer) for layer in decoder_layers(text_model(model)))
+    # one compiled module, of the model itself; none where the layers are compiled instead
+    assert (seen[False][1], seen[True][1]) == (False, scope == "model")
     # eager compiles nothing; the compiled passes compile at the first length (policy and reference:
     # the reference runs with the adapters switched off) and not again at the second
     assert frames[0] == frames[1] == 0 and frames[2] >= 2 and frames[3] == frames[2]
+    if scope == "layers":  # one compiled function for both layers: fewer captures than a layer and state each
+        assert frames[2] < 2 * 2
     for (ref0, loss0, grads0), (ref1, loss1, grads1) in zip(seen[False][0], seen[True][0]):
         torch.testing.assert_close(ref1, ref0, rtol=1e-5, atol=1e-6)
         torch.testing.assert_close(loss1, loss0, rtol=1e-5, atol=1e-7)
@@ -341,13 +358,14 @@ class _GradientsBeforeTheStep(TrainerCallback):
 
 
 @pytest.mark.slow  # ~45 s on 2 cores: the compiles of a whole step's passes
-def test_a_pada_step_with_compiled_update_passes_trains_as_eager(tokenizer, tmp_path):
+@pytest.mark.parametrize("scope", ["model", "layers"])
+def test_a_pada_step_with_compiled_update_passes_trains_as_eager(tokenizer, tmp_path, scope):
     steps = {}
     for compiled in (False, True):
         # gradient checkpointing off: the configs' setting
         trainer = _lora_trainer(tokenizer, tmp_path / str(compiled), compile_update=compiled,
-                                compile_backend="aot_eager", max_steps=1, learning_rate=1e-2, seed=3,
-                                gradient_checkpointing=False)
+                                compile_backend="aot_eager", compile_scope=scope, max_steps=1,
+                                learning_rate=1e-2, seed=3, gradient_checkpointing=False)
         before = {n: p.detach().clone() for n, p in trainer.model.named_parameters() if p.requires_grad}
         kept = _GradientsBeforeTheStep(trainer.model)
         trainer.add_callback(kept)
@@ -357,7 +375,7 @@ def test_a_pada_step_with_compiled_update_passes_trains_as_eager(tokenizer, tmp_
         steps[compiled] = (kept.grads, moved, [log[k] for k in ("loss", "grad_norm", "anchor_ce")],
                            len(trainer._compiled))
     (grads0, moved0, log0, n0), (grads1, moved1, log1, n1) = steps[False], steps[True]
-    assert (n0, n1) == (0, 1) and log0[2] > 1.0
+    assert (n0, n1) == (0, scope == "model") and log0[2] > 1.0  # layers: no compiled module kept
     assert moved0 == moved1 >= len(grads0) // 2  # both trained
     # the same rollouts, loss and anchor CE; the compiled backward's gradients agree with eager's to
     # ~0.4 % of a LoRA B matrix's in a whole step (a group's GRPO terms cancel, so rounding shows)
@@ -374,6 +392,13 @@ def test_compile_update_is_read_from_the_yaml_and_its_backend_checked():
     cfg.pada.compile_update = True
     args = pada_arguments(cfg, "pada")
     assert args.compile_update is True and args.compile_backend == "inductor"
+    assert args.compile_scope == "model"
+    cfg.pada.compile_scope = "layers"
+    assert pada_arguments(cfg, "pada").compile_scope == "layers"
+    cfg.pada.compile_scope = "blocks"
+    with pytest.raises(ValueError, match="pada.compile_scope must be one of"):
+        pada_arguments(cfg, "pada")
+    cfg.pada.compile_scope = "model"
     cfg.pada.compile_backend = "no_such_backend"
     with pytest.raises(ValueError, match="pada.compile_backend must be one of"):
         pada_arguments(cfg, "pada")

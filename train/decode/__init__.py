@@ -42,15 +42,15 @@ from physcene.train.decode.attention import (
     register_folded_attention,
 )
 from physcene.train.decode.cache import StaticKV
-from physcene.train.decode.fuse import fused_layers
+from physcene.train.decode.fuse import compiled_layers, fused_layers
 from physcene.train.decode.loop import DecodeResult, FastDecoder, cut_at_eos, text_model
 from physcene.train.decode.merge import lora_projections, merged_lora
 from physcene.train.decode.overlap import OverlappedConstraint
 from physcene.train.decode.shards import ShardedConstraint, constraint_pool
 
 __all__ = ["ATTENTIONS", "FAST_CACHES", "FOLDED_ATTENTION", "DecodeResult", "FastDecoder",
-           "OverlappedConstraint", "ShardedConstraint", "StaticKV", "constraint_pool", "cut_at_eos",
-           "decoder_for", "fast_generate", "flex_decode_attention", "folded_cudnn_attention",
+           "OverlappedConstraint", "ShardedConstraint", "StaticKV", "compiled_layers", "constraint_pool",
+           "cut_at_eos", "decoder_for", "fast_generate", "flex_decode_attention", "folded_cudnn_attention",
            "folded_gqa_attention", "folded_matmul_attention", "fused_layers", "lora_projections",
            "merged_lora", "register_folded_attention", "sampling_mode", "text_model"]
 

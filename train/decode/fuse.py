@@ -23,7 +23,7 @@ import types
 
 import torch
 
-__all__ = ["EAGER", "decoder_layers", "fused_layers"]
+__all__ = ["EAGER", "compiled_layers", "decoder_layers", "fused_layers"]
 
 logger = logging.getLogger(__name__)
 
@@ -45,9 +45,10 @@ def decoder_layers(text: torch.nn.Module) -> list[torch.nn.Module]:
 
 
 @functools.cache
-def _compiled_forward(layer_class: type):
-    # dynamic=None: the mask's read length is specialised once, then made symbolic (one recompile)
-    compiled = torch.compile(layer_class.forward, fullgraph=False, dynamic=None)
+def _compiled_forward(layer_class: type, dynamic: bool | None = None, backend: str = "inductor"):
+    # decoding: dynamic=None, the mask's read length specialised once, then made symbolic (one
+    # recompile); the update's passes (compiled_layers): dynamic=True, every length one graph
+    compiled = torch.compile(layer_class.forward, fullgraph=False, dynamic=dynamic, backend=backend)
 
     @functools.wraps(layer_class.forward)
     def forward(self, *args, **kwargs):
@@ -60,18 +61,27 @@ def _compiled_forward(layer_class: type):
 
 
 @contextlib.contextmanager
-def fused_layers(text: torch.nn.Module):
-    """Within the block, every decoder layer of ``text`` runs its compiled ``forward``; restored on exit
-    (training and HF ``generate`` see the model as it was)."""
+def compiled_layers(text: torch.nn.Module, dynamic: bool | None = None, backend: str = "inductor"):
+    """Within the block, every decoder layer of ``text`` runs its ``forward`` compiled (one compiled
+    function per layer class and setting, shared by every layer: regional compilation, a layer's compile
+    instead of the whole model's); restored on exit. A backward run after the block runs the compiled
+    backward its forward recorded."""
     layers = decoder_layers(text)
     patched = []
     try:
         for layer in layers:
-            if "forward" in vars(layer):  # already fused (a nested call) or patched by someone else
+            if "forward" in vars(layer):  # already compiled (a nested call) or patched by someone else
                 continue
-            layer.forward = types.MethodType(_compiled_forward(type(layer)), layer)
+            layer.forward = types.MethodType(_compiled_forward(type(layer), dynamic, backend), layer)
             patched.append(layer)
         yield text
     finally:
         for layer in patched:
             del layer.forward
+
+
+def fused_layers(text: torch.nn.Module):
+    """Within the block, every decoder layer of ``text`` runs its compiled ``forward`` (the decoding
+    setting of :func:`compiled_layers`); restored on exit (training and HF ``generate`` see the model as
+    it was)."""
+    return compiled_layers(text)
