@@ -366,7 +366,8 @@ def test_flex_attention_runs_inside_cuda_graphs(records, tokenizer):
 
 @pytest.mark.parametrize("switch, rows", [
     (["--joint-anchor-pass", "off", "on"], {"fast", "fast joint"}),
-    (["--adapter-input-cast", "on", "off"], {"fast", "fast uncast"}),
+    # on a CPU (float32) the uncast row trains as the default: one more row of the same SWITCHES wiring
+    pytest.param(["--adapter-input-cast", "on", "off"], {"fast", "fast uncast"}, marks=pytest.mark.slow),
     (["--constrained"], {"fast"}),
     # aot_eager: the compiled passes traced without generating kernels (inductor's compile takes minutes here)
     pytest.param(["--compile-update", "off", "on"], {"fast", "fast compiled"}, marks=pytest.mark.slow)])
