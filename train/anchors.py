@@ -152,7 +152,8 @@ def anchor_prompts(cfg) -> list[dict]:
 
 
 def run_anchors(cfg: DictConfig) -> Path:
-    """Generate, parse and repair anchors for ``cfg.data.train`` with ``cfg.anchors.model``.
+    """Generate, parse and repair anchors for ``cfg.data.train`` with ``cfg.anchors.model``: the SFT model,
+    or a LoRA checkpoint of an RL run merged into ``cfg.anchors.base`` (anchors refreshed from the policy).
 
     Writes ``cfg.anchors.output`` (JSONL) and ``<output>.summary.json``. An existing complete output is
     kept (rerun with ``anchors.overwrite=true`` to rebuild). Both files are renamed into place when
@@ -173,7 +174,7 @@ def run_anchors(cfg: DictConfig) -> Path:
     device = str(state.device)
     indices = list(range(len(records)))
     with state.split_between_processes(indices) as shard:
-        model, tokenizer, info = load_for_generation(a.model, device=device)
+        model, tokenizer, info = load_for_generation(a.model, device=device, base=a.get("base"))
         ids = generate_token_ids(model, tokenizer, [records[i]["prompt"] for i in shard],
                                  **input_format(info),
                                  max_new_tokens=int(a.max_new_tokens), batch_size=int(a.batch_size),

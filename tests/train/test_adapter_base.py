@@ -86,3 +86,28 @@ def test_the_anchor_likelihood_tool_takes_the_base(carried, records, tmp_path, m
     anchors = [dict(r, anchor=r["completion"]) for r in records[:2]]
     expected = anchor_nll(ckpt, anchors, base=base, max_length=64)
     assert json.loads(out.read_text())["models"]["pada@3"]["nll"] == pytest.approx(expected["nll"])
+
+
+def test_anchors_decode_a_carried_adapter_on_the_base_they_are_given(carried, tmp_path, monkeypatch):
+    """`physcene train anchors anchors.model=CHECKPOINT anchors.base=BASE`: anchors refreshed from an RL
+    policy decode with the adapter merged into the base given; without it the one error says to pass it."""
+    import physcene.train.anchors as anchors
+    from physcene.config import load_config
+
+    ckpt, base, ids, logits = carried
+    seen = []
+
+    def generate(model, tokenizer, prompts, **kw):  # the model the anchors decode with, then no layout
+        seen.append(model(input_ids=ids).logits)
+        return [tokenizer("not a layout", add_special_tokens=False)["input_ids"] + [tokenizer.eos_token_id]
+                for _ in prompts]
+
+    monkeypatch.setattr(anchors, "generate_token_ids", generate)
+    overrides = [f"output_dir={tmp_path / 'refresh'}", "anchors.n_records=2", "data.train=synth:train:2",
+                 f"anchors.model={ckpt}"]
+    with pytest.raises(TrainingSetupError, match="pass the base it was trained on"):
+        anchors.run_anchors(load_config("train_tiny", overrides))
+    out = anchors.run_anchors(load_config("train_tiny", [*overrides, f"anchors.base={base}"]))
+    rows = [json.loads(line) for line in out.read_text().splitlines()]
+    torch.testing.assert_close(seen[0], logits)
+    assert [r["sft_completion"] for r in rows] == ["not a layout"] * 2

@@ -112,7 +112,7 @@ def test_anchors_cache_reaches_generate_with(tmp_path, monkeypatch, model, token
         return [tokenizer("not a layout", add_special_tokens=False)["input_ids"] + [tokenizer.eos_token_id]
                 for _ in prompts]
 
-    monkeypatch.setattr(anchors, "load_for_generation", lambda path, device=None: (model, tokenizer, {}))
+    monkeypatch.setattr(anchors, "load_for_generation", lambda path, **kw: (model, tokenizer, {}))
     monkeypatch.setattr(anchors, "generate_token_ids", fake_generate_token_ids)
     cfg = load_config("train_tiny", [f"output_dir={tmp_path}", "anchors.n_records=2",
                                      "anchors.cache=static_compile", "anchors.constrained=true",
