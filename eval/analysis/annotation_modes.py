@@ -24,6 +24,7 @@ from pathlib import Path
 
 from physcene.data.benchmark import DataConfig, build_scenes
 from physcene.data.splits import plan_split
+from physcene.eval.analysis import add_split_arguments
 from physcene.eval.analysis.crowding import layouts_by_id
 from physcene.eval.metrics import deepest_pairs
 from physcene.files import write_atomic
@@ -60,11 +61,7 @@ def _share(x: float | None) -> str:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("layouts", nargs="*", help="NAME=FILE.jsonl[.gz] of layout records, or NAME=DIR")
-    parser.add_argument("--split", default="test")
-    parser.add_argument("--n", type=int, default=866)
-    parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--device", default="cpu")
-    parser.add_argument("--out")
+    add_split_arguments(parser)
     args = parser.parse_args()
     specs = [spec.partition("=") for spec in args.layouts]
     bad = [name + eq + path for name, eq, path in specs if not (name and eq and path)]

@@ -26,6 +26,7 @@ import numpy as np
 
 from physcene.data.benchmark import DataConfig, build_scenes
 from physcene.data.splits import plan_split
+from physcene.eval.analysis import add_split_arguments
 from physcene.layout import layout_record_lines, load_layout, read_layout
 from physcene.scene import TABLE, Scene
 
@@ -88,10 +89,7 @@ def main() -> None:
     parser.add_argument("layouts", nargs="*",
                         help="NAME=DIR of generated layout.json files, or NAME=FILE.jsonl[.gz] of "
                              "layout records")
-    parser.add_argument("--split", default="test")
-    parser.add_argument("--n", type=int, default=200)
-    parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--out")
+    add_split_arguments(parser, n=200, device=False)
     args = parser.parse_args()
     config = DataConfig()
     clean, noisy, level_of = [], [], {}

@@ -24,6 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from physcene.data.splits import plan_split
+from physcene.eval.analysis import add_split_arguments
 from physcene.eval.analysis.crowding import layouts_by_id
 from physcene.scene import TABLE, Scene
 
@@ -71,11 +72,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("layouts", help="a JSONL[.gz] of {id, layout} records, or a folder of <id>.json")
     parser.add_argument("--margins", type=float, nargs="+", default=[0.0, 0.5, 1.0, 2.0])
-    parser.add_argument("--split", default="test")
-    parser.add_argument("--n", type=int, default=866)
-    parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--device", default="cpu")
-    parser.add_argument("--out")
+    add_split_arguments(parser)
     args = parser.parse_args()
     level_of = {f"{args.split}-{item.index:05d}": item.level
                 for item in plan_split(args.split, args.n, args.seed)}
