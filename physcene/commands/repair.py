@@ -5,6 +5,8 @@
     physcene repair Layout_info/ -o Fixed/                     # mirrors the tree; Fixed/repair_report.json
     physcene repair data.jsonl -o fixed.jsonl                  # field "layout" (and "completion",
                                                                # re-written); fixed.report.json
+    physcene repair docs/results/ablation/s0/sft.jsonl.gz -o sft_tto.jsonl.gz   # a table row's layouts
+                                                               # (gzipped; an unparsed output passes through)
     physcene repair IN -o OUT --device cuda steps=200 lambda_rel=10   # configs/tto.yaml overrides
 
 The output mirrors the input's structure and format. The report holds, per scene, the penetration
@@ -14,6 +16,7 @@ relations kept and what could not be satisfied.
 
 from __future__ import annotations
 
+import gzip
 import json
 import os
 from pathlib import Path
@@ -21,7 +24,7 @@ from pathlib import Path
 from physcene.commands import add_json, add_quiet, print_json
 from physcene.ctrc import MAX_DECIMALS, completion_text, decimals_of
 from physcene.files import write_atomic
-from physcene.layout import layout_to_dict, load_layout, parse_json
+from physcene.layout import layout_record_lines, layout_to_dict, load_layout, parse_json
 from physcene.scene import SceneError
 from physcene.tto import TTOConfig, repair, summarize
 
@@ -36,7 +39,8 @@ class RepairInputError(ValueError):
 
 def add_arguments(parser) -> None:
     parser.add_argument("input", help="a MesaTask layout.json, a directory tree of layout.json files, "
-                                      "or a JSONL dataset whose records carry a 'layout' object")
+                                      "or a JSONL dataset (.jsonl or .jsonl.gz) whose records carry a "
+                                      "'layout' object")
     parser.add_argument("-o", "--output", required=True, metavar="OUT",
                         help="where the repaired layouts go (same structure and format as the input)")
     parser.add_argument("--device", default=None, help="torch device: cpu (default), cuda, cuda:N")
@@ -73,7 +77,11 @@ def _repaired_columns(record: dict, raw: dict, scene, decimals: int | None) -> d
 
 
 def _report_path(out: Path) -> Path:
-    return out.with_name(out.stem + ".report.json")
+    return out.with_name(out.name.removesuffix(".gz").rsplit(".", 1)[0] + ".report.json")
+
+
+def _is_jsonl(path: Path) -> bool:
+    return path.name.endswith((".jsonl", ".jsonl.gz"))
 
 
 def _items_file(src: Path):
@@ -95,19 +103,30 @@ def _items_tree(src: Path):
 
 
 def _items_jsonl(src: Path):
+    """(record, layout dict, scene) per record; a table row's record of an output that did not parse
+    (``layout`` null beside its ``parse_error``: ``physcene.train.ablation.layout_records``) has no
+    layout and no scene, and passes through unrepaired. A gzipped file is a table row's layouts: its
+    layouts load as ``physcene eval --generator file:`` loads them (a model's output as it was scored,
+    sizes and positions unbounded), so its repair is the table's ``sft+tto`` of those layouts; a dataset
+    (``.jsonl``) is held to the layout files' bounds."""
+    bounded = not src.name.endswith(".gz")
+    try:
+        lines = layout_record_lines(src)
+    except (OSError, UnicodeDecodeError, EOFError) as exc:  # a bad gzip stream is an OSError
+        raise RepairInputError(f"{src}: cannot be read ({exc})") from None
     items = []
-    with src.open(encoding="utf-8") as fh:
-        for line_no, line in enumerate(fh, 1):
-            if not line.strip():
-                continue
-            where = f"{src}:{line_no}"
-            record = parse_json(line, source=where)
-            layout = record.get("layout") if isinstance(record, dict) else None
-            if isinstance(layout, str):
-                layout = parse_json(layout, source=f"{where} field 'layout'")
-            if not isinstance(layout, dict):
-                raise RepairInputError(f"{where}: expected a record with a 'layout' object")
-            items.append((record, layout, load_layout(layout, source=where, bounded=True)))
+    for line_no, line in lines:
+        where = f"{src}:{line_no}"
+        record = parse_json(line, source=where)
+        layout = record.get("layout") if isinstance(record, dict) else None
+        if layout is None and isinstance(record, dict) and "parse_error" in record:
+            items.append((record, None, None))
+            continue
+        if isinstance(layout, str):
+            layout = parse_json(layout, source=f"{where} field 'layout'")
+        if not isinstance(layout, dict):
+            raise RepairInputError(f"{where}: expected a record with a 'layout' object")
+        items.append((record, layout, load_layout(layout, source=where, bounded=bounded)))
     return items
 
 
@@ -123,15 +142,16 @@ def run(args) -> int:
     config = TTOConfig.load(overrides)
     if src.is_dir():
         mode, items = "tree", _items_tree(src)
-    elif src.suffix == ".jsonl":
+    elif _is_jsonl(src):
         mode, items = "jsonl", _items_jsonl(src)
     else:
         mode, items = "file", _items_file(src)
     # -o names a folder when it is one or ends with a slash (newdir/): the output goes inside
     if mode != "tree" and (out.is_dir() or args.output.endswith(("/", os.sep))):
         out = out / src.name
-    results = repair([scene for *_, scene in items], config, PhysicsEngine(device=config.device),
-                     progress=not args.quiet)
+    scenes = [scene for *_, scene in items if scene is not None]
+    repaired = iter(repair(scenes, config, PhysicsEngine(device=config.device), progress=not args.quiet))
+    results = [None if scene is None else next(repaired) for *_, scene in items]
     reports = []
     if mode == "tree":
         for (rel, raw, _), result in zip(items, results):
@@ -142,10 +162,16 @@ def run(args) -> int:
     elif mode == "jsonl":
         lines = []
         for k, ((record, raw, _), result) in enumerate(zip(items, results)):
+            if result is None:  # an output that did not parse: as it was
+                lines.append(json.dumps(record, ensure_ascii=False))
+                reports.append({"record": k, "id": record.get("id"), "skipped": "no layout (parse_error)"})
+                continue
             columns = _repaired_columns(record, raw, result.scene, args.decimals)
             lines.append(json.dumps({**record, **columns}, ensure_ascii=False))
             reports.append({"record": k, "id": record.get("id"), **result.report.as_dict()})
-        _write_text(out, "\n".join(lines) + ("\n" if lines else ""))
+        text = "\n".join(lines) + ("\n" if lines else "")
+        # gzipped when the name ends in .gz, byte-identical for the same records (no timestamp)
+        _write_text(out, gzip.compress(text.encode(), mtime=0) if out.name.endswith(".gz") else text)
         report_path = _report_path(out)
     else:
         (_, raw, _), result = items[0], results[0]
@@ -154,10 +180,11 @@ def run(args) -> int:
         report_path = _report_path(out)
     _write_text(report_path, json.dumps(reports, indent=1, ensure_ascii=False) + "\n")
     if args.json:
-        print_json({"input": src, "output": out, "report": report_path, "summary": summarize(results),
+        print_json({"input": src, "output": out, "report": report_path,
+                    "summary": summarize([r for r in results if r is not None]),
                     "collision_depth_cm": config.collision_depth_cm, "scenes": reports})
     else:
-        print(_summary(results, config), f"report: {report_path}")
+        print(_summary([r for r in results if r is not None], config), f"report: {report_path}")
     return 0
 
 
@@ -173,6 +200,6 @@ def _write_json(path: Path, data) -> None:
     _write_text(path, json.dumps(data, indent=2, ensure_ascii=False, allow_nan=False) + "\n")
 
 
-def _write_text(path: Path, text: str) -> None:
+def _write_text(path: Path, text: str | bytes) -> None:
     """Atomic write (:func:`physcene.files.write_atomic`): an interrupted repair leaves no half file."""
     write_atomic(path, text)

@@ -117,3 +117,40 @@ def test_bad_override_and_missing_input_exit_2(tmp_path, scenes, capsys):
     assert main(["repair", str(tmp_path / "missing.json"), "-o", str(tmp_path / "o.json")]) == 2
     assert "does not exist" in capsys.readouterr().err
     assert not (tmp_path / "o.json").exists()
+
+
+def test_repair_a_table_rows_gzipped_layouts(tmp_path, scenes):
+    """A table row's layouts (``.jsonl.gz``, as the ablation and plan_following write them) repair into
+    the table's ``sft+tto`` form: gzipped out, byte-identical on a rerun, an output that did not parse
+    passed through as it was, a model's out-of-bounds size repaired as eval scored it."""
+    import gzip
+
+    from physcene.layout import write_layout_records
+
+    big = layout_to_dict(scenes[1])
+    big["objects"][0]["size"] = [1610.0, 5.0, 5.0]  # a model's output eval scores as written
+    records = [{"id": "t0", "level": 2, "layout": layout_to_dict(scenes[0])},
+               {"id": "t1", "level": 3, "layout": None, "parse_error": "no complete layout JSON"},
+               {"id": "t2", "level": 3, "layout": big}]
+    src = write_layout_records(records, tmp_path / "sft.jsonl.gz")
+    out = tmp_path / "sft_tto.jsonl.gz"
+    assert main(["repair", str(src), "-o", str(out), "--quiet", "steps=40"]) == 0
+    written = [json.loads(line) for line in gzip.decompress(out.read_bytes()).decode().splitlines()]
+    assert [r["id"] for r in written] == ["t0", "t1", "t2"]
+    assert written[1] == records[1]
+    assert written[0]["layout"] != records[0]["layout"] and written[2]["layout"]["objects"]
+    report = json.loads((tmp_path / "sft_tto.report.json").read_text())
+    assert report[1] == {"record": 1, "id": "t1", "skipped": "no layout (parse_error)"}
+    _check_report(report[0])
+    first = out.read_bytes()
+    assert main(["repair", str(src), "-o", str(out), "--quiet", "steps=40"]) == 0
+    assert out.read_bytes() == first
+
+
+def test_repair_refuses_an_unreadable_gzip_and_writes_nothing(tmp_path, capsys):
+    src = tmp_path / "rows.jsonl.gz"
+    src.write_text("not gzip")
+    out = tmp_path / "fixed.jsonl.gz"
+    assert main(["repair", str(src), "-o", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert "rows.jsonl.gz: cannot be read" in err and not out.exists()
