@@ -479,7 +479,10 @@ def restore_artifact(name: str, to: str | Path | None = None, *, cwd: str | Path
 
 def resolve_model(target: str, *, cwd: str | Path | None = None) -> str:
     """The checkpoint folder of a ``model:`` generator's target: ``target`` itself when it is a folder,
-    else the restored folder of the artifact of that name (restored now if it is not yet)."""
+    else the restored folder of the artifact of that name (restored now if it is not yet). ``NAME/PATH``
+    is a folder inside the artifact (``rl-med-s1-pada-297/checkpoint-200``: a curve point it keeps). An
+    RL run kept without its final adapter (byte for byte its newest checkpoint's, left out to halve the
+    artifact) resolves to that newest checkpoint."""
     if Path(cwd or ".", target).is_dir():
         return target
     try:
@@ -487,14 +490,36 @@ def resolve_model(target: str, *, cwd: str | Path | None = None) -> str:
     except ArtifactError:
         return target  # outside a checkout a model:PATH stays a path (its generator names it missing)
     artifacts = load_manifest(root)
-    if target not in artifacts:
+    name, _, inside = target.partition("/")
+    if name not in artifacts:
         return target
     try:
-        folder = restore_artifact(target, cwd=cwd)
+        folder = restore_artifact(name, cwd=cwd)
     except ArtifactError as exc:
         raise ArtifactError(f"model:{target}: {exc} (restore it with `physcene artifacts restore "
-                            f"{target}`)") from None
-    return str(folder)
+                            f"{name}`)") from None
+    if inside:
+        if not (folder / inside).is_dir():
+            kept = sorted(p.name for p in folder.iterdir() if p.is_dir())
+            raise ArtifactError(f"model:{target}: artifact {name} has no folder {inside!r} (it has: "
+                                f"{', '.join(kept) or 'none'})")
+        return str(folder / inside)
+    return str(_run_model(folder))
+
+
+def _holds_model(folder: Path) -> bool:
+    return (folder / "config.json").is_file() or (folder / "adapter_config.json").is_file()
+
+
+def _run_model(folder: Path) -> Path:
+    """``folder`` when it holds a model (a config or an adapter config), else its newest
+    ``checkpoint-N`` that does (an RL run's final model), else ``folder`` (its loader names what is
+    missing)."""
+    if _holds_model(folder):
+        return folder
+    steps = [(int(p.name.split("-", 1)[1]), p) for p in folder.glob("checkpoint-*")
+             if p.name.split("-", 1)[1].isdigit() and _holds_model(p)]
+    return max(steps)[1] if steps else folder
 
 
 def _point_adapters_at(folder: Path, base_folder: Path) -> None:

@@ -342,3 +342,28 @@ def test_the_manifest_round_trips_references_and_loads_entries_without_them(repo
             if "commit" not in f}
     for a in project.values():  # every file referred to is one an artifact keeps, byte for byte
         assert all(kept.get((f["commit"], f["at"])) == f["sha256"] for f in a.referenced_files), a.name
+
+
+def test_a_run_kept_without_its_final_adapter_generates_from_its_newest_checkpoint(repo):
+    """An RL artifact keeps the checkpoint it resumes from whole and leaves out the final adapter (its
+    bytes are that checkpoint's): ``model:NAME`` is that checkpoint, ``model:NAME/checkpoint-N`` a curve
+    point it keeps, and a folder it does not keep is named."""
+    committed_and_pinned(repo)
+    run = repo / "runs" / "rl"
+    for step in (50, 200, 297):
+        (run / f"checkpoint-{step}").mkdir(parents=True)
+        (run / f"checkpoint-{step}" / "adapter_config.json").write_text(
+            json.dumps({"base_model_name_or_path": "/gone/runs/sft"}))
+    (run / "checkpoint-400").mkdir()  # being written when the run stopped: no model in it
+    (run / "checkpoint-400" / "trainer_state.json").write_text("{}")
+    (run / "physcene_run.json").write_text("{}")
+    add_artifact("med-pada", "runs/rl", made_by="physcene train pada", base="small-sft", cwd=repo)
+    git(repo, "commit", "-qm", "artifact med-pada")
+    pin_artifact("med-pada", cwd=repo)
+    git(repo, "commit", "-qam", "out of the tree")
+    folder = repo / "artifacts" / "med-pada"
+    assert resolve_model("med-pada", cwd=repo) == str(folder / "checkpoint-297")
+    assert resolve_model("med-pada/checkpoint-200", cwd=repo) == str(folder / "checkpoint-200")
+    with pytest.raises(ArtifactError, match="has no folder 'checkpoint-9'.*checkpoint-200"):
+        resolve_model("med-pada/checkpoint-9", cwd=repo)
+    assert resolve_model("other/checkpoint-9", cwd=repo) == "other/checkpoint-9"  # not an artifact: a path
