@@ -32,6 +32,7 @@ from physcene.eval.metrics import (
     SceneResult,
     breakdown,
     diversity,
+    paired_collisions,
     physics_from_score,
     summarize,
 )
@@ -435,6 +436,11 @@ def run_evaluation(cfg, *, command: str = "", title: str = "physcene evaluation"
             for view, p in paths.items():
                 renders.setdefault(it.id, {})[f"{name} {view}"] = str(p.relative_to(out))
     tables = {k: {kk: vv for kk, vv in v.items() if kk != "scenes"} for k, v in methods.items()}
+    names = list(methods)
+    for name in names[1:]:  # every method against the first, scene by scene
+        first, second = ([SceneResult.from_dict(d) for d in methods[k]["scenes"]] for k in (names[0], name))
+        methods[name]["paired"] = tables[name]["paired"] = {"against": names[0],
+                                                            **paired_collisions(first, second)}
     path = write_report(out, tables, title=title, command=command, renders=renders,
                         labels=bool(cfg.get("render_labels", False)))
     write_json(out / "results.json", {"split": cfg.split, "n": len(items), "judge": cfg.judge,

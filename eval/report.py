@@ -18,7 +18,7 @@ from physcene.eval.render import png_bytes, render_comparison
 from physcene.files import open_atomic, write_atomic
 from physcene.layout import read_layout
 
-__all__ = ["diversity_table", "failure_lines", "level_table", "main_table", "method_slug",
+__all__ = ["diversity_table", "failure_lines", "level_table", "main_table", "method_slug", "paired_table",
            "plot_qpr_by_level", "plot_type_radar", "threshold_table", "type_table", "write_comparisons",
            "write_report"]
 
@@ -89,6 +89,23 @@ def failure_lines(methods: Mapping[str, Mapping]) -> list[str]:
         if parts:
             lines.append(f"{name}: " + "; ".join(parts))
     return lines
+
+
+def paired_table(methods: Mapping[str, Mapping]) -> str:
+    """Each method against the first, scene by scene (``paired`` of :func:`physcene.eval.harness.
+    run_evaluation`): SCR of both on the scenes both parsed, the scenes that collide in one only, the
+    exact McNemar p-value; empty when fewer than two methods."""
+    rows = []
+    for name, m in methods.items():
+        pair = m.get("paired")
+        if pair:
+            rows.append([name, pair["against"], str(pair["scenes"]), _pct(pair["scr_first"]),
+                         _pct(pair["scr_second"]), f"{100 * pair['difference']:+.1f}",
+                         f"{pair['only_first']} / {pair['only_second']}", f"{pair['p_value']:.2g}"])
+    if not rows:
+        return ""
+    return _table(["method", "against", "scenes", "SCR against", "SCR method", "difference (points)",
+                   "collide in the first only / the method only", "McNemar p"], rows)
 
 
 def threshold_table(methods: Mapping[str, Mapping]) -> str:
@@ -243,6 +260,12 @@ def write_report(out_dir, methods: Mapping[str, Mapping], *, title: str, command
     if failures:
         parts += ["**Not every scene was scored** (each such scene fails QPR; the physics columns are "
                   "over the parsed layouts):", "", *[f"- {line}" for line in failures], ""]
+    paired = paired_table(methods)
+    if paired:
+        parts += ["## Paired against the first method", "",
+                  "The same scenes, scene by scene (those both parsed): SCR of each, the scenes that "
+                  "collide in one only, and the exact two-sided McNemar p-value of the difference.", "",
+                  paired, ""]
     parts += ["## Per difficulty level", "", level_table(methods), "",
               "![QPR by level](qpr_by_level.png)", "",
               "## Per scene type", "", type_table(methods), "", "![QPR by type](qpr_by_type_radar.png)", "",

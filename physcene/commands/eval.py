@@ -90,6 +90,12 @@ def run(args) -> int:
                     "methods": tables})
         return 0
     print(main_table(tables))
+    for name, m in tables.items():
+        if m.get("paired"):
+            pair = m["paired"]
+            print(f"paired with {pair['against']} on {pair['scenes']} scenes: SCR {pair['scr_first']:.1%} -> "
+                  f"{pair['scr_second']:.1%}, colliding in the first only {pair['only_first']}, "
+                  f"in {name} only {pair['only_second']} (McNemar p = {pair['p_value']:.2g})")
     failures = failure_lines(tables)
     if failures:
         print("\nnot every scene was scored (each fails QPR):")

@@ -20,6 +20,7 @@ from physcene.eval.harness import (
     save_layouts,
     score_scenes,
 )
+from physcene.eval.metrics import ScenePhysics, SceneResult, paired_collisions
 
 
 @pytest.fixture(scope="module")
@@ -175,3 +176,41 @@ def test_a_layout_file_of_another_draw_of_the_split_is_refused(tmp_path):
     assert len(generate(eight, f"file:{path}", progress=False)) == 8
     with pytest.raises(EvalError, match="another draw of the split"):
         generate(three, f"file:{path}", progress=False)
+
+
+def _result(scene_id: str, collides: bool | None) -> SceneResult:
+    """A scored scene that collides, is collision-free, or (None) did not parse."""
+    physics = ScenePhysics(3, ((0, 1, 0.8),) if collides else ())
+    return SceneResult(scene_id, "desk", 1, physics, extra={"parse_error": "x"} if collides is None else {})
+
+
+def test_paired_collisions_count_the_discordant_scenes_and_test_them_exactly():
+    # 10 scenes: both collide on 2, the first only on 6, the second only on 1, neither on 1
+    first = [_result(f"s{k}", k < 8) for k in range(10)]
+    second = [_result(f"s{k}", k < 2 or k == 8) for k in range(10)]
+    pair = paired_collisions(first, second)
+    assert (pair["both"], pair["only_first"], pair["only_second"], pair["neither"]) == (2, 6, 1, 1)
+    assert pair["scr_first"] == 0.8 and pair["scr_second"] == 0.3
+    assert pair["difference"] == pytest.approx(-0.5)
+    assert pair["p_value"] == pytest.approx(2 * (1 + 7) / 2 ** 7)  # binomial(7, 1/2): P(X <= 1), two-sided
+    assert paired_collisions(first, first)["p_value"] == 1.0  # no discordant scene
+    # unparsed on either side and unmatched ids leave the comparison; the order does not matter
+    second[3] = _result("s3", None)
+    shuffled = paired_collisions(first, [*reversed(second), _result("extra", True)])
+    assert shuffled["scenes"] == 9 and shuffled["only_first"] == 5
+
+
+def test_eval_of_several_generators_pairs_each_with_the_first(tmp_path, capsys):
+    out = tmp_path / "ev"
+    assert main(["eval", "--split", "test", "--n", "4", "--generator", "reference,heuristic", "--out",
+                 str(out), "--quiet", "render=0"]) == 0
+    printed = capsys.readouterr().out
+    data = json.loads((out / "results.json").read_text())
+    pair = data["methods"]["Heuristic placer"]["paired"]
+    assert pair["against"] == "Reference" and pair["scenes"] == 4
+    assert "paired" not in data["methods"]["Reference"]
+    ref = data["methods"]["Reference"]["summary"]["collision"]["0.0"]["SCR"]
+    assert pair["scr_first"] == pytest.approx(ref) and pair["scr_second"] == 0.0  # the placer packs apart
+    assert pair["only_second"] == 0 and pair["only_first"] == round(4 * ref)
+    assert "paired with Reference on 4 scenes" in printed
+    assert "## Paired against the first method" in (out / "report.md").read_text()
