@@ -131,7 +131,8 @@ def load_for_generation(model_path: str | Path, device: str | torch.device | Non
                         ) -> tuple[PreTrainedModel, PreTrainedTokenizerBase, dict]:
     """(model in eval mode on ``device``, left-padding tokenizer, run info) for ``model_path``. A LoRA
     adapter is merged into its base: ``base`` where given (:func:`adapter_base`; a full checkpoint
-    ignores it), else the folder its ``adapter_config.json`` names."""
+    ignores it), else the folder its ``adapter_config.json`` names; an adapter folder without a tokenizer
+    (a curve point kept without one) takes its base's."""
     path = Path(model_path)
     if not path.is_dir():
         raise TrainingSetupError(f"model path {str(path)!r} is not a directory")
@@ -140,6 +141,7 @@ def load_for_generation(model_path: str | Path, device: str | torch.device | Non
         dtype = "bfloat16" if device.type == "cuda" else "float32"
     info = read_run_info(path)
     adapter = path / "adapter_config.json"
+    tokenizer_path = path
     if adapter.is_file():
         from peft import PeftModel
 
@@ -147,10 +149,12 @@ def load_for_generation(model_path: str | Path, device: str | torch.device | Non
         model = PeftModel.from_pretrained(load_model(base_path, dtype=dtype), str(path)).merge_and_unload()
         if not info:
             info = read_run_info(base_path)
+        if not any((path / f).is_file() for f in ("tokenizer.json", "tokenizer_config.json")):
+            tokenizer_path = Path(base_path)  # a curve point kept without it: LoRA leaves the base's as it is
     else:
         model = load_model(path, dtype=dtype)
     model.to(device).eval()
-    return model, load_tokenizer(path), info
+    return model, load_tokenizer(tokenizer_path), info
 
 
 def adapter_base(adapter_dir: str | Path, base: str | Path | None = None) -> str:

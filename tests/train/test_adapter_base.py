@@ -111,3 +111,14 @@ def test_anchors_decode_a_carried_adapter_on_the_base_they_are_given(carried, tm
     rows = [json.loads(line) for line in out.read_text().splitlines()]
     torch.testing.assert_close(seen[0], logits)
     assert [r["sft_completion"] for r in rows] == ["not a layout"] * 2
+
+
+def test_an_adapter_kept_without_its_tokenizer_reads_its_bases(carried):
+    """A curve point kept as adapter weights and config only (an artifact leaves the rest of an earlier
+    checkpoint out) loads with its base's tokenizer: LoRA does not change it."""
+    ckpt, base, ids, logits = carried
+    for name in ("tokenizer.json", "tokenizer_config.json"):
+        (ckpt / name).unlink()
+    model, tokenizer, _ = load_for_generation(ckpt, device="cpu", base=base)
+    torch.testing.assert_close(model(input_ids=ids).logits, logits)
+    assert tokenizer("layout:")["input_ids"] == ids[0].tolist() and tokenizer.padding_side == "left"
