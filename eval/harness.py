@@ -437,8 +437,9 @@ def run_evaluation(cfg, *, command: str = "", title: str = "physcene evaluation"
                 renders.setdefault(it.id, {})[f"{name} {view}"] = str(p.relative_to(out))
     tables = {k: {kk: vv for kk, vv in v.items() if kk != "scenes"} for k, v in methods.items()}
     names = list(methods)
+    first = [SceneResult.from_dict(d) for d in methods[names[0]]["scenes"]]
     for name in names[1:]:  # every method against the first, scene by scene
-        first, second = ([SceneResult.from_dict(d) for d in methods[k]["scenes"]] for k in (names[0], name))
+        second = [SceneResult.from_dict(d) for d in methods[name]["scenes"]]
         methods[name]["paired"] = tables[name]["paired"] = {"against": names[0],
                                                             **paired_collisions(first, second)}
     path = write_report(out, tables, title=title, command=command, renders=renders,

@@ -45,6 +45,7 @@ __all__ = [
     "MAX_COORDINATE_CM",
     "MAX_SIZE_CM",
     "MIN_SIZE_CM",
+    "RECORD_FILES",
     "parse_json",
     "quaternion_tilt",
     "quaternion_to_yaw",
@@ -386,6 +387,10 @@ def iter_layout_tree(root, *, skip_errors: bool = False) -> Iterator[tuple[Path,
                 continue
             raise
         yield path, scene
+
+
+RECORD_FILES = (".jsonl", ".jsonl.gz")
+"""The name endings of a JSONL file of layout records, gzipped or not (:func:`layout_record_lines`)."""
 
 
 def layout_record_lines(path) -> list[tuple[int, str]]:

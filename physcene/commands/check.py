@@ -20,7 +20,7 @@ from pathlib import Path
 from tqdm import tqdm
 
 from physcene.commands import add_quiet, print_json
-from physcene.layout import layout_record_lines, load_layout, parse_json
+from physcene.layout import RECORD_FILES, layout_record_lines, load_layout, parse_json
 from physcene.scene import Scene, SceneError
 
 NAME = "check"
@@ -94,16 +94,13 @@ def _is_layout(data) -> bool:
     return isinstance(data, dict) and ("item_placement_zone" in data or "objects" in data)
 
 
-_DATASETS = (".jsonl", ".jsonl.gz")  # JSONL layout records, gzipped or not
-
-
 def _collect_dir(path: Path) -> list[_Item]:
     """The layouts under a folder: ``layout.json`` / ``*.layout.json`` files (MesaTask trees) and
     JSONL datasets (``physcene data synth``); where there are none of those, every ``*.json`` that
     holds a layout (eval's ``layouts/<method>/<id>.json``), other JSON (stats, reports) skipped."""
     files = sorted(p for p in path.rglob("*.json") if p.is_file())
     named = [p for p in files if p.name == "layout.json" or p.name.endswith(".layout.json")]
-    datasets = sorted(p for p in path.rglob("*.jsonl*") if p.is_file() and p.name.endswith(_DATASETS))
+    datasets = sorted(p for p in path.rglob("*.jsonl*") if p.is_file() and p.name.endswith(RECORD_FILES))
     items = [_load_json_file(p) for p in named]
     for p in datasets:
         items.extend(_load_jsonl(p))
@@ -129,7 +126,7 @@ def collect(paths) -> list[_Item]:
         path = Path(raw)
         if path.is_dir():
             items.extend(_collect_dir(path))
-        elif path.name.endswith(_DATASETS):
+        elif path.name.endswith(RECORD_FILES):
             missing = [_Item(str(path), error=f"{path}: no such file")]
             items.extend(_load_jsonl(path) if path.is_file() else missing)
         elif path.is_file():

@@ -24,7 +24,7 @@ from pathlib import Path
 from physcene.commands import add_json, add_quiet, print_json
 from physcene.ctrc import MAX_DECIMALS, completion_text, decimals_of
 from physcene.files import write_atomic
-from physcene.layout import layout_record_lines, layout_to_dict, load_layout, parse_json
+from physcene.layout import RECORD_FILES, layout_record_lines, layout_to_dict, load_layout, parse_json
 from physcene.scene import SceneError
 from physcene.tto import TTOConfig, repair, summarize
 
@@ -78,10 +78,6 @@ def _repaired_columns(record: dict, raw: dict, scene, decimals: int | None) -> d
 
 def _report_path(out: Path) -> Path:
     return out.with_name(out.name.removesuffix(".gz").rsplit(".", 1)[0] + ".report.json")
-
-
-def _is_jsonl(path: Path) -> bool:
-    return path.name.endswith((".jsonl", ".jsonl.gz"))
 
 
 def _items_file(src: Path):
@@ -142,16 +138,17 @@ def run(args) -> int:
     config = TTOConfig.load(overrides)
     if src.is_dir():
         mode, items = "tree", _items_tree(src)
-    elif _is_jsonl(src):
+    elif src.name.endswith(RECORD_FILES):
         mode, items = "jsonl", _items_jsonl(src)
     else:
         mode, items = "file", _items_file(src)
     # -o names a folder when it is one or ends with a slash (newdir/): the output goes inside
     if mode != "tree" and (out.is_dir() or args.output.endswith(("/", os.sep))):
         out = out / src.name
-    scenes = [scene for *_, scene in items if scene is not None]
-    repaired = iter(repair(scenes, config, PhysicsEngine(device=config.device), progress=not args.quiet))
-    results = [None if scene is None else next(repaired) for *_, scene in items]
+    repaired = repair([scene for *_, scene in items if scene is not None], config,
+                      PhysicsEngine(device=config.device), progress=not args.quiet)
+    order = iter(repaired)
+    results = [None if scene is None else next(order) for *_, scene in items]  # aligned with items
     reports = []
     if mode == "tree":
         for (rel, raw, _), result in zip(items, results):
@@ -181,10 +178,10 @@ def run(args) -> int:
     _write_text(report_path, json.dumps(reports, indent=1, ensure_ascii=False) + "\n")
     if args.json:
         print_json({"input": src, "output": out, "report": report_path,
-                    "summary": summarize([r for r in results if r is not None]),
+                    "summary": summarize(repaired),
                     "collision_depth_cm": config.collision_depth_cm, "scenes": reports})
     else:
-        print(_summary([r for r in results if r is not None], config), f"report: {report_path}")
+        print(_summary(repaired, config), f"report: {report_path}")
     return 0
 
 
