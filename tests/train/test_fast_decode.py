@@ -9,7 +9,13 @@ import torch
 from transformers import GenerationConfig, LogitsProcessorList
 
 from physcene.train.constrained import CTRCConstraint, sampling_warpers
-from physcene.train.decode import FOLDED_ATTENTION, fast_generate, folded_gqa_attention, text_model
+from physcene.train.decode import (
+    FOLDED_ATTENTION,
+    decoder_for,
+    fast_generate,
+    folded_gqa_attention,
+    text_model,
+)
 from physcene.train.generate import generate_token_ids
 from physcene.train.models import build_scratch_model
 
@@ -272,6 +278,34 @@ def test_cuda_graph_steps_equal_eager_steps_and_hf_generate(records, tokenizer):
         torch.manual_seed(11)
         runs.append(fast_generate(model, ids, mask, sampling=True, warpers=warpers, **common).tokens)
     assert runs[0] == runs[1]
+
+
+@pytest.mark.cuda
+def test_constrained_reads_wait_for_a_launch_that_captured(records, tokenizer, monkeypatch):
+    """A graph capture runs its step for real first, rewriting both logits slots before it restores
+    them: the constraint's reads, on a stream of their own, wait for every launch that captured (else
+    a scan of step t's logits races the warm-up's writes), and the ids stay those of eager steps."""
+    model = build_scratch_model(ARCH, tokenizer, seed=3).cuda().eval()
+    prompts, prefix, ids, mask = _plan_prefixed(records, tokenizer, 4)
+    ids, mask = ids.cuda(), mask.cuda()
+    common = dict(max_new_tokens=160, eos=[tokenizer.eos_token_id], pad=tokenizer.pad_token_id)
+    eager = fast_generate(model, ids, mask, graphs=False, constraint=_primed(tokenizer, prompts, prefix),
+                          **common)
+    waits, real = [], torch.cuda.Stream.wait_stream
+
+    def wait_stream(stream, other):
+        waits.append(stream == torch.cuda.current_stream() or other != torch.cuda.current_stream())
+        return real(stream, other)
+
+    monkeypatch.setattr(torch.cuda.Stream, "wait_stream", wait_stream)
+    decoder = decoder_for(model, ids.shape[0], ids.shape[1] + common["max_new_tokens"])
+    before = decoder.warmups
+    graphed = fast_generate(model, ids, mask, constraint=_primed(tokenizer, prompts, prefix), **common)
+    assert graphed.graphs and graphed.tokens == eager.tokens
+    captures = decoder.warmups - before
+    assert captures > 0
+    # a side stream waiting for the decoding stream: each capture's warm-up stream, and the reads after it
+    assert waits.count(False) == 2 * captures
 
 
 def _decoding_step_inputs():

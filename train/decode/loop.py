@@ -125,6 +125,7 @@ class FastDecoder:
         self.graphs: dict[tuple, torch.cuda.CUDAGraph] = {}
         self.fallback_reason: str | None = None
         self.capture_seconds = 0.0
+        self.warmups = 0  # captures tried: each ran the step for real first (its writes restored after)
         self.attention = attention
         register_folded_attention(attention)
         self.fuse = bool(fuse)
@@ -179,6 +180,7 @@ class FastDecoder:
         if graph is not None or self.fallback_reason is not None:
             return graph
         start = time.perf_counter()
+        self.warmups += 1
         state = [t.clone() for t in self._state()]
         rng = torch.cuda.get_rng_state(self.device)  # warm-up draws must not shift a seeded run
         try:
@@ -372,7 +374,17 @@ class FastDecoder:
         # the step's stream that read would queue behind step t + 1, already launched, and the host would
         # wait for the whole step at every such check; on a stream of its own it waits only for step t,
         # whose event the check has already waited for. The same kernels run, so the same tokens come out.
+        # Except where launching step t + 1 captured a graph: the capture's warm-up runs the step for real,
+        # writing both logits slots, and restores them after; a read on its own stream would race those
+        # writes (on an H200 shared by four decodes: torch's topk assert, `writeIndex < outputSliceSize`),
+        # so the reads of that check wait for the step (one wait per read length, 8 a call at most).
         reads = torch.cuda.Stream(self.device) if cuda and self.reads_stream else None
+
+        def launch() -> None:
+            warmups = self.warmups
+            self.run_step()
+            if reads is not None and self.warmups != warmups:
+                reads.wait_stream(torch.cuda.current_stream(self.device))
 
         def check(slot: int, skip: set[int]) -> dict[int, int]:
             if events[slot] is not None:
@@ -404,12 +416,12 @@ class FastDecoder:
         skip: set[int] = set()
         if not constraint.done():
             read += self._read_length_peek()
-            self.run_step()
+            launch()
             steps += 1
             fetch(steps % 2)
         while not constraint.done() and steps < limit:
             read += self._read_length_peek()
-            self.run_step()  # speculative: step t + 1 with step t's tokens, before they are checked
+            launch()  # speculative: step t + 1 with step t's tokens, before they are checked
             steps += 1
             fetch(steps % 2)
             corrections = check((steps - 1) % 2, skip)
