@@ -200,13 +200,17 @@ def run_anchors(cfg: DictConfig) -> Path:
 
 @torch.no_grad()
 def anchor_nll(model_path: str | Path, records: list[dict], *, column: str = "anchor", max_length: int = 8192,
-               device: str | None = None, batch_size: int = 16, base: str | Path | None = None) -> dict:
+               device: str | None = None, batch_size: int = 16, base: str | Path | None = None,
+               temperature: float = 1.0) -> dict:
     """How likely the model at ``model_path`` (an SFT model or an RL adapter on it) finds anchors:
     the mean NLL per anchor token (EOS included, as PADA's cross-entropy counts them) of the records'
     ``column`` text given their prompts, teacher-forced. Held-out anchors (``anchors.exclude``) make it
     the measure of what PADA claims: the policy kept close to the repaired layouts of prompts it did
     not train on. Returns ``{"nll", "tokens", "n"}`` (records without an anchor are left out). ``base``: an
-    adapter's base model (:func:`physcene.train.generate.adapter_base`)."""
+    adapter's base model (:func:`physcene.train.generate.adapter_base`). ``temperature``: the NLL under
+    ``softmax(logits / temperature)``; PADA's cross-entropy is taken at the rollouts' temperature
+    (``pada.temperature``: TRL's log-probabilities divide the logits by it), so a run's own objective is
+    read at that temperature, while 1 reads the model as it decodes greedily or samples at T = 1."""
     model, tokenizer, info = load_for_generation(model_path, device=device, base=base)
     fmt = input_format(info)
     rows = []
@@ -218,7 +222,8 @@ def anchor_nll(model_path: str | Path, records: list[dict], *, column: str = "an
     rows.sort(key=lambda row: len(row[0]) + len(row[1]))  # batches of similar length: little padding
     total, tokens = 0.0, 0
     for start in range(0, len(rows), batch_size):
-        nll, count = teacher_forced_nll(model, rows[start:start + batch_size], pad=tokenizer.pad_token_id)
+        nll, count = teacher_forced_nll(model, rows[start:start + batch_size], pad=tokenizer.pad_token_id,
+                                        temperature=temperature)
         total += float(nll)
         tokens += int(count)
     return {"nll": total / max(tokens, 1), "tokens": tokens, "n": len(rows)}

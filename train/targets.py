@@ -109,11 +109,13 @@ def _tokens_over(offsets, spans: list[tuple[int, int]]) -> list[int]:
 
 
 def teacher_forced_nll(model, rows: list[tuple[list[int], list[int], list[int]]],
-                       pad: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
+                       pad: int = 0, temperature: float = 1.0) -> tuple[torch.Tensor, torch.Tensor]:
     """(summed NLL, supervised token count) of ``rows`` of (prompt ids, target ids, target loss mask),
     each read as [prompt | target] right padded with ``pad``, teacher-forced: the NLL of every target
-    token whose mask is set, given everything before it. Differentiable (callers that only measure wrap
-    it in ``torch.no_grad``)."""
+    token whose mask is set, given everything before it, under ``softmax(logits / temperature)``.
+    Differentiable (callers that only measure wrap it in ``torch.no_grad``)."""
+    if not temperature > 0:
+        raise ValueError(f"temperature must be > 0, got {temperature}")
     width = max(len(p) + len(t) for p, t, _ in rows)
     ids = torch.full((len(rows), width), pad, dtype=torch.long)
     attention = torch.zeros((len(rows), width), dtype=torch.long)
@@ -124,7 +126,7 @@ def teacher_forced_nll(model, rows: list[tuple[list[int], list[int], list[int]]]
         supervised[k, len(p):len(p) + len(t)] = torch.tensor(m, dtype=torch.bool)
     device = next(model.parameters()).device
     ids, attention, supervised = (x.to(device) for x in (ids, attention, supervised))
-    logits = model(input_ids=ids, attention_mask=attention).logits[:, :-1].float()
+    logits = model(input_ids=ids, attention_mask=attention).logits[:, :-1].float() / temperature
     nll = torch.nn.functional.cross_entropy(logits.transpose(1, 2), ids[:, 1:], reduction="none")
     keep = supervised[:, 1:]
     return nll[keep].sum(), keep.sum()

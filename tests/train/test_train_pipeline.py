@@ -513,3 +513,25 @@ def test_pada_without_lora_trains_every_weight_and_loads_for_generation(tmp_path
     prompt = json.loads(Path(cfg.data.train).read_text().splitlines()[0])["prompt"]
     ids = generate_token_ids(model, tokenizer, [prompt], max_new_tokens=8, batch_size=1)
     assert len(ids) == 1 and 0 < len(ids[0]) <= 8
+
+
+def test_anchor_nll_at_a_temperature_divides_the_logits_by_it(tmp_path, one_thread):
+    """``anchor_nll(..., temperature=T)``: the NLL under softmax(logits / T), the temperature PADA's
+    cross-entropy is taken at (TRL's log-probabilities divide by ``pada.temperature``); T = 1 is the
+    untempered figure, and a temperature that is not positive is refused."""
+    cfg = _sft_for_pada(tmp_path, 4, seed=3)
+    rows = [dict(r, anchor=r["completion"]) for r in _records(1, seed=4)]
+    model, tokenizer, _ = load_for_generation(cfg.sft.output_dir, device="cpu")
+    prompt = tokenizer(rows[0]["prompt"], add_special_tokens=False)["input_ids"]
+    target = tokenizer(rows[0]["anchor"], add_special_tokens=False)["input_ids"] + [tokenizer.eos_token_id]
+    with torch.no_grad():
+        logits = model(input_ids=torch.tensor([prompt + target])).logits[0].float()
+    for temperature in (0.4, 1.0):
+        logps = (logits / temperature).log_softmax(-1)
+        by_hand = -sum(float(logps[len(prompt) - 1 + k, t]) for k, t in enumerate(target)) / len(target)
+        got = anchor_nll(cfg.sft.output_dir, rows, device="cpu", temperature=temperature)["nll"]
+        assert got == pytest.approx(by_hand, rel=1e-4)
+    assert anchor_nll(cfg.sft.output_dir, rows, device="cpu", temperature=0.4)["nll"] != pytest.approx(
+        anchor_nll(cfg.sft.output_dir, rows, device="cpu")["nll"], rel=1e-3)
+    with pytest.raises(ValueError, match="temperature must be > 0"):
+        anchor_nll(cfg.sft.output_dir, rows, device="cpu", temperature=0.0)

@@ -13,7 +13,10 @@ on kept checkpoints without evaluating them again:
         --out docs/results/anchor_nll.json
 
 ``--base`` loads the adapters on that SFT model instead of the path their ``adapter_config.json`` names
-(the training host's; :func:`physcene.train.generate.adapter_base`).
+(the training host's; :func:`physcene.train.generate.adapter_base`). ``--temperature T`` reads the NLL
+under ``softmax(logits / T)``: PADA's cross-entropy is taken at the rollouts' temperature (TRL divides the
+logits of its log-probabilities by ``pada.temperature``), so runs at different temperatures compare at
+their own T, and at 1 as the model decodes.
 """
 
 from __future__ import annotations
@@ -34,16 +37,17 @@ __all__ = ["anchor_likelihoods"]
 
 
 def anchor_likelihoods(anchors: str | Path, models: dict[str, str], *, device: str = "cpu",
-                       batch_size: int = 16, max_length: int = 8192, base: str | Path | None = None) -> dict:
-    """``{"anchors", "n", "tokens", "models": {name: {"path", "nll", "seconds"}}}`` for each named model
-    (a checkpoint folder: an SFT model or an RL adapter, on ``base`` where given) on the anchor file
-    ``anchors``."""
+                       batch_size: int = 16, max_length: int = 8192, base: str | Path | None = None,
+                       temperature: float = 1.0) -> dict:
+    """``{"anchors", "n", "tokens", "temperature", "models": {name: {"path", "nll", "seconds"}}}`` for each
+    named model (a checkpoint folder: an SFT model or an RL adapter, on ``base`` where given) on the anchor
+    file ``anchors``, the NLL under ``softmax(logits / temperature)``."""
     records = load_records(str(anchors))
-    out: dict = {"anchors": str(anchors), "models": {}}
+    out: dict = {"anchors": str(anchors), "temperature": temperature, "models": {}}
     for name, path in models.items():
         start = time.perf_counter()
         figure = anchor_nll(path, records, device=device, batch_size=batch_size, max_length=max_length,
-                            base=base)
+                            base=base, temperature=temperature)
         out.update(n=figure["n"], tokens=figure["tokens"])
         out["models"][name] = {"path": str(path), "nll": figure["nll"],
                                "seconds": round(time.perf_counter() - start, 1)}
@@ -71,11 +75,17 @@ def main() -> None:
     parser.add_argument("--max-length", type=int, default=2304, help="anchor tokens kept (the rollout bound)")
     parser.add_argument("--base", help="the SFT model the adapters are loaded on (default: the one each "
                                        "adapter_config.json names)")
+    parser.add_argument("--temperature", type=float, default=1.0,
+                        help="the NLL under softmax(logits / T) (default 1; a PADA run's own "
+                             "cross-entropy is taken at its pada.temperature)")
     args = parser.parse_args()
     if not Path(args.anchors).is_file():
         parser.error(f"anchors: {args.anchors!r} does not exist")
+    if not args.temperature > 0:
+        parser.error(f"--temperature must be > 0, got {args.temperature}")
     result = anchor_likelihoods(args.anchors, dict(args.models), device=args.device,
-                                batch_size=args.batch_size, max_length=args.max_length, base=args.base)
+                                batch_size=args.batch_size, max_length=args.max_length, base=args.base,
+                                temperature=args.temperature)
     result["device"] = torch.cuda.get_device_name(0) if args.device.startswith("cuda") else "cpu"
     result["command"] = "python -m physcene.train.analysis.anchor_likelihood " + shlex.join(sys.argv[1:])
     print(json.dumps(result, indent=1))
