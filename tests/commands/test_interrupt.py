@@ -30,9 +30,12 @@ class _Run:
 
     def __init__(self, args: list[str], cwd: Path):
         cwd.mkdir(parents=True, exist_ok=True)
+        # SIGINT back to its default in the command: a suite started in the background of a
+        # non-interactive shell (`pytest &`) inherits it ignored, and Python keeps an ignored SIGINT
         self.proc = subprocess.Popen([sys.executable, "-m", "physcene.cli", *args], cwd=cwd, env=ENV,
                                      stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
-                                     start_new_session=True)
+                                     start_new_session=True,
+                                     preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
         self.stderr = ""
         self.reader = threading.Thread(target=self._read, daemon=True)
         self.reader.start()
