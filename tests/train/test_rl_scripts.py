@@ -247,3 +247,29 @@ def test_poll_stops_when_the_run_is_gone_without_an_exit_status(tmp_path):
     polled = subprocess.run(["bash", str(SCRIPTS / "rl_remote.sh"), "poll", "60"], env=env,
                             capture_output=True, text=True, timeout=20)
     assert "train/x.sh (pid" in polled.stderr and "is gone without an exit status" in polled.stderr
+
+
+def test_a_pada_run_that_fails_on_its_fast_cache_retries_with_a_config_the_dynamic_cache_accepts(tmp_path):
+    """A run whose fast cache fails (an out-of-memory step) goes again on the dynamic cache; merged
+    adapters, which an EXTRA may ask for, exist for the fast decoder only, so the retry overrules them
+    instead of stopping on a configuration error."""
+    from physcene.config import load_config
+    from physcene.train.pada import pada_arguments
+
+    calls = tmp_path / "calls.txt"
+    launcher = tmp_path / "launch"  # records its arguments; fails unless it is given the dynamic cache
+    launcher.write_text(f'#!/bin/bash\necho "$*" >> {calls}\n[[ " $* " == *" pada.cache=dynamic "* ]]\n')
+    launcher.chmod(0o755)
+    env = {"PATH": os.environ["PATH"], "HOME": str(tmp_path), "NPROC": "1", "LAUNCH": str(launcher),
+           "STAGES": "pada", "CONFIG": "tiny", "PADA_CACHE": "fast+fused+cudnn",
+           "EXTRA": "pada.merge_adapters=true pada.temperature=0.7"}
+    done = subprocess.run(["bash", str(SCRIPTS / "ablation_small.sh")], cwd=tmp_path, env=env,
+                          capture_output=True, text=True, timeout=60)
+    assert done.returncode == 0, done.stderr
+    assert "again with the dynamic cache" in done.stdout
+    first, retry = calls.read_text().splitlines()
+    assert "pada.cache=fast+fused+cudnn" in first.split()
+    overrides = [w for w in retry.split() if "=" in w and not w.startswith("--")]
+    cfg = load_config("train_tiny", [f"output_dir={tmp_path}", *overrides])
+    args = pada_arguments(cfg, "pada")  # raised "pada.merge_adapters merges ..." before the fix
+    assert not args.merge_adapters and cfg.pada.cache == "dynamic" and cfg.pada.temperature == 0.7

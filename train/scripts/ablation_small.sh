@@ -110,8 +110,9 @@ train_variant() {  # $1: the variant, $2: a rendezvous port of its own (variants
     pada.max_minutes="$PADA_MIN" && return 0
   if [ -n "$PADA_CACHE" ] && [ "$PADA_CACHE" != dynamic ]; then
     stamp "$1 failed with cache $PADA_CACHE; again with the dynamic cache"
+    # (merged adapters exist for the fast decoder only: an EXTRA that merges them is overruled here)
     $launch -m physcene.cli train pada --config "$CONFIG" --variant "$1" $common pada.cache=dynamic \
-      pada.max_minutes="$PADA_MIN" && return 0
+      pada.merge_adapters=false pada.max_minutes="$PADA_MIN" && return 0
   fi
   stamp "$1 failed (the ablation retries it within its budget or reports it skipped)"
 }
