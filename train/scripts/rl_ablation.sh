@@ -62,7 +62,8 @@ FIRST_GPU=${FIRST_GPU:-0}           # the study's GPUs: FIRST_GPU ... FIRST_GPU 
 GPUS=${GPUS:-$(python3 -c "import torch; print(max(1, torch.cuda.device_count() - $FIRST_GPU))")}
 gpus=$(seq -s, "$FIRST_GPU" $((FIRST_GPU + GPUS - 1)))  # CUDA_VISIBLE_DEVICES of a stage on all of them
 PER_GPU=${PER_GPU:-1}               # RL runs sharing one GPU at a time (a 27 M model leaves an H100 idle between
-                                    # its kernels: 2 fill the gaps of one)
+                                    # its kernels: 2 fill the gaps of one; a 61.6 M run holds ~20 GB of an 80 GB
+                                    # H100: 2 fit, 4 ran out of memory)
 want() { [[ " $STAGES " == *" $1 "* ]]; }
 stamp() { echo "[$(date +%T)] $*"; }
 
